@@ -1,0 +1,73 @@
+"""The calibration record written to `calibration.json` (DESIGN.md contract)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+def n_mag_from_dip(dip_rad: float) -> np.ndarray:
+    """Nav-frame unit field: x along the horizontal component, z up: [cos δ, 0, −sin δ]."""
+    return np.array([np.cos(dip_rad), 0.0, -np.sin(dip_rad)])
+
+
+@dataclass
+class Calibration:
+    """Magnetometer model b_mag = D·bRn·n_mag + o + e (Kok & Schön), plus gyro bias and noise levels.
+
+    Attributes:
+        D: (3, 3) scale, skew, soft iron and misalignment to the inertial axes.
+        o: (3,) hard-iron offset, in the magnetometer's unit.
+        dip_deg: field dip δ in degrees (positive: field points down).
+        gyro_bias: (3,) rad/s.
+        noise: per-axis standard deviations {"gyr": rad/s, "acc": m/s², "mag": magnetometer unit}.
+        std: marginal standard deviations {"D": (3, 3), "o": (3,)}.
+        coverage: what rotation the data hold and whether the problem was identifiable.
+        converged, iterations: state of the maximum-likelihood loop.
+    """
+
+    D: np.ndarray
+    o: np.ndarray
+    dip_deg: float
+    gyro_bias: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    noise: dict = field(default_factory=dict)
+    std: dict = field(default_factory=dict)
+    coverage: dict = field(default_factory=dict)
+    converged: bool = False
+    iterations: int = 0
+
+    @property
+    def dip_rad(self) -> float:
+        return float(np.deg2rad(self.dip_deg))
+
+    @property
+    def n_mag(self) -> np.ndarray:
+        return n_mag_from_dip(self.dip_rad)
+
+    def apply(self, b_mag: np.ndarray) -> np.ndarray:
+        """Calibrated field D⁻¹(b_mag − o): unit norm, in the inertial sensor axes. (N, 3) → (N, 3)."""
+        return np.linalg.solve(self.D, (np.asarray(b_mag, float) - self.o).T).T
+
+    def to_dict(self) -> dict:
+        def arr(x):
+            return np.asarray(x, float).tolist()
+        return {
+            "D": arr(self.D), "o": arr(self.o), "dip_deg": float(self.dip_deg),
+            "gyro_bias": arr(self.gyro_bias),
+            "noise": {k: arr(v) for k, v in self.noise.items()},
+            "std": {k: arr(v) for k, v in self.std.items()},
+            "coverage": self.coverage, "converged": bool(self.converged),
+            "iterations": int(self.iterations),
+        }
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "Calibration":
+        return cls(
+            D=np.asarray(d["D"], float).reshape(3, 3), o=np.asarray(d["o"], float).reshape(3),
+            dip_deg=float(d["dip_deg"]), gyro_bias=np.asarray(d.get("gyro_bias", [0, 0, 0]), float),
+            noise={k: np.asarray(v, float) for k, v in d.get("noise", {}).items()},
+            std={k: np.asarray(v, float) for k, v in d.get("std", {}).items()},
+            coverage=d.get("coverage", {}), converged=bool(d.get("converged", False)),
+            iterations=int(d.get("iterations", 0)),
+        )

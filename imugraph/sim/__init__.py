@@ -1,0 +1,1 @@
+"""imugraph.sim"""
