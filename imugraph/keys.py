@@ -2,14 +2,17 @@
 
 R(k)  orientation nRb of keyframe k (Rot3)
 B(0)  gyroscope bias δ_ω (Vector3, rad/s)
-D(0)  magnetometer distortion matrix D as a 9-vector, row-major (Vector)
-O(0)  magnetometer offset o (Vector3)
-M(0)  field dip δ (Vector1, rad): n_mag = [cos δ, 0, -sin δ]
+C(0)  magnetometer calibration θ = (vec D row-major (9), o (3), dip δ (1)) as one Vector13.
+      One vector key keeps every magnetometer factor a two-key (R_k, θ) factor, which the batch solver
+      turns into one HessianFactor per keyframe, and gives the marginal covariance of D, o, δ in one block.
 """
 
-from gtsam.symbol_shorthand import B, D, M, O, R  # noqa: F401
+from gtsam.symbol_shorthand import B, C, R  # noqa: F401
 
 BIAS = B(0)
-DMAT = D(0)
-OFFSET = O(0)
-DIP = M(0)
+CALIB = C(0)
+
+
+def rot(k: int) -> int:
+    """Key of keyframe k's orientation."""
+    return R(int(k))

@@ -1,0 +1,111 @@
+"""Gyroscope preintegration between keyframes (Forster et al. TRO 2017, rotation part), vectorised.
+
+Gyro model (DESIGN.md): b_gyr = ω + δ_ω + e. Between keyframe samples s_k and s_{k+1} the measured rates
+are integrated with the bias estimate b̂:
+
+    ΔR_{k,j+1} = ΔR_{k,j} · Exp((ω_j − b̂) Δt_j)                                 (rotation, eq. 35)
+    ∂ΔR/∂b    ← Exp(θ_j)ᵀ ∂ΔR/∂b − J_r(θ_j) Δt_j,     θ_j = (ω_j − b̂) Δt_j       (bias Jacobian, eq. 44)
+    Σ_ΔR      ← Exp(θ_j)ᵀ Σ_ΔR Exp(θ_j) + Q_c Δt_j,    Q_c = σ_d² Δt_j I          (GTSAM's convention)
+
+The same recursion gives the intra-keyframe rotations kRb_j = ΔR_{k,j} that attach every accelerometer
+and magnetometer sample to its keyframe. The results feed GTSAM's `PreintegratedAhrsMeasurements`
+(full constructor) and C++ `AHRSFactor`, so no per-sample Python call into GTSAM is made.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import gtsam
+import numpy as np
+
+from imugraph.geometry import expmap, skew
+
+
+def right_jacobian(theta: np.ndarray) -> np.ndarray:
+    """SO(3) right Jacobian J_r(θ), (…, 3) → (…, 3, 3)."""
+    t = np.linalg.norm(theta, axis=-1)[..., None, None]
+    K = skew(theta)
+    small = t < 1e-6
+    ts = np.where(small, 1.0, t)
+    a = np.where(small, 0.5 - t**2 / 24.0, (1.0 - np.cos(ts)) / ts**2)
+    b = np.where(small, 1.0 / 6.0 - t**2 / 120.0, (ts - np.sin(ts)) / ts**3)
+    return np.eye(3) - a * K + b * (K @ K)
+
+
+def keyframe_layout(n: int, stride: int) -> tuple[np.ndarray, np.ndarray]:
+    """Keyframe sample indices (K,) every `stride` samples (the last sample is always one), and the
+    keyframe each sample is attached to (N,): sample i belongs to the last keyframe at or before it."""
+    kf_samples = np.arange(0, n, max(1, int(stride)))
+    if kf_samples[-1] != n - 1:
+        kf_samples = np.append(kf_samples, n - 1)
+    sample_kf = np.searchsorted(kf_samples, np.arange(n), side="right") - 1
+    return kf_samples, sample_kf
+
+
+@dataclass
+class Preintegration:
+    """Everything integrated from the gyro for one keyframe layout and bias estimate.
+
+    Attributes:
+        kf_samples: (K,) sample index of each keyframe.
+        sample_kf: (N,) keyframe each sample is attached to.
+        kRb: (N, 3, 3) rotation of each sample's body frame into its keyframe's body frame.
+        delta_R: (K−1, 3, 3) ΔR between consecutive keyframes; dR_db (K−1, 3, 3); cov (K−1, 3, 3); dt (K−1,).
+        bias_hat: (3,) bias used.
+    """
+
+    kf_samples: np.ndarray
+    sample_kf: np.ndarray
+    kRb: np.ndarray
+    delta_R: np.ndarray
+    dR_db: np.ndarray
+    cov: np.ndarray
+    dt: np.ndarray
+    bias_hat: np.ndarray
+
+
+def preintegrate(b_gyr: np.ndarray, dt: np.ndarray, kf_samples: np.ndarray, sample_kf: np.ndarray,
+                 bias_hat: np.ndarray, sigma_gyr: np.ndarray) -> Preintegration:
+    """Integrate the gyro within every keyframe interval at once (loop over the position in the interval).
+
+    Args:
+        b_gyr: (N, 3) rad/s; dt: (N,) s, step from sample i to i+1; kf_samples, sample_kf: keyframe layout;
+        bias_hat: (3,) rad/s; sigma_gyr: (3,) discrete per-sample gyro noise std, rad/s.
+    """
+    n = b_gyr.shape[0]
+    k = len(kf_samples)
+    theta = (b_gyr - bias_hat) * dt[:, None]                  # (N,3) rotation increment of sample i
+    var_step = (np.asarray(sigma_gyr, float) ** 2)[None, :] * (dt**2)[:, None]   # (N,3) σ_d² Δt²
+    lengths = np.diff(np.append(kf_samples, n))               # samples attached to each keyframe
+    kRb = np.empty((n, 3, 3))
+    R = np.broadcast_to(np.eye(3), (k, 3, 3)).copy()
+    dRdb = np.zeros((k, 3, 3))
+    cov = np.zeros((k, 3, 3))
+    for p in range(int(lengths.max())):
+        active = np.nonzero(lengths > p)[0]
+        idx = kf_samples[active] + p
+        kRb[idx] = R[active]
+        th = theta[idx]
+        inc = expmap(th)
+        incT = np.transpose(inc, (0, 2, 1))
+        dRdb[active] = incT @ dRdb[active] - right_jacobian(th) * dt[idx][:, None, None]
+        cov[active] = incT @ cov[active] @ inc + var_step[idx][:, :, None] * np.eye(3)
+        R[active] = R[active] @ inc
+    # Interval k integrated the increments of samples s_k .. s_{k+1}−1: exactly keyframe k → k+1.
+    kf_dt = np.add.reduceat(dt, kf_samples)[:-1]
+    return Preintegration(kf_samples, sample_kf, kRb, R[:-1], dRdb[:-1], cov[:-1], kf_dt,
+                          np.asarray(bias_hat, float).copy())
+
+
+def ahrs_factors(pre: Preintegration, key_rot, key_bias: int, sigma_gyr: np.ndarray) -> list:
+    """One C++ `AHRSFactor` per keyframe interval, from the vectorised preintegration."""
+    params = gtsam.PreintegratedRotationParams()
+    step = float(np.median(pre.dt) / max(1.0, float(np.median(np.diff(pre.kf_samples)))))
+    params.setGyroscopeCovariance(np.diag(np.asarray(sigma_gyr, float) ** 2) * step)  # PSD σ_d²Δt
+    out = []
+    for i in range(len(pre.delta_R)):
+        pim = gtsam.PreintegratedAhrsMeasurements(params, pre.bias_hat, float(pre.dt[i]),
+                                                  gtsam.Rot3(pre.delta_R[i]), pre.dR_db[i], pre.cov[i])
+        out.append(gtsam.AHRSFactor(key_rot(i), key_rot(i + 1), key_bias, pim))
+    return out

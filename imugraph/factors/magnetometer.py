@@ -1,0 +1,82 @@
+"""Magnetometer calibration factor (Kok & Schön, IEEE Sensors J. 2016, eq. 6; Kok et al. FUSION 2012).
+
+Measurement model for sample j attached to keyframe k through the preintegrated gyro rotation ΔR_j
+(nRb_j = R_k · ΔR_j):
+
+    y_j = D · ΔR_jᵀ · R_kᵀ · n_mag(δ) + o + e_j,      n_mag(δ) = [cos δ, 0, −sin δ]ᵀ,   e_j ~ N(0, Σ_m)
+
+Residual e_j = h_j − y_j with h_j = D u_j + o, v_k = R_kᵀ n_mag, u_j = ΔR_jᵀ v_k. Jacobians (right
+perturbation R_k ← R_k·Exp(ξ), so ∂v_k/∂ξ = [v_k]×):
+
+    ∂e_j/∂ξ   = D ΔR_jᵀ [v_k]×
+    ∂e_j/∂d   = I₃ ⊗ u_jᵀ            (d = vec D, row-major)
+    ∂e_j/∂o   = I₃
+    ∂e_j/∂δ   = D ΔR_jᵀ R_kᵀ n_mag'(δ),   n_mag'(δ) = [−sin δ, 0, −cos δ]ᵀ
+"""
+
+from __future__ import annotations
+
+import gtsam
+import numpy as np
+
+from imugraph.factors.theta import INDEX_DIP, SLICE_D, SLICE_O, THETA_DIM, unpack_theta
+from imugraph.geometry import skew
+
+
+def n_mag(dip_rad: float) -> np.ndarray:
+    return np.array([np.cos(dip_rad), 0.0, -np.sin(dip_rad)])
+
+
+def magnetometer_model(kRb: np.ndarray, nRk: np.ndarray, theta: np.ndarray, b_mag: np.ndarray):
+    """Residuals and Jacobians of M magnetometer samples.
+
+    Args:
+        kRb: (M, 3, 3) ΔR_j, rotation of sample j's body frame into its keyframe's body frame.
+        nRk: (M, 3, 3) keyframe orientation R_k for each sample (repeated rows are fine).
+        theta: (13,) calibration (vec D, o, δ).
+        b_mag: (M, 3) measured field.
+
+    Returns:
+        e (M, 3) residual h − y; J_rot (M, 3, 3) w.r.t. the keyframe rotation; J_theta (M, 3, 13).
+    """
+    D, o, dip = unpack_theta(theta)
+    v = np.einsum("mji,j->mi", nRk, n_mag(dip))                # v = R_kᵀ n
+    dv = np.einsum("mji,j->mi", nRk, np.array([-np.sin(dip), 0.0, -np.cos(dip)]))
+    bRk = np.transpose(kRb, (0, 2, 1))
+    u = np.einsum("mij,mj->mi", bRk, v)                         # u = ΔRᵀ v
+    DbRk = D @ bRk                                              # (M,3,3) D ΔRᵀ
+    e = u @ D.T + o - b_mag
+    J_rot = DbRk @ skew(v)
+    m = u.shape[0]
+    J_theta = np.zeros((m, 3, THETA_DIM))
+    for i in range(3):
+        J_theta[:, i, 3 * i:3 * i + 3] = u
+    J_theta[:, :, SLICE_O] = np.eye(3)
+    J_theta[:, :, INDEX_DIP] = np.einsum("mij,mj->mi", DbRk, dv)
+    return e, J_rot, J_theta
+
+
+def magnetometer_factor(key_rot: int, key_theta: int, kRb: np.ndarray, b_mag: np.ndarray,
+                        sigma: np.ndarray) -> gtsam.CustomFactor:
+    """A CustomFactor on (R_k, θ) for K magnetometer samples of one keyframe (batched: 3K rows).
+
+    Args:
+        kRb: (K, 3, 3) ΔR_j of each sample; b_mag: (K, 3); sigma: (3,) per-axis std (magnetometer unit).
+    """
+    kRb = np.asarray(kRb, float).copy()
+    b_mag = np.asarray(b_mag, float).copy()
+    model = gtsam.noiseModel.Diagonal.Sigmas(np.tile(np.asarray(sigma, float), len(b_mag)))
+
+    def error(this: gtsam.CustomFactor, values: gtsam.Values, H):
+        nRk = values.atRot3(this.keys()[0]).matrix()
+        theta = values.atVector(this.keys()[1])
+        e, J_rot, J_theta = magnetometer_model(kRb, np.broadcast_to(nRk, kRb.shape), theta, b_mag)
+        if H is not None:
+            H[0] = J_rot.reshape(-1, 3)
+            H[1] = J_theta.reshape(-1, THETA_DIM)
+        return e.reshape(-1)
+
+    return gtsam.CustomFactor(model, [key_rot, key_theta], error)
+
+
+__all__ = ["magnetometer_model", "magnetometer_factor", "n_mag", "SLICE_D"]

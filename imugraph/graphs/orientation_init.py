@@ -1,0 +1,87 @@
+"""Initial keyframe orientations for the batch solver and per-sample orientations from keyframes.
+
+Initial values: a forward–backward complementary filter on keyframes. The gyro predicts
+R_{k+1} = R_k ΔR_k; the prediction is pulled toward the TRIAD orientation of the keyframe's mean
+accelerometer ("up") and calibrated magnetometer directions with a small gain (time constant ≈ tau_s), so
+that linear accelerations and disturbances average out. Forward and backward passes are averaged.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from imugraph.factors.gyro import Preintegration
+from imugraph.geometry import expmap, logmap, quat_slerp, rotmat_to_quat
+
+
+def triad(b_up: np.ndarray, b_mag: np.ndarray) -> np.ndarray:
+    """nRb (K, 3, 3) from body-frame up (K, 3) and field (K, 3): nav z = up, nav x = horizontal field."""
+    z = b_up / np.linalg.norm(b_up, axis=1, keepdims=True)
+    h = b_mag - np.sum(b_mag * z, axis=1, keepdims=True) * z
+    x = h / np.maximum(np.linalg.norm(h, axis=1, keepdims=True), 1e-12)
+    y = np.cross(z, x)
+    return np.stack([x, y, z], axis=1)     # rows are nav axes in body coordinates: bRn rows → nRb
+
+
+def keyframe_directions(pre: Preintegration, b_acc: np.ndarray, b_mag_cal: np.ndarray) -> tuple:
+    """Mean accelerometer and calibrated-field directions per keyframe, rotated into the keyframe frame."""
+    K = len(pre.kf_samples)
+    up = np.zeros((K, 3))
+    np.add.at(up, pre.sample_kf, np.einsum("mij,mj->mi", pre.kRb, b_acc))
+    valid = np.all(np.isfinite(b_mag_cal), axis=1)
+    mag = np.zeros((K, 3))
+    np.add.at(mag, pre.sample_kf[valid], np.einsum("mij,mj->mi", pre.kRb[valid], b_mag_cal[valid]))
+    # keyframes without a magnetometer sample borrow the nearest one that has
+    has = np.linalg.norm(mag, axis=1) > 0
+    if has.any() and not has.all():
+        idx = np.flatnonzero(has)
+        nearest = idx[np.clip(np.searchsorted(idx, np.arange(K)), 0, len(idx) - 1)]
+        mag[~has] = mag[nearest[~has]]
+    return up, mag
+
+
+def complementary_keyframes(pre: Preintegration, b_acc: np.ndarray, b_mag_cal: np.ndarray,
+                            tau_s: float = 4.0) -> np.ndarray:
+    """Forward–backward complementary filter on keyframes: (K, 3, 3) initial nRb."""
+    up, mag = keyframe_directions(pre, b_acc, b_mag_cal)
+    meas = triad(up, mag)                                  # (K,3,3) nRb measured
+    K = len(meas)
+    dt_kf = float(np.median(pre.dt)) if len(pre.dt) else 1.0
+    gain = min(1.0, dt_kf / tau_s)
+
+    def run(order, step):
+        R = meas[order[0]].copy()
+        out = np.empty_like(meas)
+        out[order[0]] = R
+        for k in order[1:]:
+            R = step(R, k)
+            corr = logmap(R.T @ meas[k])
+            R = R @ expmap(gain * corr)
+            out[k] = R
+        return out
+
+    fwd = run(np.arange(K), lambda R, k: R @ pre.delta_R[k - 1])
+    bwd = run(np.arange(K)[::-1], lambda R, k: R @ pre.delta_R[k].T)
+    q = quat_slerp(rotmat_to_quat(fwd), rotmat_to_quat(bwd), np.full(K, 0.5))
+    from imugraph.geometry import quat_to_rotmat
+    return quat_to_rotmat(q)
+
+
+def sample_orientations(nRk: np.ndarray, pre: Preintegration) -> np.ndarray:
+    """Per-sample nRb (N, 4) quaternions: forward from keyframe k and backward from k+1, blended by slerp.
+
+    nRb_j = R_k ΔR_{k,j} (forward) and R_{k+1} ΔR_kᵀ ΔR_{k,j} (backward), weight by position in the interval.
+    """
+    k = pre.sample_kf
+    fwd = nRk[k] @ pre.kRb
+    K = len(nRk)
+    k_next = np.minimum(k + 1, K - 1)
+    has_next = k < K - 1
+    bwd = fwd.copy()
+    dR = pre.delta_R[np.minimum(k, K - 2)] if K > 1 else np.broadcast_to(np.eye(3), fwd.shape)
+    bwd[has_next] = nRk[k_next[has_next]] @ np.transpose(dR[has_next], (0, 2, 1)) @ pre.kRb[has_next]
+    s_k = pre.kf_samples[k]
+    s_next = pre.kf_samples[k_next]
+    span = np.maximum(s_next - s_k, 1)
+    u = np.where(has_next, (np.arange(len(k)) - s_k) / span, 0.0)
+    return quat_slerp(rotmat_to_quat(fwd), rotmat_to_quat(bwd), u)

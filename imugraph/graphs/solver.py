@@ -1,0 +1,123 @@
+"""Levenberg–Marquardt and Gauss–Newton driven from Python (GTSAM_NOTES.md: gtsam's C++ optimizers copy
+every Values into each Python callback, O(N²); this loop linearises once per iteration instead).
+
+The problem is a C++ `NonlinearFactorGraph` (gyro factors, priors) plus optional vectorised blocks that
+return their own linearisation (`imugraph.graphs.measurements.MeasurementBlock`). Each iteration:
+
+    A δ = b  from graph.linearize(x) ∪ block.linear_factors(x) ∪ {√λ I per variable}      (LM damping)
+    δ = gfg.optimize(ordering);  accept x ⊕ δ if the cost drops (λ ← λ/10) else λ ← 10λ
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Callable, Protocol
+
+import gtsam
+import numpy as np
+
+
+class LinearBlock(Protocol):
+    def cost(self, values: gtsam.Values) -> float: ...
+    def linearize(self, values: gtsam.Values) -> gtsam.GaussianFactorGraph: ...
+
+
+@dataclass
+class SolverParams:
+    method: str = "lm"              # "lm" or "gn"
+    max_iterations: int = 50
+    relative_tol: float = 1e-6
+    absolute_tol: float = 1e-9
+    lambda_initial: float = 1e-4
+    lambda_max: float = 1e8
+    verbose: bool = False
+
+
+@dataclass
+class SolveInfo:
+    iterations: int = 0
+    converged: bool = False
+    cost_initial: float = float("nan")
+    cost_final: float = float("nan")
+    history: list = field(default_factory=list)
+
+
+def _damping(values: gtsam.Values, lam: float) -> gtsam.GaussianFactorGraph:
+    damp = gtsam.GaussianFactorGraph()
+    s = float(np.sqrt(lam))
+    model_cache: dict[int, gtsam.noiseModel.Unit] = {}
+    for key in values.keys():
+        dim = _key_dim(values, key)
+        model = model_cache.setdefault(dim, gtsam.noiseModel.Unit.Create(dim))
+        damp.push_back(gtsam.JacobianFactor(key, s * np.eye(dim), np.zeros(dim), model))
+    return damp
+
+
+def _key_dim(values: gtsam.Values, key: int) -> int:
+    ch = chr(gtsam.Symbol(key).chr())
+    if ch == "r":
+        return 3
+    return int(np.asarray(values.atVector(key)).size)
+
+
+def total_cost(graph: gtsam.NonlinearFactorGraph, blocks: list, values: gtsam.Values) -> float:
+    return float(graph.error(values)) + sum(b.cost(values) for b in blocks)
+
+
+def optimize(graph: gtsam.NonlinearFactorGraph, blocks: list, values: gtsam.Values,
+             ordering: gtsam.Ordering, params: SolverParams | None = None,
+             on_iteration: Callable[[int, float], None] | None = None) -> tuple[gtsam.Values, SolveInfo]:
+    """Minimise graph.error + Σ block.cost over `values` (a copy is returned).
+
+    Args:
+        graph: C++ factors; blocks: vectorised blocks (may be empty); values: initial estimate;
+        ordering: elimination ordering (chain order with global variables last suits these graphs).
+    Returns:
+        (optimised values, SolveInfo).
+    """
+    p = params or SolverParams()
+    x = gtsam.Values(values)
+    cost = total_cost(graph, blocks, x)
+    info = SolveInfo(cost_initial=cost, history=[cost])
+    lam = p.lambda_initial if p.method == "lm" else 0.0
+    for it in range(1, p.max_iterations + 1):
+        gfg = graph.linearize(x)
+        for b in blocks:
+            gfg.push_back(b.linearize(x))
+        accepted = False
+        while True:
+            sys_ = gfg
+            if lam > 0:
+                sys_ = gtsam.GaussianFactorGraph()
+                sys_.push_back(gfg)
+                sys_.push_back(_damping(x, lam))
+            delta = sys_.optimize(ordering)
+            x_new = x.retract(delta)
+            new_cost = total_cost(graph, blocks, x_new)
+            if new_cost <= cost or p.method == "gn":
+                accepted = True
+                break
+            lam *= 10.0
+            if lam > p.lambda_max:
+                break
+        info.iterations = it
+        if not accepted:
+            info.converged = True      # no descent possible: at a minimum within numerical precision
+            break
+        decrease = cost - new_cost
+        x, cost = x_new, new_cost
+        info.history.append(cost)
+        if on_iteration:
+            on_iteration(it, cost)
+        if p.method == "lm":
+            lam = max(lam / 10.0, 1e-12)
+        if decrease <= p.relative_tol * max(cost, 1e-300) or decrease <= p.absolute_tol:
+            info.converged = True
+            break
+    info.cost_final = cost
+    return x, info
+
+
+def chain_ordering(rot_keys: list[int], global_keys: list[int]) -> gtsam.Ordering:
+    """Keyframes in time order, then the global variables: fill-in stays O(K) for chain graphs."""
+    return gtsam.Ordering(list(rot_keys) + list(global_keys))
