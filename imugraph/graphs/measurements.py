@@ -79,17 +79,21 @@ class MeasurementBlock:
         w = ch.kernel.weight(s)
         if ch.weight_floor is not None:
             w = w * ch.weight_floor
-        A = J_rot / ch.sigma[None, :, None]
+        sw = np.sqrt(w)[:, None, None]
+        A = J_rot * (sw / ch.sigma[None, :, None])            # weighted, whitened Jacobian rows
+        rw = r * sw[:, :, 0]
+        At = np.transpose(A, (0, 2, 1))
         K = self.n_keyframes
-        G11 = _sum_by(ch.kf, np.einsum("m,mai,maj->mij", w, A, A), K)
-        g1 = _sum_by(ch.kf, -np.einsum("m,mai,ma->mi", w, A, r), K)
-        f = _sum_by(ch.kf, w * np.einsum("ma,ma->m", r, r), K)
+        G11 = _sum_by(ch.kf, At @ A, K)
+        g1 = _sum_by(ch.kf, -(At @ rw[:, :, None])[:, :, 0], K)
+        f = _sum_by(ch.kf, np.sum(rw * rw, axis=1), K)
         if J_theta is None:
             return G11, None, None, g1, None, f
-        T = J_theta / ch.sigma[None, :, None]
-        G12 = _sum_by(ch.kf, np.einsum("m,mai,maj->mij", w, A, T), K)
-        G22 = _sum_by(ch.kf, np.einsum("m,mai,maj->mij", w, T, T), K)
-        g2 = _sum_by(ch.kf, -np.einsum("m,mai,ma->mi", w, T, r), K)
+        T = J_theta * (sw / ch.sigma[None, :, None])
+        Tt = np.transpose(T, (0, 2, 1))
+        G12 = _sum_by(ch.kf, At @ T, K)
+        G22 = _sum_by(ch.kf, Tt @ T, K)
+        g2 = _sum_by(ch.kf, -(Tt @ rw[:, :, None])[:, :, 0], K)
         return G11, G12, G22, g1, g2, f
 
     def hessian_blocks(self, nRk: np.ndarray, theta: np.ndarray):

@@ -8,10 +8,11 @@ that linear accelerations and disturbances average out. Forward and backward pas
 
 from __future__ import annotations
 
+import gtsam
 import numpy as np
 
 from imugraph.factors.gyro import Preintegration
-from imugraph.geometry import expmap, logmap, quat_slerp, rotmat_to_quat
+from imugraph.geometry import quat_slerp, quat_to_rotmat, rotmat_to_quat
 
 
 def triad(b_up: np.ndarray, b_mag: np.ndarray) -> np.ndarray:
@@ -50,20 +51,22 @@ def complementary_keyframes(pre: Preintegration, b_acc: np.ndarray, b_mag_cal: n
     gain = min(1.0, dt_kf / tau_s)
 
     def run(order, step):
-        R = meas[order[0]].copy()
+        # sequential over keyframes: gtsam.Rot3 (C++) keeps each step ~µs
+        R = gtsam.Rot3(meas[order[0]])
         out = np.empty_like(meas)
-        out[order[0]] = R
+        out[order[0]] = R.matrix()
         for k in order[1:]:
             R = step(R, k)
-            corr = logmap(R.T @ meas[k])
-            R = R @ expmap(gain * corr)
-            out[k] = R
+            corr = gtsam.Rot3.Logmap(R.between(meas_rot[k]))
+            R = R.compose(gtsam.Rot3.Expmap(gain * corr))
+            out[k] = R.matrix()
         return out
 
-    fwd = run(np.arange(K), lambda R, k: R @ pre.delta_R[k - 1])
-    bwd = run(np.arange(K)[::-1], lambda R, k: R @ pre.delta_R[k].T)
+    meas_rot = [gtsam.Rot3(m) for m in meas]
+    dR = [gtsam.Rot3(m) for m in pre.delta_R]
+    fwd = run(np.arange(K), lambda R, k: R.compose(dR[k - 1]))
+    bwd = run(np.arange(K)[::-1], lambda R, k: R.compose(dR[k].inverse()))
     q = quat_slerp(rotmat_to_quat(fwd), rotmat_to_quat(bwd), np.full(K, 0.5))
-    from imugraph.geometry import quat_to_rotmat
     return quat_to_rotmat(q)
 
 

@@ -70,13 +70,15 @@ class Problem:
     values: gtsam.Values
     ordering: gtsam.Ordering
     block: MeasurementBlock
+    ordering_keys: list
 
 
 def build_problem(pre: Preintegration, b_acc: np.ndarray, b_mag: np.ndarray, noise: Noise, g: float,
                   nRk0: np.ndarray, bias0: np.ndarray, theta0: np.ndarray | None,
                   theta_prior_sigma: np.ndarray | None = None, bias_prior_sigma: float = 0.05,
                   acc_kernel: Kernel = QUADRATIC, mag_kernel: Kernel = QUADRATIC,
-                  estimate_theta: bool = True, mag_weights=None) -> Problem:
+                  estimate_theta: bool = True, mag_weights=None,
+                  bias_segment: np.ndarray | None = None, bias_rw_sigma: float = 0.0) -> Problem:
     """Assemble the graph for a keyframe layout.
 
     Args:
@@ -84,18 +86,38 @@ def build_problem(pre: Preintegration, b_acc: np.ndarray, b_mag: np.ndarray, noi
         (NaN rows = no sample); noise: per-axis stds; g: gravity magnitude; nRk0 (K,3,3) initial
         orientations; bias0 (3,); theta0 (13,) calibration (initial or fixed);
         estimate_theta: False keeps θ fixed at theta0 (smoothing with a known calibration).
+        bias_segment: (K−1,) bias segment of each keyframe interval (None: one constant bias); bias0 is
+        then (S, 3); bias_rw_sigma: random-walk density of the bias, rad/s/√s, between segments
+        (BetweenFactorVector with σ = bias_rw_sigma·√Δt_segment).
     """
     K = len(pre.kf_samples)
     graph = gtsam.NonlinearFactorGraph()
-    for f in ahrs_factors(pre, keys.rot, keys.BIAS, noise.gyr):
+    seg = np.zeros(max(K - 1, 0), int) if bias_segment is None else np.asarray(bias_segment, int)
+    bias0 = np.atleast_2d(np.asarray(bias0, float))
+    n_seg = int(seg.max()) + 1 if len(seg) else 1
+    for f in ahrs_factors(pre, keys.rot, lambda i: keys.bias(seg[i]), noise.gyr):
         graph.add(f)
-    graph.add(gtsam.PriorFactorVector(keys.BIAS, np.asarray(bias0, float),
-                                      gtsam.noiseModel.Isotropic.Sigma(3, bias_prior_sigma)))
     values = gtsam.Values()
     for k in range(K):
         values.insert(keys.rot(k), gtsam.Rot3(nRk0[k]))
-    values.insert(keys.BIAS, np.asarray(bias0, float))
-    global_keys = [keys.BIAS]
+    prior = gtsam.noiseModel.Isotropic.Sigma(3, bias_prior_sigma)
+    seg_dt = (pre.dt.sum() / n_seg) if len(pre.dt) else 1.0
+    rw = gtsam.noiseModel.Isotropic.Sigma(3, max(bias_rw_sigma, 1e-9) * np.sqrt(seg_dt))
+    for i in range(n_seg):
+        b_i = bias0[min(i, len(bias0) - 1)]
+        values.insert(keys.bias(i), b_i)
+        graph.add(gtsam.PriorFactorVector(keys.bias(i), b_i, prior))
+        if i > 0:
+            graph.add(gtsam.BetweenFactorVector(keys.bias(i - 1), keys.bias(i), np.zeros(3), rw))
+    # interleave each bias segment after its keyframes: fill-in stays local
+    order = []
+    for k in range(K):
+        order.append(keys.rot(k))
+        if k < K - 1 and (k == K - 2 or seg[k + 1] != seg[k]):
+            order.append(keys.bias(seg[k]))
+    if K == 1:
+        order.append(keys.bias(0))
+    global_keys: list = []
     use_theta = estimate_theta and theta0 is not None
     if use_theta:
         values.insert(keys.CALIB, np.asarray(theta0, float))
@@ -109,8 +131,8 @@ def build_problem(pre: Preintegration, b_acc: np.ndarray, b_mag: np.ndarray, noi
         mag=channel(pre, b_mag, noise.mag, mag_kernel, mag_weights) if theta0 is not None else None,
         g=g, use_theta=use_theta)
     adapter = BlockAdapter(block, None if use_theta else (None if theta0 is None else np.asarray(theta0)))
-    ordering = chain_ordering([keys.rot(k) for k in range(K)], global_keys)
-    return Problem(graph, [adapter], values, ordering, block)
+    ordering = chain_ordering(order, global_keys)
+    return Problem(graph, [adapter], values, ordering, block, order + global_keys)
 
 
 def keyframe_rotations(values: gtsam.Values, K: int) -> np.ndarray:

@@ -1,0 +1,153 @@
+"""Shared helpers of the benchmarks: BROAD trials, their groups, a plain text table and peak memory.
+
+The BROAD trials are read from `imugraph.config.broad_dir()` ($IMUGRAPH_DATA/broad, else
+../shared/data/broad); nothing is copied into the repository.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+import resource
+import sys
+from pathlib import Path
+from typing import Any, Iterable, Sequence
+
+import numpy as np
+
+from imugraph.config import broad_dir
+from imugraph.errors import SessionError
+from imugraph.io.session import Session
+
+_BROAD_FIELDS = ("imu_gyr", "imu_acc", "imu_mag", "sampling_rate", "opt_quat", "movement")
+
+
+def _load_mat(path: Path) -> Session:
+    """Fallback BROAD .mat reader (scipy) used when imugraph.io.readers is not available."""
+    from scipy.io import loadmat
+
+    try:
+        mat = loadmat(str(path))
+    except (OSError, ValueError) as exc:
+        raise SessionError(str(path), "<file>", f"an unreadable file ({exc})", "a MATLAB .mat file") from exc
+    missing = [k for k in _BROAD_FIELDS if k not in mat]
+    if missing:
+        raise SessionError(str(path), missing[0], "no such variable", f"BROAD variables {_BROAD_FIELDS}")
+    rate = float(np.asarray(mat["sampling_rate"]).ravel()[0])
+    gyr = np.asarray(mat["imu_gyr"], float)
+    n = gyr.shape[0]
+    return Session(
+        t=np.arange(n) / rate, gyr=gyr, acc=np.asarray(mat["imu_acc"], float),
+        mag=np.asarray(mat["imu_mag"], float), quat=np.asarray(mat["opt_quat"], float),
+        movement=np.asarray(mat["movement"]).reshape(-1).astype(bool),
+        source=str(path), name=path.stem, meta={"rate": rate, "reader": "benchmarks.common"},
+    )
+
+
+def load_broad_trial(path: str | Path) -> Session:
+    """Read one BROAD trial as a Session (mag in µT, quat = opt_quat, movement mask).
+
+    Uses `imugraph.io.readers.load_session` when that module exists, else a scipy reader here.
+
+    Args:
+        path: a BROAD .mat (or, with the imugraph reader, .hdf5) file.
+
+    Returns:
+        Session with t (N,) s, gyr (N, 3) rad/s, acc (N, 3) m/s², mag (N, 3) µT, quat (N, 4) w,x,y,z
+        sensor→ENU (NaN where tracking dropped), movement (N,) bool.
+
+    Raises:
+        SessionError: unreadable file or missing BROAD variable.
+    """
+    path = Path(path)
+    try:
+        from imugraph.io.readers import load_session
+    except ImportError:
+        return _load_mat(path)
+    return load_session(path)
+
+
+def broad_trials(root: Path | None = None) -> list[Path]:
+    """The BROAD .mat trials present, sorted by name (17 in ../shared/data/broad).
+
+    Args:
+        root: folder to list; default `imugraph.config.broad_dir()`.
+
+    Returns:
+        Sorted list of paths (empty when the folder is absent).
+    """
+    root = broad_dir() if root is None else Path(root)
+    return sorted(root.glob("[0-9][0-9]_*.mat")) if root.is_dir() else []
+
+
+def trial_number(path: str | Path) -> int:
+    """The BROAD trial number from a file name such as 06_undisturbed_fast_rotation_A.mat → 6."""
+    m = re.match(r"(\d+)_", Path(path).name)
+    if m is None:
+        raise SessionError(str(path), "<file name>", f"'{Path(path).name}'", "a name starting with NN_")
+    return int(m.group(1))
+
+
+def trial_groups(root: Path | None = None) -> dict[str, list[int]]:
+    """Map each BROAD group name (undisturbed, disturbed, rotation, fast, ...) to its trial numbers.
+
+    Read from trials.json beside the trials; includes trials that are listed but not present.
+
+    Args:
+        root: BROAD folder; default `imugraph.config.broad_dir()`.
+
+    Returns:
+        {group name: sorted trial numbers}; empty when trials.json is absent.
+    """
+    root = broad_dir() if root is None else Path(root)
+    meta_path = root / "trials.json"
+    if not meta_path.is_file():
+        return {}
+    trials = json.loads(meta_path.read_text())["trials"]
+    groups: dict[str, list[int]] = {}
+    for name, info in trials.items():
+        for g in info["groups"]:
+            groups.setdefault(g, []).append(trial_number(name))
+    return {g: sorted(v) for g, v in groups.items()}
+
+
+def groups_of(path: str | Path, root: Path | None = None) -> list[str]:
+    """The group names a trial file belongs to (e.g. ['all_trials', 'undisturbed', 'rotation', ...])."""
+    k = trial_number(path)
+    return [g for g, nums in trial_groups(root).items() if k in nums]
+
+
+def _fmt(v: Any) -> str:
+    if isinstance(v, (float, np.floating)):
+        return f"{v:.3g}" if abs(v) >= 1e4 or (v != 0 and abs(v) < 1e-2) else f"{v:.2f}"
+    return str(v)
+
+
+def print_table(rows: Sequence[dict[str, Any]] | Sequence[Sequence[Any]], columns: Sequence[str],
+                file=None) -> str:
+    """Print a plain aligned text table and return it.
+
+    Args:
+        rows: dicts keyed by column name, or sequences in column order.
+        columns: column headers.
+        file: stream to print to (default stdout).
+
+    Returns:
+        The table text.
+    """
+    cells = [[_fmt(r.get(c, "")) for c in columns] if isinstance(r, dict) else [_fmt(v) for v in r]
+             for r in rows]
+    widths = [max([len(c)] + [len(r[i]) for r in cells]) for i, c in enumerate(columns)]
+
+    def line(vals: Iterable[str]) -> str:
+        return "  ".join(v.rjust(w) if i else v.ljust(w) for i, (v, w) in enumerate(zip(vals, widths)))
+
+    out = "\n".join([line(columns), line("-" * w for w in widths)] + [line(r) for r in cells])
+    print(out, file=file or sys.stdout)
+    return out
+
+
+def peak_memory_mb() -> float:
+    """Peak resident memory of this process so far, MB (ru_maxrss: KiB on Linux, bytes on macOS)."""
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return peak / 2**20 if sys.platform == "darwin" else peak / 1024.0

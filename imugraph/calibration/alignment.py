@@ -1,0 +1,195 @@
+"""Axis alignment of the ellipsoid-calibrated magnetometer to the inertial axes (Kok et al. 2012, step 3).
+
+Kok, Hol, Schön, Gustafsson, Luinge (FUSION 2012), Sec. IV-B. The ellipsoid fit gives D₀, o₀ with
+m̃_t = D₀⁻¹(y_t − o₀) of unit norm, but any D = D₀Q with Q orthogonal fits it equally well. With the
+model y = D·bRn·n_mag + o (DESIGN.md) the calibrated field in the INERTIAL axes is
+
+    m_b = D⁻¹(y − o) = R·m̃,     hence   D = D₀·Rᵀ,   o = o₀.
+
+Inclination constraint: gravity and the field keep a constant angle. With the body "up" direction
+u_b = acc/‖acc‖ = bRn·e_z (accelerometer at rest reads +g up) and n_mag = [cos δ, 0, −sin δ],
+
+    (R·m̃_t)ᵀ u_b,t = (bRn n_mag)ᵀ(bRn e_z) = n_magᵀ e_z = −sin δ        for every t      (Kok eq. 14)
+
+solved here by nonlinear least squares over (R, δ), R = Exp(φ) (rotation vector φ), from R = I and
+sin δ₀ = −mean(m̃ᵀu_b), with a soft-L1 loss against samples where the field or acceleration is off.
+
+Which rotations of R are identifiable. Replace R by G·R (G a rotation, δ free). The residuals stay
+constant iff (G m_b,t)ᵀ u_b,t is the same for every t. If the sensor turns about ONE body axis a only,
+then m_b,t = Rot_t m_b,0 and u_b,t = Rot_t u_b,0 with every Rot_t about a, G about a commutes with
+Rot_t and (G m_b,t)ᵀu_b,t = (G m_b,0)ᵀu_b,0: a 1-D family G = Rot_a(ψ) is unobservable (the
+misalignment about the rotation axis). With rotation about two or more axes no such G exists and
+(R, δ) are identifiable. A right factor R·H (H ≠ I) is never hidden since m̃ takes many directions.
+Gauge fix: a weak prior ‖φ‖ (weight `PRIOR_WEIGHT` relative to the data) keeps R at the start
+(magnetometer axes = inertial axes) along any unobservable direction and is negligible otherwise.
+
+Reflection: det(D) > 0 by construction (D₀ symmetric positive definite, R proper). A magnetometer
+whose axes are mirrored relative to the inertial axes (D₀Q with det Q = −1, i.e. Q = −rotation) is
+indistinguishable from a field of opposite dip: (−R m̃)ᵀu = −sin δ ⇔ (R m̃)ᵀu = sin δ. Directions alone
+cannot tell them apart; `initial.py` can resolve it when the hemisphere is known.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.optimize import least_squares
+
+from imugraph.geometry import expmap, quat_mul, quat_normalize, quat_to_rotmat, rotvec_to_quat, skew
+
+PRIOR_WEIGHT = 1e-3   # per-parameter prior, relative to the square root of the number of samples
+MAX_ROWS = 5000       # evenly spread subsample for speed
+
+
+def _prefix_quat_product(dq: np.ndarray) -> np.ndarray:
+    """Inclusive prefix products q_k = dq_0 ⊗ … ⊗ dq_k of (N, 4) quaternions (Hillis–Steele scan:
+    ⌈log₂N⌉ vectorised steps instead of a per-sample loop; exact since ⊗ is associative)."""
+    q = dq.copy()
+    shift = 1
+    while shift < q.shape[0]:
+        q[shift:] = quat_mul(q[:-shift], q[shift:])
+        shift *= 2
+    return quat_normalize(q)
+
+
+def gravity_up(b_gyr: np.ndarray, b_acc: np.ndarray, dt: np.ndarray,
+               gyro_bias: np.ndarray | None = None, window_s: float = 4.0) -> np.ndarray:
+    """Body "up" directions robust to linear acceleration.
+
+    The gyro is integrated (strapdown, q_{k+1} = q_k ⊗ Exp(ω_k dt_k)) into a frame i that is fixed
+    up to drift; there the specific force is i_acc = iRb·b_acc = iRn(n_acc_lin + g·e_z), and over a
+    window of T seconds the linear part averages to Δv/T, so the windowed mean of i_acc points up.
+    Rotated back: u_b,t = iRb,tᵀ·mean(i_acc)/‖·‖. On BROAD (slow trials) this is 0.3–0.4° from the
+    optical "up" (median), against 3–4° for acc/‖acc‖ during movement.
+
+    Args:
+        b_gyr: (N, 3) rad/s. b_acc: (N, 3) m/s². dt: (N,) s, step from each sample to the next.
+        gyro_bias: (3,) rad/s removed before integrating (drift over the window is what remains).
+        window_s: averaging window T, s.
+
+    Returns:
+        (N, 3) unit vectors u_b (NaN where the accelerometer is not finite).
+    """
+    w = np.nan_to_num(np.asarray(b_gyr, float) - (0.0 if gyro_bias is None else gyro_bias))
+    dq = rotvec_to_quat(w * np.asarray(dt, float)[:, None])
+    iRb = quat_to_rotmat(np.concatenate([[[1.0, 0, 0, 0]], _prefix_quat_product(dq)[:-1]]))
+    i_acc = np.einsum("nij,nj->ni", iRb, np.asarray(b_acc, float))
+    ok = np.all(np.isfinite(i_acc), axis=1)
+    n = max(1, int(round(window_s / max(float(np.median(dt)), 1e-9))))
+    c = np.concatenate([np.zeros((1, 4)), np.cumsum(np.c_[np.where(ok[:, None], i_acc, 0.0), ok], 0)])
+    k = np.arange(i_acc.shape[0])
+    lo, hi = np.clip(k - n // 2, 0, len(k)), np.clip(k - n // 2 + n, 0, len(k))
+    i_up = (c[hi, :3] - c[lo, :3]) / np.maximum(c[hi, 3] - c[lo, 3], 1.0)[:, None]
+    b_up = np.einsum("nji,nj->ni", iRb, i_up)
+    b_up /= np.linalg.norm(b_up, axis=1, keepdims=True)
+    return np.where(ok[:, None], b_up, np.nan)
+
+
+def _delay_fit_rss(dm: np.ndarray, m: np.ndarray, w: np.ndarray) -> float:
+    """RSS of dm_j ≈ [m_j]× A w_j over a free 3×3 A (misalignment and gyro scale), rows (M, 3)."""
+    rows = np.einsum("nik,nl->nikl", skew(m), w).reshape(-1, 9)      # vec(A) row-major
+    _, rss, *_ = np.linalg.lstsq(rows, dm.reshape(-1), rcond=None)
+    return float(rss[0]) if rss.size else float(np.sum((dm.reshape(-1) - 0.0) ** 2))
+
+
+def estimate_mag_delay(t: np.ndarray, m_tilde: np.ndarray, b_gyr: np.ndarray,
+                       max_delay_s: float = 0.05, max_rows: int = 20000) -> float:
+    """Delay τ of the magnetometer behind the gyroscope (s; > 0: the magnetometer lags).
+
+    A static field seen from a turning body obeys ṁ_b = −ω × m_b = m_b × ω. In the magnetometer
+    axes (m̃ = Rᵀm_b) with a lag, ṁ̃(t_j) = [m̃_j]× A ω(t_j − τ), A = Rᵀ (up to gyro scale). For every
+    τ on a grid of one gyro sample, A is fitted by linear least squares and τ minimises the residual
+    (parabolic refinement). Fitting A matters: with A fixed to I a misalignment of a few degrees
+    shifts the optimum by several milliseconds. BROAD: ≈ 11 ms (3 samples) on every trial.
+
+    Args:
+        t: (N,) s. m_tilde: (N, 3) ellipsoid-calibrated field (NaN rows ignored). b_gyr: (N, 3) rad/s.
+        max_delay_s: search range ±, s.
+        max_rows: magnetometer rows used (evenly thinned).
+
+    Returns:
+        τ in s (0.0 when the data hold too little rotation for a clear optimum).
+    """
+    t = np.asarray(t, float)
+    j = np.flatnonzero(np.all(np.isfinite(m_tilde), axis=1))
+    if j.size < 10:
+        return 0.0
+    tj, mj = t[j], np.asarray(m_tilde, float)[j]
+    dm = (mj[2:] - mj[:-2]) / (tj[2:] - tj[:-2])[:, None]          # central differences
+    tj, mj = tj[1:-1], mj[1:-1]
+    keep = np.linspace(0, tj.size - 1, min(tj.size, max_rows)).round().astype(int)
+    tj, mj, dm = tj[keep], mj[keep], dm[keep]
+    step = float(np.median(np.diff(t)))
+    taus = np.arange(-max_delay_s, max_delay_s + 0.5 * step, step)
+    rss = np.array([_delay_fit_rss(dm, mj, np.stack([np.interp(tj - tau, t, b_gyr[:, i])
+                                                     for i in range(3)], axis=1))
+                    for tau in taus])                             # a loop over lags, not samples
+    k = int(np.argmin(rss))
+    if 1.0 - rss[k] / np.sum(dm * dm) < 0.1 or k in (0, taus.size - 1):
+        return 0.0
+    den = rss[k - 1] - 2 * rss[k] + rss[k + 1]
+    return float(taus[k] + (0.5 * step * (rss[k - 1] - rss[k + 1]) / den if den > 0 else 0.0))
+
+
+def _residuals(p: np.ndarray, m_tilde: np.ndarray, u_b: np.ndarray, w_prior: float) -> np.ndarray:
+    """Kok eq. 14: r_t = (Exp(φ) m̃_t)ᵀ u_b,t + sin δ, plus the gauge prior w·φ."""
+    R = expmap(p[:3])
+    r = np.einsum("ij,nj,ni->n", R, m_tilde, u_b) + np.sin(p[3])
+    return np.concatenate([r, w_prior * p[:3]])
+
+
+def _jacobian(p: np.ndarray, m_tilde: np.ndarray, u_b: np.ndarray, w_prior: float) -> np.ndarray:
+    """(N + 3, 4) Jacobian of `_residuals`: Exp(φ + dφ) ≈ Exp(φ)·Exp(J_r(φ)dφ) gives
+    ∂r_t/∂φ = −u_b,tᵀ R [m̃_t]× J_r(φ) and ∂r_t/∂δ = cos δ."""
+    R = expmap(p[:3])
+    Jr = _right_jacobian(p[:3])
+    J_phi = -np.einsum("ni,ij,njk->nk", u_b, R, skew(m_tilde)) @ Jr
+    J = np.zeros((m_tilde.shape[0] + 3, 4))
+    J[:-3, :3] = J_phi
+    J[:-3, 3] = np.cos(p[3])
+    J[-3:, :3] = w_prior * np.eye(3)
+    return J
+
+
+def _right_jacobian(phi: np.ndarray) -> np.ndarray:
+    """Right Jacobian of SO(3): Exp(φ + dφ) ≈ Exp(φ)·Exp(J_r(φ) dφ)."""
+    th = float(np.linalg.norm(phi))
+    K = skew(phi)
+    if th < 1e-6:
+        return np.eye(3) - 0.5 * K
+    return (np.eye(3) - (1 - np.cos(th)) / th**2 * K + (th - np.sin(th)) / th**3 * (K @ K))
+
+
+def align_axes(m_tilde: np.ndarray, u_b: np.ndarray) -> tuple[np.ndarray, float, float]:
+    """Rotation R and dip δ so that (R m̃_t)ᵀ u_b,t = −sin δ (Kok et al. 2012, eq. 14).
+
+    Args:
+        m_tilde: (N, 3) ellipsoid-calibrated field D₀⁻¹(y − o₀) (unit norm, magnetometer axes);
+            NaN rows are ignored.
+        u_b: (N, 3) body "up" directions acc/‖acc‖ at low-acceleration samples (same rows).
+
+    Returns:
+        R: (3, 3) rotation from the magnetometer's to the inertial axes (m_b = R m̃; D = D₀Rᵀ).
+        dip_rad: δ in rad (positive: field points down).
+        residual_rms: RMS of the residual (R m̃)ᵀu + sin δ (dimensionless, ≈ cos of angle error).
+
+    Raises:
+        ValueError: fewer than 4 usable rows (callers check coverage first).
+    """
+    m_tilde, u_b = np.asarray(m_tilde, float), np.asarray(u_b, float)
+    ok = np.all(np.isfinite(m_tilde), axis=1) & np.all(np.isfinite(u_b), axis=1)
+    m_tilde, u_b = m_tilde[ok], u_b[ok]
+    if m_tilde.shape[0] < 4:
+        raise ValueError(f"align_axes: found {m_tilde.shape[0]} usable rows; expected at least 4")
+    if m_tilde.shape[0] > MAX_ROWS:
+        idx = np.linspace(0, m_tilde.shape[0] - 1, MAX_ROWS).round().astype(int)
+        m_tilde, u_b = m_tilde[idx], u_b[idx]
+    m_tilde = m_tilde / np.linalg.norm(m_tilde, axis=1, keepdims=True)
+    u_b = u_b / np.linalg.norm(u_b, axis=1, keepdims=True)
+    dip0 = float(np.arcsin(np.clip(-np.mean(np.sum(m_tilde * u_b, axis=1)), -1, 1)))
+    w_prior = PRIOR_WEIGHT * np.sqrt(m_tilde.shape[0])
+    sol = least_squares(_residuals, np.array([0.0, 0.0, 0.0, dip0]), jac=_jacobian,
+                        args=(m_tilde, u_b, w_prior), loss="soft_l1", f_scale=0.05)
+    R = expmap(sol.x[:3])
+    dip = float(np.arctan2(np.sin(sol.x[3]), abs(np.cos(sol.x[3]))))   # fold into [−π/2, π/2]
+    r = np.einsum("ij,nj,ni->n", R, m_tilde, u_b) + np.sin(dip)
+    return R, dip, float(np.sqrt(np.mean(r ** 2)))

@@ -1,0 +1,225 @@
+"""Maximum-likelihood magnetometer calibration in combination with inertial sensors, as a factor graph
+(Kok, Hol, Schön, Gustafsson, Luinge, FUSION 2012; Kok & Schön, IEEE Sensors J. 2016, Algorithm 1).
+
+    1. initial estimate: rest detection and noise from rest, ellipsoid fit, axis alignment and dip
+       (imugraph.calibration.initial);
+    2. repeat: preintegrate the gyro at the current bias; solve the MAP problem over keyframe
+       orientations, gyro bias and θ = (D, o, δ) jointly (Python-driven LM); re-estimate Σω, Σa, Σm from
+       the residuals (imugraph.calibration.noise) — until the noise levels and bias settle;
+    3. marginal covariance of θ and the bias from the final linearisation.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import gtsam
+import numpy as np
+
+from imugraph import keys
+from imugraph.calibration.noise import reestimate
+from imugraph.calibration.result import Calibration
+from imugraph.factors.gyro import keyframe_layout, preintegrate
+from imugraph.factors.robust import QUADRATIC, Kernel
+from imugraph.factors.theta import THETA_DIM, pack_theta, unpack_theta
+from imugraph.graphs.orientation_init import complementary_keyframes, sample_orientations
+from imugraph.graphs.single_imu import Noise, Problem, build_problem, keyframe_rotations
+from imugraph.graphs.solver import SolverParams, optimize
+from imugraph.io.session import Session
+
+
+@dataclass
+class Options:
+    """Settings of the calibration and smoothing graphs.
+
+    keyframe_hz: keyframe rate (one orientation state per rate/keyframe_hz samples; every sample is used).
+    acc_kernel / mag_kernel: per-sample robust kernels (whitened units).
+    """
+
+    keyframe_hz: float = 10.0
+    max_outer: int = 8
+    noise_tol: float = 0.02
+    reestimate_noise: bool = True
+    acc_kernel: Kernel = field(default_factory=lambda: Kernel("huber", 2.0))
+    mag_kernel: Kernel = field(default_factory=lambda: Kernel("huber", 2.0))
+    solver: SolverParams = field(default_factory=lambda: SolverParams(max_iterations=30, relative_tol=1e-7))
+    bias_prior_sigma: float = 0.05
+    bias_segment_s: float = 5.0       # gyro bias: one value per segment, joined by a random walk
+    bias_rw: float = 2e-4             # bias random-walk density, rad/s/√s (MEMS bias instability)
+    gyro_rate_error: float = 0.01     # κ: gyro error growing with rate (scale factor, misalignment)
+    progress: bool = False
+    max_corr_s: float = 0.5           # cap on the residual correlation time used for σ inflation
+    correlated_noise: bool = False    # inflate σ by √τ (integrated autocorrelation time of residuals)
+
+
+@dataclass
+class Estimate:
+    """Result of calibration or smoothing: the calibration, per-sample orientation and residuals."""
+
+    calibration: Calibration
+    t: np.ndarray
+    quat: np.ndarray                     # (N, 4) nRb w,x,y,z
+    residuals: dict                      # channel → (N, 3) whitened residuals, NaN where no sample
+    info: dict
+
+
+def stride_for(session: Session, keyframe_hz: float) -> int:
+    return max(1, int(round(session.rate / keyframe_hz)))
+
+
+def gravity_from(session: Session, rest: np.ndarray | None) -> float:
+    norms = np.linalg.norm(session.acc, axis=1)
+    if rest is not None and rest.sum() > 10:
+        return float(np.median(norms[rest]))
+    return float(np.median(norms))
+
+
+def calibrate(session: Session, options: Options | None = None, initial=None) -> Estimate:
+    """Estimate D, o, dip, gyro bias, noise levels and the smoothed orientation of a session.
+
+    Raises:
+        CalibrationError: the data do not allow a calibration (named problem, e.g. too little rotation).
+    """
+    opt = options or Options()
+    if initial is None:
+        from imugraph.calibration.initial import initial_calibration
+        initial = initial_calibration(session)
+    init = initial
+    g = gravity_from(session, getattr(init, "rest", None))
+    noise = Noise(np.asarray(init.noise["gyr"], float), np.asarray(init.noise["acc"], float),
+                  np.asarray(init.noise["mag"], float))
+    theta0 = pack_theta(init.D, init.o, init.dip_rad)
+    bias = np.asarray(init.gyro_bias, float)
+    stride = stride_for(session, opt.keyframe_hz)
+    kf, skf = keyframe_layout(session.n, stride)
+    m_cal0 = np.linalg.solve(init.D, (session.mag - init.o).T).T
+    nRk = None
+    theta = theta0
+    seg = _bias_segments(session, kf, opt.bias_segment_s)
+    n_seg = int(seg.max()) + 1 if len(seg) else 1
+    bias = np.tile(bias, (n_seg, 1))
+    history = []
+    tau_fixed = None
+    converged = False
+    prob: Problem | None = None
+    for outer in range(1, opt.max_outer + 1):
+        pre = preintegrate(session.gyr, session.dt, kf, skf, _per_sample_bias(bias, seg, skf), noise.gyr,
+                           opt.gyro_rate_error)
+        if nRk is None:
+            nRk = complementary_keyframes(pre, session.acc, m_cal0)
+        prob = build_problem(pre, session.acc, session.mag, noise, g, nRk, bias, theta,
+                             theta_prior_sigma=_theta_prior_sigma(theta0), bias_prior_sigma=opt.bias_prior_sigma,
+                             acc_kernel=opt.acc_kernel, mag_kernel=opt.mag_kernel,
+                             bias_segment=seg, bias_rw_sigma=opt.bias_rw)
+        values, info = optimize(prob.graph, prob.blocks, prob.values, prob.ordering, opt.solver)
+        nRk = keyframe_rotations(values, len(kf))
+        theta = values.atVector(keys.CALIB)
+        bias_new = _bias_values(values, n_seg)
+        history.append({"outer": outer, "lm_iterations": info.iterations, "cost": info.cost_final,
+                        "noise": {k: np.asarray(v).tolist() for k, v in noise.as_dict().items()}})
+        if not opt.reestimate_noise:
+            bias = bias_new
+            converged = info.converged
+            break
+        gyro_factors = [prob.graph.at(i) for i in range(len(kf) - 1)]
+        new = reestimate(prob.block, nRk, theta, gyro_factors, values, noise.gyr)
+        taus = {c: new.pop(c + "_tau") for c in ("acc", "mag") if c + "_tau" in new}
+        if opt.correlated_noise:
+            # τ from the first (white-noise) solution only: later solutions lean on the gyro and their
+            # residuals inherit its drift, which would feed back into τ. Capped at max_corr_s.
+            if tau_fixed is None:
+                cap = max(1.0, opt.max_corr_s * session.rate)
+                tau_fixed = {c: min(t, cap) for c, t in taus.items()}
+            for c, tau in tau_fixed.items():
+                new[c] = new[c] * np.sqrt(tau)
+        history[-1]["tau"] = taus
+        taus = tau_fixed or taus
+        change = max(float(np.max(np.abs(np.log(new[c] / getattr(noise, c))))) for c in new)
+        bias_change = float(np.max(np.linalg.norm(bias_new - bias, axis=1)))
+        noise = Noise(new.get("gyr", noise.gyr), new.get("acc", noise.acc), new.get("mag", noise.mag))
+        bias = bias_new
+        if opt.progress:
+            print(f"  ML round {outer}: LM {info.iterations} it, τ {taus}, noise change {change:.3f}, "
+                  f"bias change {np.rad2deg(bias_change):.4f} °/s")
+        if change < opt.noise_tol and bias_change < 1e-4:
+            converged = True
+            break
+    # final solve at the converged noise levels and bias, then marginals
+    pre = preintegrate(session.gyr, session.dt, kf, skf, _per_sample_bias(bias, seg, skf), noise.gyr,
+                           opt.gyro_rate_error)
+    prob = build_problem(pre, session.acc, session.mag, noise, g, nRk, bias, theta,
+                         theta_prior_sigma=_theta_prior_sigma(theta0), bias_prior_sigma=opt.bias_prior_sigma,
+                         acc_kernel=opt.acc_kernel, mag_kernel=opt.mag_kernel,
+                         bias_segment=seg, bias_rw_sigma=opt.bias_rw)
+    values, info = optimize(prob.graph, prob.blocks, prob.values, prob.ordering, opt.solver)
+    nRk = keyframe_rotations(values, len(kf))
+    theta = values.atVector(keys.CALIB)
+    bias_segments = _bias_values(values, n_seg)
+    bias = bias_segments.mean(axis=0)
+    cov_theta, cov_bias = marginal_covariances(prob, values)
+    D, o, dip = unpack_theta(theta)
+    std_theta = np.sqrt(np.maximum(np.diag(cov_theta), 0.0))
+    cal = Calibration(
+        D=D, o=o, dip_deg=float(np.rad2deg(dip)), gyro_bias=bias,
+        noise=noise.as_dict(),
+        std={"D": std_theta[:9].reshape(3, 3), "o": std_theta[9:12], "dip_deg": float(np.rad2deg(std_theta[12])),
+             "gyro_bias": np.sqrt(np.maximum(np.diag(cov_bias), 0.0))},
+        coverage=getattr(init, "coverage", {}) or {}, converged=bool(converged and info.converged),
+        iterations=len(history))
+    quat = sample_orientations(nRk, pre)
+    residuals = per_sample_residuals(prob, nRk, theta, session)
+    return Estimate(cal, session.t, quat, residuals,
+                    {"history": history, "keyframes": len(kf), "stride": stride, "g": g,
+                     "gyro_bias_segments": bias_segments, "noise_correlation": tau_fixed or {},
+                     "lm_iterations_final": info.iterations})
+
+
+def _bias_segments(session: Session, kf: np.ndarray, segment_s: float) -> np.ndarray:
+    """Bias segment index (K−1,) of each keyframe interval."""
+    t_kf = session.t[kf[:-1]] - session.t[0]
+    return np.floor(t_kf / max(segment_s, 1e-9)).astype(int) if segment_s > 0 else np.zeros(len(t_kf), int)
+
+
+def _per_sample_bias(bias: np.ndarray, seg: np.ndarray, skf: np.ndarray) -> np.ndarray:
+    """(N, 3) bias of each sample from the (S, 3) segment biases."""
+    if len(seg) == 0:
+        return np.broadcast_to(bias[0], (len(skf), 3)).copy()
+    return bias[seg[np.minimum(skf, len(seg) - 1)]]
+
+
+def _bias_values(values: gtsam.Values, n_seg: int) -> np.ndarray:
+    return np.stack([values.atVector(keys.bias(i)) for i in range(n_seg)])
+
+
+def _theta_prior_sigma(theta0: np.ndarray) -> np.ndarray:
+    """Weak prior on θ: D entries ± 1 (relative to its scale), o ± 2 field norms, dip ± 90°."""
+    D0, _, _ = unpack_theta(theta0)
+    s = float(np.cbrt(abs(np.linalg.det(D0)))) or 1.0
+    return np.concatenate([np.full(9, s), np.full(3, 2.0 * s), [np.pi / 2]])
+
+
+def marginal_covariances(prob: Problem, values: gtsam.Values) -> tuple[np.ndarray, np.ndarray]:
+    """Marginal covariances of θ (13×13) and the gyro bias (3×3) at the solution."""
+    gfg = prob.graph.linearize(values)
+    for b in prob.blocks:
+        gfg.push_back(b.linearize(values))
+    K = prob.block.n_keyframes
+    others = [k for k in prob.ordering_keys if k not in (keys.CALIB, keys.BIAS)]
+    bn = gfg.marginalMultifrontalBayesNet(gtsam.Ordering([keys.CALIB, keys.BIAS]), gtsam.Ordering(others))
+    marg = gtsam.GaussianFactorGraph()
+    marg.push_back(bn)
+    info = marg.augmentedHessian(gtsam.Ordering([keys.CALIB, keys.BIAS]))[:-1, :-1]
+    cov = np.linalg.inv(info)
+    return cov[:THETA_DIM, :THETA_DIM], cov[THETA_DIM:, THETA_DIM:]
+
+
+def per_sample_residuals(prob: Problem, nRk: np.ndarray, theta: np.ndarray, session: Session) -> dict:
+    """Whitened residuals per channel as (N, 3) arrays with NaN rows where a channel has no sample."""
+    out = {}
+    res = prob.block.residuals(nRk, theta)
+    for name, src in (("acc", session.acc), ("mag", session.mag)):
+        if name in res:
+            full = np.full((session.n, 3), np.nan)
+            full[np.all(np.isfinite(src), axis=1)] = res[name]
+            out[name] = full
+    return out

@@ -1,0 +1,97 @@
+"""Re-estimation of the noise covariances Σω, Σa, Σm from the residuals of the MAP solution
+(Kok & Schön 2016, sec. IV: maximum likelihood over the noise levels, alternated with the state solve).
+
+For a channel c with whitened-by-current-σ residuals, the ML variance per axis is corrected for the
+degrees of freedom the fit absorbs (E[ê ᵀê] = σ²(n − p_c)): the keyframe rotations' 3 dof are shared
+between channels in proportion to the information each channel gives that keyframe (trace of its
+Gauss–Newton block), and the global parameters are charged to the channel that sees them.
+
+    σ_c,axis² = Σ_j w_j ê_j,axis² / (Σ_j w_j − p_c / 3)
+
+Real residuals are not white (linear accelerations, slowly varying field disturbances): n correlated
+samples carry the information of n/τ independent ones, τ = 1 + 2 Σ_l ρ(l) the integrated autocorrelation
+time (Sokal's automatic window: the smallest M ≥ c·τ(M), c = 5). The factor graph, which treats samples
+as independent, is therefore given σ_eff = σ·√τ: the quasi-likelihood (effective sample size) correction.
+"""
+
+from __future__ import annotations
+
+import gtsam
+import numpy as np
+
+from imugraph.graphs.measurements import ChannelData, MeasurementBlock
+
+
+def _channel_info_trace(block: MeasurementBlock, ch: ChannelData, e: np.ndarray, J_rot: np.ndarray) -> np.ndarray:
+    G11, *_ = block._channel_terms(ch, e, J_rot, None)
+    return np.trace(G11, axis1=1, axis2=2)
+
+
+def reestimate(block: MeasurementBlock, nRk: np.ndarray, theta: np.ndarray, gyro_factors: list,
+               values: gtsam.Values, sigma_gyr: np.ndarray) -> dict:
+    """New per-axis standard deviations {"gyr", "acc", "mag"} (unchanged channels keep their value).
+
+    Args:
+        block: the measurement block at the current noise levels; nRk (K,3,3) and theta (13,) the solution;
+        gyro_factors: the AHRSFactors of the graph; values: the solution; sigma_gyr (3,) current gyro σ.
+    """
+    from imugraph.factors.accelerometer import accelerometer_model
+    from imugraph.factors.magnetometer import magnetometer_model
+
+    K = block.n_keyframes
+    traces, raw = {}, {}
+    if block.acc is not None:
+        e, J = accelerometer_model(block.acc.kRb, nRk[block.acc.kf], block.acc.values, block.g)
+        traces["acc"] = _channel_info_trace(block, block.acc, e, J)
+        raw["acc"] = e
+    if block.mag is not None:
+        e, J, _ = magnetometer_model(block.mag.kRb, nRk[block.mag.kf], theta, block.mag.values)
+        traces["mag"] = _channel_info_trace(block, block.mag, e, J)
+        raw["mag"] = e
+    # gyro: each AHRS factor informs both its keyframes
+    g_err = np.array([f.whitenedError(values) for f in gyro_factors]) if gyro_factors else np.zeros((0, 3))
+    g_tr = np.zeros(K)
+    for i, f in enumerate(gyro_factors):
+        info = np.linalg.inv(f.preintegratedMeasurements().preintMeasCov())
+        g_tr[i] += np.trace(info)
+        g_tr[i + 1] += np.trace(info)
+    total = g_tr + sum(traces.values())
+    total = np.where(total > 0, total, 1.0)
+    out = {}
+    for name, e in raw.items():
+        ch = getattr(block, name)
+        share = traces[name] / total
+        p = 3.0 * share.sum() + (13.0 if name == "mag" and block.use_theta else 0.0)
+        r = e / ch.sigma
+        w = ch.kernel.weight(np.linalg.norm(r, axis=1))
+        n_eff = max(w.sum() - p / 3.0, 1.0)
+        out[name] = np.sqrt(np.sum(w[:, None] * e**2, axis=0) / n_eff)
+        out[name + "_tau"] = integrated_autocorrelation(e * np.sqrt(w)[:, None])
+    # Σω is not re-estimated here: a chain of between-factors can absorb its own residuals (K states,
+    # K−1 factors), so the gyro noise is not identifiable from them; it is measured at rest instead.
+    del g_err
+    return out
+
+
+def integrated_autocorrelation(x: np.ndarray, c: float = 5.0, max_lag: int | None = None) -> float:
+    """Integrated autocorrelation time τ (in samples) of the rows of x (M, d), averaged over columns.
+
+    ρ(l) from the FFT of the mean-removed series; τ(M) = 1 + 2 Σ_{l=1..M} ρ(l) with Sokal's window.
+    """
+    x = np.asarray(x, float)
+    x = x - x.mean(axis=0)
+    m = x.shape[0]
+    if m < 8:
+        return 1.0
+    nfft = 1 << int(np.ceil(np.log2(2 * m)))
+    f = np.fft.rfft(x, nfft, axis=0)
+    acov = np.fft.irfft(np.sum(np.abs(f) ** 2, axis=1), nfft)[:m]
+    if acov[0] <= 0:
+        return 1.0
+    rho = acov / acov[0]
+    lim = max_lag or m // 4
+    taus = 1.0 + 2.0 * np.cumsum(rho[1:lim])
+    window = np.arange(1, len(taus) + 1)
+    ok = np.flatnonzero(window >= c * taus)
+    tau = taus[ok[0]] if len(ok) else taus[-1]
+    return float(max(tau, 1.0))

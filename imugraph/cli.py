@@ -1,0 +1,137 @@
+"""The `imugraph` command line (DESIGN.md, "Command line").
+
+    imugraph calibrate SESSION [--out DIR] [--keyframe-hz 10]
+    imugraph smooth SESSION [--calibration FILE] [--out DIR] [--keyframe-hz 10]
+    imugraph demo [--out DIR] [--seed 0] [--duration 120] [--rate 100]
+    imugraph simulate --out FILE.npz [--seed 0] [--duration 120] [--rate 100]
+
+Every command takes --out and --quiet; calibrate and smooth take --data-dir (a SESSION that does not
+exist as given is looked up there; default $IMUGRAPH_DATA, else ../shared/data). Results go to stdout,
+progress lines to stderr. Errors raised on purpose (`ImugraphError`, unreadable or unwritable files)
+print one line `imugraph: error: <message>` on stderr and exit with 2; Ctrl-C exits with 130.
+The heavy modules are imported by the command that needs them, so `--help` answers at once.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+from typing import Optional, Sequence
+
+from imugraph.errors import ImugraphError
+
+EXIT_ERROR = 2
+EXIT_INTERRUPTED = 130
+
+# command → (module in imugraph.commands, function taking the parsed arguments, returning the exit code)
+COMMANDS = {
+    "calibrate": ("calibrate", "run_calibrate"),
+    "smooth": ("calibrate", "run_smooth"),
+    "demo": ("demo", "run_demo"),
+    "simulate": ("simulate", "run_simulate"),
+}
+
+
+def _positive(kind: type):
+    def parse(text: str):
+        try:
+            value = kind(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"'{text}' is not a number") from None
+        if not value > 0:
+            raise argparse.ArgumentTypeError(f"{text} is not > 0")
+        return value
+    return parse
+
+
+def _common(p: argparse.ArgumentParser, out_help: str, data_dir: bool = False) -> None:
+    p.add_argument("--out", metavar="DIR", default=None, help=out_help)
+    p.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
+    if data_dir:
+        p.add_argument("--data-dir", metavar="DIR", default=None,
+                       help="where to look for SESSION when it does not exist as given "
+                            "(default: $IMUGRAPH_DATA, else ../shared/data)")
+
+
+def _keyframes(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--keyframe-hz", type=_positive(float), default=10.0, metavar="HZ",
+                   help="orientation states per second (every sample is still used; default 10)")
+
+
+def _simulation(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    p.add_argument("--duration", type=_positive(float), default=120.0, metavar="S", help="length in s (default 120)")
+    p.add_argument("--rate", type=_positive(float), default=100.0, metavar="HZ", help="sampling rate (default 100)")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The argument parser of every subcommand."""
+    parser = argparse.ArgumentParser(
+        prog="imugraph", description="IMU sensor fusion with factor graphs: magnetometer calibration with "
+        "inertial sensors (Kok & Schön) and orientation smoothing.")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    session_help = "session file (.npz, .mat, .hdf5, .csv, .txt) or x-IMU3 folder"
+    default_out = "output folder (default: imugraph_out/<session stem>)"
+
+    p = sub.add_parser("calibrate", help="calibrate the magnetometer and smooth the orientation",
+                       description="Writes calibration.json, orientation.npz, calibration.png, heading.png.")
+    p.add_argument("session", metavar="SESSION", help=session_help)
+    _common(p, default_out, data_dir=True)
+    _keyframes(p)
+
+    p = sub.add_parser("smooth", help="smoothed orientation (with a known or estimated calibration)",
+                       description="Writes orientation.npz (and calibration.json when it is estimated).")
+    p.add_argument("session", metavar="SESSION", help=session_help)
+    p.add_argument("--calibration", metavar="FILE", default=None, help="calibration.json to use instead of estimating one")
+    _common(p, default_out, data_dir=True)
+    _keyframes(p)
+
+    p = sub.add_parser("demo", help="calibrate a simulated distorted magnetometer and compare with the truth",
+                       description="Writes the same files as calibrate and prints true vs estimated values.")
+    _common(p, "output folder (default: imugraph_out/demo)")
+    _simulation(p)
+    _keyframes(p)
+
+    p = sub.add_parser("simulate", help="write a simulated session (NPZ: gyr, acc, mag, t, quat)",
+                       description="Random rotation about all axes, distorted magnetometer, gyro bias, noise.")
+    p.add_argument("--out", metavar="FILE.npz", required=True, help="session file to write")
+    p.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
+    _simulation(p)
+    return parser
+
+
+def _error(message: str) -> int:
+    print(f"imugraph: error: {' '.join(str(message).split())}", file=sys.stderr, flush=True)
+    return EXIT_ERROR
+
+
+def main(argv: Optional[Sequence[str]] = None) -> int:
+    """Run one command.
+
+    Args:
+        argv: arguments without the program name (default: sys.argv[1:]).
+
+    Returns:
+        Exit code: 0 success, 2 bad usage or bad input (one line on stderr), 130 interrupted.
+    """
+    try:
+        args = build_parser().parse_args(argv)
+    except SystemExit as exc:           # --help (0) or a usage error (2), already printed by argparse
+        return int(exc.code or 0) if not isinstance(exc.code, str) else EXIT_ERROR
+    module, function = COMMANDS[args.command]
+    try:
+        run = getattr(importlib.import_module(f"imugraph.commands.{module}"), function)
+        return int(run(args))
+    except KeyboardInterrupt:
+        print("imugraph: interrupted", file=sys.stderr, flush=True)
+        return EXIT_INTERRUPTED
+    except ImugraphError as exc:
+        return _error(str(exc))
+    except OSError as exc:              # a file that vanished or could not be written mid-way
+        where = f"{exc.filename}: " if exc.filename else ""
+        return _error(f"{where}{exc.strerror or exc}")
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,260 @@
+"""Figures written as PNG next to the numbers they show (matplotlib, Agg canvas, no pyplot state).
+
+Every function returns the `Figure` and writes the PNG atomically: it renders to a temporary file in
+the destination directory, then `os.replace`s it onto the target, so a reader never sees half a file
+and no temporary file survives an error.
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from pathlib import Path
+from typing import Mapping, Optional
+
+import numpy as np
+from matplotlib.axes import Axes
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
+
+from imugraph.errors import SessionError
+from imugraph.geometry import quat_to_rotmat, quat_to_rotvec, rotmat_to_quat
+
+_AXES = ("x", "y", "z")
+_COLORS = ("tab:red", "tab:green", "tab:blue")
+_UNITS = {"gyr": "rad/s", "acc": "m/s²", "mag": "unit field"}
+_MAX_SCATTER = 4000
+
+
+def save_figure_atomic(fig: Figure, path: str | os.PathLike, dpi: int = 110) -> Path:
+    """Render `fig` as PNG to `path` through a temporary file in the same directory + os.replace.
+
+    Args:
+        fig: the figure.
+        path: destination (.png); missing parent directories are created.
+        dpi: resolution, dots per inch.
+
+    Returns:
+        The destination path.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    FigureCanvasAgg(fig)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=".png.tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            fig.savefig(fh, format="png", dpi=dpi)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+    return path
+
+
+def _as_n3(name: str, value: np.ndarray, path: Path, n: Optional[int] = None) -> np.ndarray:
+    arr = np.asarray(value, float)
+    if arr.ndim != 2 or arr.shape[1] != 3 or (n is not None and arr.shape[0] != n):
+        want = f"({n if n is not None else 'N'}, 3)"
+        raise SessionError(str(path), name, f"shape {arr.shape}", want)
+    return arr
+
+
+def _subsample(n: int) -> np.ndarray:
+    return np.unique(np.linspace(0, n - 1, min(n, _MAX_SCATTER)).astype(int)) if n else np.arange(0)
+
+
+def plot_calibration(
+    path: str | os.PathLike,
+    b_mag_raw: np.ndarray,
+    b_mag_cal: np.ndarray,
+    t: np.ndarray,
+    residuals: Optional[Mapping[str, np.ndarray]] = None,
+    *,
+    whitened: bool = False,
+    title: str = "Magnetometer calibration",
+) -> Figure:
+    """2×3 figure: field projections before/after, calibrated norm over time, residual histograms.
+
+    Top row: xy, xz, yz projections of the raw field divided by its median norm and of the
+    calibrated field D⁻¹(b_mag − o), with the unit circle. Bottom row: |field| over time (raw/median
+    and calibrated, ideal 1) and per-channel residual histograms (x, y, z overlaid; with a standard
+    normal density when `whitened`).
+
+    Args:
+        path: PNG destination.
+        b_mag_raw: (N, 3) raw magnetometer, any unit; NaN rows are skipped.
+        b_mag_cal: (N, 3) calibrated magnetometer, unit norm ideally.
+        t: (N,) time, s.
+        residuals: {"gyr"|"acc"|"mag": (M, 3)} residuals per channel, or None.
+        whitened: residuals are divided by their noise standard deviation (dimensionless).
+        title: figure title.
+
+    Returns:
+        The Figure (already written to `path`).
+
+    Raises:
+        SessionError: arrays with the wrong shape (named by field).
+    """
+    path = Path(path)
+    raw = _as_n3("b_mag_raw", b_mag_raw, path)
+    cal = _as_n3("b_mag_cal", b_mag_cal, path, raw.shape[0])
+    t = np.asarray(t, float)
+    if t.shape != (raw.shape[0],):
+        raise SessionError(str(path), "t", f"shape {t.shape}", f"({raw.shape[0]},)")
+    ok = np.all(np.isfinite(raw), axis=1) & np.all(np.isfinite(cal), axis=1)
+    raw_n = raw[ok] / np.median(np.linalg.norm(raw[ok], axis=1)) if ok.any() else raw[ok]
+
+    fig = Figure(figsize=(15, 9), layout="constrained")
+    grid = fig.add_gridspec(2, 3)
+    for col, (i, j) in enumerate(((0, 1), (0, 2), (1, 2))):
+        _plot_projection(fig.add_subplot(grid[0, col]), raw_n, cal[ok], i, j)
+    _plot_norm(fig.add_subplot(grid[1, 0]), t[ok], raw_n, cal[ok])
+    _plot_residuals(fig, grid[1, 1:], residuals, whitened)
+    fig.suptitle(title)
+    save_figure_atomic(fig, path)
+    return fig
+
+
+def _plot_projection(ax: Axes, raw_n: np.ndarray, cal: np.ndarray, i: int, j: int) -> None:
+    idx = _subsample(raw_n.shape[0])
+    ax.scatter(raw_n[idx, i], raw_n[idx, j], s=2, alpha=0.4, color="tab:gray", label="raw / median |raw|")
+    ax.scatter(cal[idx, i], cal[idx, j], s=2, alpha=0.5, color="tab:blue", label="calibrated")
+    phi = np.linspace(0.0, 2.0 * np.pi, 361)
+    ax.plot(np.cos(phi), np.sin(phi), "k--", lw=1, label="unit circle")
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.set_xlabel(f"b_mag {_AXES[i]} [normalised]")
+    ax.set_ylabel(f"b_mag {_AXES[j]} [normalised]")
+    ax.set_title(f"Field projection {_AXES[i]}{_AXES[j]}")
+    ax.grid(alpha=0.3)
+    ax.legend(loc="upper right", fontsize=7, markerscale=4)
+
+
+def _plot_norm(ax: Axes, t: np.ndarray, raw_n: np.ndarray, cal: np.ndarray) -> None:
+    ax.plot(t, np.linalg.norm(raw_n, axis=1), color="tab:gray", lw=0.8, label="raw / median |raw|")
+    ax.plot(t, np.linalg.norm(cal, axis=1), color="tab:blue", lw=0.8, label="calibrated")
+    ax.axhline(1.0, color="k", ls="--", lw=1, label="ideal (1)")
+    ax.set_xlabel("time [s]")
+    ax.set_ylabel("|b_mag| [normalised]")
+    ax.set_title("Field norm over time")
+    ax.grid(alpha=0.3)
+    ax.legend(loc="upper right", fontsize=7)
+
+
+def _plot_residuals(fig: Figure, cell, residuals: Optional[Mapping[str, np.ndarray]],
+                    whitened: bool) -> None:
+    if not residuals:
+        ax = fig.add_subplot(cell)
+        ax.text(0.5, 0.5, "no residuals given", ha="center", va="center", transform=ax.transAxes)
+        ax.set_axis_off()
+        return
+    channels = [c for c in ("gyr", "acc", "mag") if c in residuals] + \
+        [c for c in residuals if c not in ("gyr", "acc", "mag")]
+    sub = cell.subgridspec(1, len(channels))
+    for k, channel in enumerate(channels):
+        ax = fig.add_subplot(sub[0, k])
+        res = np.asarray(residuals[channel], float).reshape(-1, 3)
+        res = res[np.all(np.isfinite(res), axis=1)]
+        _histogram(ax, res, channel, whitened)
+
+
+def _histogram(ax: Axes, res: np.ndarray, channel: str, whitened: bool) -> None:
+    if res.shape[0] == 0:
+        ax.text(0.5, 0.5, "no samples", ha="center", va="center", transform=ax.transAxes)
+    else:
+        lim = 5.0 if whitened else max(float(np.percentile(np.abs(res), 99.5)), 1e-12)
+        bins = np.linspace(-lim, lim, 61)
+        for a in range(3):
+            rms = float(np.sqrt(np.mean(res[:, a] ** 2)))
+            ax.hist(np.clip(res[:, a], -lim, lim), bins=bins, density=True, histtype="step",
+                    color=_COLORS[a], label=f"{_AXES[a]} (RMS {rms:.3g})")
+        if whitened:
+            x = np.linspace(-lim, lim, 200)
+            ax.plot(x, np.exp(-0.5 * x**2) / np.sqrt(2 * np.pi), "k--", lw=1, label="N(0, 1)")
+        ax.legend(loc="upper right", fontsize=7)
+    unit = "whitened [-]" if whitened else f"[{_UNITS.get(channel, 'unit')}]"
+    ax.set_xlabel(f"{channel} residual {unit}")
+    ax.set_ylabel("density")
+    ax.set_title(f"{channel} residuals")
+    ax.grid(alpha=0.3)
+
+
+def heading_deg(quat: np.ndarray) -> np.ndarray:
+    """(N,) heading (yaw about nav z) of nRb quaternions (N, 4) w, x, y, z, in degrees (−180, 180]."""
+    nRb = quat_to_rotmat(np.asarray(quat, float))
+    return np.rad2deg(np.arctan2(nRb[:, 1, 0], nRb[:, 0, 0]))
+
+
+def _break_wraps(y_deg: np.ndarray) -> np.ndarray:
+    """Insert NaN where an angle wraps by more than 180° so that lines do not cross the plot."""
+    y = np.asarray(y_deg, float).copy()
+    jump = np.abs(np.diff(y)) > 180.0
+    y[1:][jump] = np.nan
+    return y
+
+
+def plot_heading(
+    path: str | os.PathLike,
+    t: np.ndarray,
+    quat_est: np.ndarray,
+    quat_ref: Optional[np.ndarray] = None,
+    *,
+    title: str = "Heading",
+) -> Figure:
+    """Heading over time, and the error against a reference when one is given.
+
+    The error is taken from E = nRb_est · nRb_refᵀ (the nav-frame rotation from reference to
+    estimate): its heading (yaw of E) and its total angle |Log E|, both in degrees.
+
+    Args:
+        path: PNG destination.
+        t: (N,) time, s.
+        quat_est: (N, 4) estimated nRb, w, x, y, z.
+        quat_ref: optional (N, 4) reference nRb (NaN rows where unknown).
+        title: figure title.
+
+    Returns:
+        The Figure (already written to `path`).
+
+    Raises:
+        SessionError: arrays with the wrong shape.
+    """
+    path = Path(path)
+    t = np.asarray(t, float)
+    q_est = np.asarray(quat_est, float)
+    if t.ndim != 1 or q_est.shape != (t.shape[0], 4):
+        raise SessionError(str(path), "quat_est", f"shape {q_est.shape} for t {t.shape}", "(N, 4)")
+    rows = 1 if quat_ref is None else 2
+    fig = Figure(figsize=(12, 3.5 * rows), layout="constrained")
+    axes = fig.subplots(rows, 1, sharex=True, squeeze=False)[:, 0]
+    axes[0].plot(t, _break_wraps(heading_deg(q_est)), color="tab:blue", lw=1, label="estimate")
+    if quat_ref is not None:
+        q_ref = np.asarray(quat_ref, float)
+        if q_ref.shape != q_est.shape:
+            raise SessionError(str(path), "quat_ref", f"shape {q_ref.shape}", f"{q_est.shape}")
+        known = np.all(np.isfinite(q_ref), axis=1)
+        axes[0].plot(t[known], _break_wraps(heading_deg(q_ref[known])), color="k", lw=1, ls="--",
+                     label="reference")
+        _plot_heading_error(axes[1], t[known], q_est[known], q_ref[known])
+    axes[0].set_ylabel("heading [deg]")
+    axes[0].set_ylim(-185, 185)
+    axes[0].set_title(title)
+    axes[0].grid(alpha=0.3)
+    axes[0].legend(loc="upper right", fontsize=8)
+    axes[-1].set_xlabel("time [s]")
+    save_figure_atomic(fig, path)
+    return fig
+
+
+def _plot_heading_error(ax: Axes, t: np.ndarray, q_est: np.ndarray, q_ref: np.ndarray) -> None:
+    E = quat_to_rotmat(q_est) @ np.swapaxes(quat_to_rotmat(q_ref), -1, -2)
+    yaw = np.rad2deg(np.arctan2(E[:, 1, 0], E[:, 0, 0]))
+    total = np.rad2deg(np.linalg.norm(quat_to_rotvec(rotmat_to_quat(E)), axis=1))
+    rms = float(np.sqrt(np.mean(yaw**2))) if yaw.size else float("nan")
+    ax.plot(t, _break_wraps(yaw), color="tab:red", lw=1, label=f"heading error (RMS {rms:.2f}°)")
+    ax.plot(t, total, color="tab:gray", lw=1, label="total orientation error")
+    ax.axhline(0.0, color="k", lw=0.8)
+    ax.set_ylabel("error [deg]")
+    ax.set_title("Error against the reference")
+    ax.grid(alpha=0.3)
+    ax.legend(loc="upper right", fontsize=8)
