@@ -7,21 +7,27 @@ model y = D·bRn·n_mag + o (DESIGN.md) the calibrated field in the INERTIAL axe
     m_b = D⁻¹(y − o) = R·m̃,     hence   D = D₀·Rᵀ,   o = o₀.
 
 Inclination constraint: gravity and the field keep a constant angle. With the body "up" direction
-u_b = acc/‖acc‖ = bRn·e_z (accelerometer at rest reads +g up) and n_mag = [cos δ, 0, −sin δ],
+u_b = bRn·e_z (the accelerometer direction at rest, +g up) and n_mag = [cos δ, 0, −sin δ],
 
     (R·m̃_t)ᵀ u_b,t = (bRn n_mag)ᵀ(bRn e_z) = n_magᵀ e_z = −sin δ        for every t      (Kok eq. 14)
 
 solved here by nonlinear least squares over (R, δ), R = Exp(φ) (rotation vector φ), from R = I and
 sin δ₀ = −mean(m̃ᵀu_b), with a soft-L1 loss against samples where the field or acceleration is off.
+Two departures from using acc/‖acc‖ directly, both needed on real data (BROAD): u_b comes from
+`gravity_up` (the accelerometer averaged in the gyro-integrated frame; the raw direction is 3–15°
+off during movement), and the magnetometer's lag behind the inertial sensors is estimated
+(`estimate_mag_delay`) so that each field sample is paired with "up" at the same instant.
 
-Which rotations of R are identifiable. Replace R by G·R (G a rotation, δ free). The residuals stay
-constant iff (G m_b,t)ᵀ u_b,t is the same for every t. If the sensor turns about ONE body axis a only,
-then m_b,t = Rot_t m_b,0 and u_b,t = Rot_t u_b,0 with every Rot_t about a, G about a commutes with
-Rot_t and (G m_b,t)ᵀu_b,t = (G m_b,0)ᵀu_b,0: a 1-D family G = Rot_a(ψ) is unobservable (the
-misalignment about the rotation axis). With rotation about two or more axes no such G exists and
-(R, δ) are identifiable. A right factor R·H (H ≠ I) is never hidden since m̃ takes many directions.
-Gauge fix: a weak prior ‖φ‖ (weight `PRIOR_WEIGHT` relative to the data) keeps R at the start
-(magnetometer axes = inertial axes) along any unobservable direction and is negligible otherwise.
+Which (R, δ) are identifiable. Linearise at the truth, R = Exp(φ), with m_b = bRn n_mag:
+∂r_t = φᵀ(u_b × m_b) + cos δ·∂δ = −cos δ·(φᵀ e_b,t − ∂δ), where e_b,t = bRn_t·e_y is the body-frame
+direction of the horizontal axis perpendicular to the field (n_mag × e_z = −cos δ·e_y). So (φ, ∂δ) =
+(a, c) is unobservable iff aᵀe_b,t = c for all t, i.e. iff all e_b,t lie on one circle of the sphere.
+Rotation about a single body axis (e_b turns about it) is the common case: then G·R with G about that
+axis fits equally well (a 1-D family). Rotations about the field's perpendicular horizontal axis add
+nothing (e_b does not move). Otherwise (R, δ) are identifiable, with a sensitivity that scales with
+cos δ (weak at high dip: 0.36 at 69°). A right factor R·H is never hidden since m̃ takes many
+directions. Gauge fix: a weak prior on φ (weight `PRIOR_WEIGHT` relative to the data) keeps R at the
+start (magnetometer axes = inertial axes) along any unobservable direction, negligible otherwise.
 
 Reflection: det(D) > 0 by construction (D₀ symmetric positive definite, R proper). A magnetometer
 whose axes are mirrored relative to the inertial axes (D₀Q with det Q = −1, i.e. Q = −rotation) is
@@ -87,23 +93,26 @@ def gravity_up(b_gyr: np.ndarray, b_acc: np.ndarray, dt: np.ndarray,
 def _delay_fit_rss(dm: np.ndarray, m: np.ndarray, w: np.ndarray) -> float:
     """RSS of dm_j ≈ [m_j]× A w_j over a free 3×3 A (misalignment and gyro scale), rows (M, 3)."""
     rows = np.einsum("nik,nl->nikl", skew(m), w).reshape(-1, 9)      # vec(A) row-major
-    _, rss, *_ = np.linalg.lstsq(rows, dm.reshape(-1), rcond=None)
-    return float(rss[0]) if rss.size else float(np.sum((dm.reshape(-1) - 0.0) ** 2))
+    sol, *_ = np.linalg.lstsq(rows, dm.reshape(-1), rcond=None)
+    return float(np.sum((dm.reshape(-1) - rows @ sol) ** 2))
 
 
 def estimate_mag_delay(t: np.ndarray, m_tilde: np.ndarray, b_gyr: np.ndarray,
-                       max_delay_s: float = 0.05, max_rows: int = 20000) -> float:
+                       max_delay_s: float = 0.05, window_s: float = 0.04,
+                       max_rows: int = 20000) -> float:
     """Delay τ of the magnetometer behind the gyroscope (s; > 0: the magnetometer lags).
 
-    A static field seen from a turning body obeys ṁ_b = −ω × m_b = m_b × ω. In the magnetometer
-    axes (m̃ = Rᵀm_b) with a lag, ṁ̃(t_j) = [m̃_j]× A ω(t_j − τ), A = Rᵀ (up to gyro scale). For every
-    τ on a grid of one gyro sample, A is fitted by linear least squares and τ minimises the residual
-    (parabolic refinement). Fitting A matters: with A fixed to I a misalignment of a few degrees
-    shifts the optimum by several milliseconds. BROAD: ≈ 11 ms (3 samples) on every trial.
+    A static field seen from a turning body obeys ṁ_b = m_b × ω. Over a window [t_j − h, t_j + h]:
+    m(t_j + h) − m(t_j − h) ≈ [m_j]× (Ω(t_j + h − τ) − Ω(t_j − h − τ)), Ω the integrated gyro
+    (Ω(t_k) = Σ_{i<k} ω_i dt_i, the strapdown convention q_{k+1} = q_k ⊗ Exp(ω_k dt_k)). Differences
+    over a window rather than between neighbours keep magnetometer noise from swamping the fit. In the
+    magnetometer axes the map is A = Rᵀ (times gyro scale), so for every τ on a grid of one gyro
+    sample a free 3×3 A is fitted by linear least squares and τ minimises the residual (parabolic
+    refinement). BROAD: 8.6–9.9 ms (≈ 2.7 samples) on every trial that rotates.
 
     Args:
         t: (N,) s. m_tilde: (N, 3) ellipsoid-calibrated field (NaN rows ignored). b_gyr: (N, 3) rad/s.
-        max_delay_s: search range ±, s.
+        max_delay_s: search range ±, s. window_s: difference window 2h, s.
         max_rows: magnetometer rows used (evenly thinned).
 
     Returns:
@@ -111,23 +120,30 @@ def estimate_mag_delay(t: np.ndarray, m_tilde: np.ndarray, b_gyr: np.ndarray,
     """
     t = np.asarray(t, float)
     j = np.flatnonzero(np.all(np.isfinite(m_tilde), axis=1))
-    if j.size < 10:
+    if j.size < 20:
         return 0.0
     tj, mj = t[j], np.asarray(m_tilde, float)[j]
-    dm = (mj[2:] - mj[:-2]) / (tj[2:] - tj[:-2])[:, None]          # central differences
-    tj, mj = tj[1:-1], mj[1:-1]
-    keep = np.linspace(0, tj.size - 1, min(tj.size, max_rows)).round().astype(int)
-    tj, mj, dm = tj[keep], mj[keep], dm[keep]
+    h = max(1, int(round(0.5 * window_s / float(np.median(np.diff(tj))))))
+    lo, mid, hi = np.arange(0, tj.size - 2 * h), np.arange(h, tj.size - h), np.arange(2 * h, tj.size)
+    keep = np.linspace(0, mid.size - 1, min(mid.size, max_rows)).round().astype(int)
+    lo, mid, hi = lo[keep], mid[keep], hi[keep]
+    dm = mj[hi] - mj[lo]
+    omega = np.concatenate([np.zeros((1, 3)), np.cumsum(np.nan_to_num(b_gyr[:-1]) * np.diff(t)[:, None], 0)])
     step = float(np.median(np.diff(t)))
     taus = np.arange(-max_delay_s, max_delay_s + 0.5 * step, step)
-    rss = np.array([_delay_fit_rss(dm, mj, np.stack([np.interp(tj - tau, t, b_gyr[:, i])
-                                                     for i in range(3)], axis=1))
-                    for tau in taus])                             # a loop over lags, not samples
-    k = int(np.argmin(rss))
-    if 1.0 - rss[k] / np.sum(dm * dm) < 0.1 or k in (0, taus.size - 1):
+
+    def rss(tau: float) -> float:
+        """Residual of the best A with the gyro shifted by τ."""
+        d_omega = np.stack([np.interp(tj[hi] - tau, t, omega[:, i]) - np.interp(tj[lo] - tau, t, omega[:, i])
+                            for i in range(3)], axis=1)
+        return _delay_fit_rss(dm, mj[mid], d_omega)
+
+    r = np.array([rss(tau) for tau in taus])                     # a loop over lags, not samples
+    k = int(np.argmin(r))
+    if 1.0 - r[k] / np.sum(dm * dm) < 0.1 or k in (0, taus.size - 1):
         return 0.0
-    den = rss[k - 1] - 2 * rss[k] + rss[k + 1]
-    return float(taus[k] + (0.5 * step * (rss[k - 1] - rss[k + 1]) / den if den > 0 else 0.0))
+    den = r[k - 1] - 2 * r[k] + r[k + 1]
+    return float(taus[k] + (0.5 * step * (r[k - 1] - r[k + 1]) / den if den > 0 else 0.0))
 
 
 def _residuals(p: np.ndarray, m_tilde: np.ndarray, u_b: np.ndarray, w_prior: float) -> np.ndarray:

@@ -11,6 +11,7 @@
 
 from __future__ import annotations
 
+import sys
 from dataclasses import dataclass, field
 
 import gtsam
@@ -74,16 +75,31 @@ def gravity_from(session: Session, rest: np.ndarray | None) -> float:
     return float(np.median(norms))
 
 
-def calibrate(session: Session, options: Options | None = None, initial=None) -> Estimate:
+def calibrate(session: Session, options: Options | None = None, initial=None,
+              allow_weak: bool = False) -> Estimate:
     """Estimate D, o, dip, gyro bias, noise levels and the smoothed orientation of a session.
+
+    Args:
+        allow_weak: when the data do not identify D and o (too little rotation, or an ellipsoid fit
+            broken by a disturbance), fall back to a regularised estimate around a sphere (D = s·I, o = 0,
+            tight prior) instead of raising; `coverage["identifiable"]` is then False with the reason.
 
     Raises:
         CalibrationError: the data do not allow a calibration (named problem, e.g. too little rotation).
     """
+    from imugraph.errors import CalibrationError
+
     opt = options or Options()
+    weak_reason = None
     if initial is None:
         from imugraph.calibration.initial import initial_calibration
-        initial = initial_calibration(session)
+        try:
+            initial = initial_calibration(session)
+        except CalibrationError as exc:
+            if not allow_weak:
+                raise
+            weak_reason = str(exc)
+            initial = weak_initial(session, weak_reason)
     init = initial
     g = gravity_from(session, getattr(init, "rest", None))
     noise = Noise(np.asarray(init.noise["gyr"], float), np.asarray(init.noise["acc"], float),
@@ -108,7 +124,8 @@ def calibrate(session: Session, options: Options | None = None, initial=None) ->
         if nRk is None:
             nRk = complementary_keyframes(pre, session.acc, m_cal0)
         prob = build_problem(pre, session.acc, session.mag, noise, g, nRk, bias, theta,
-                             theta_prior_sigma=_theta_prior_sigma(theta0), bias_prior_sigma=opt.bias_prior_sigma,
+                             theta_prior_sigma=_theta_prior_sigma(theta0, weak_reason is not None),
+                             bias_prior_sigma=opt.bias_prior_sigma,
                              acc_kernel=opt.acc_kernel, mag_kernel=opt.mag_kernel,
                              bias_segment=seg, bias_rw_sigma=opt.bias_rw)
         values, info = optimize(prob.graph, prob.blocks, prob.values, prob.ordering, opt.solver)
@@ -139,8 +156,8 @@ def calibrate(session: Session, options: Options | None = None, initial=None) ->
         noise = Noise(new.get("gyr", noise.gyr), new.get("acc", noise.acc), new.get("mag", noise.mag))
         bias = bias_new
         if opt.progress:
-            print(f"  ML round {outer}: LM {info.iterations} it, τ {taus}, noise change {change:.3f}, "
-                  f"bias change {np.rad2deg(bias_change):.4f} °/s")
+            print(f"  ML round {outer}: LM {info.iterations} it, noise change {change:.3f}, "
+                  f"bias change {np.rad2deg(bias_change):.4f} °/s", file=sys.stderr)
         if change < opt.noise_tol and bias_change < 1e-4:
             converged = True
             break
@@ -148,7 +165,8 @@ def calibrate(session: Session, options: Options | None = None, initial=None) ->
     pre = preintegrate(session.gyr, session.dt, kf, skf, _per_sample_bias(bias, seg, skf), noise.gyr,
                            opt.gyro_rate_error)
     prob = build_problem(pre, session.acc, session.mag, noise, g, nRk, bias, theta,
-                         theta_prior_sigma=_theta_prior_sigma(theta0), bias_prior_sigma=opt.bias_prior_sigma,
+                         theta_prior_sigma=_theta_prior_sigma(theta0, weak_reason is not None),
+                         bias_prior_sigma=opt.bias_prior_sigma,
                          acc_kernel=opt.acc_kernel, mag_kernel=opt.mag_kernel,
                          bias_segment=seg, bias_rw_sigma=opt.bias_rw)
     values, info = optimize(prob.graph, prob.blocks, prob.values, prob.ordering, opt.solver)
@@ -156,7 +174,10 @@ def calibrate(session: Session, options: Options | None = None, initial=None) ->
     theta = values.atVector(keys.CALIB)
     bias_segments = _bias_values(values, n_seg)
     bias = bias_segments.mean(axis=0)
-    cov_theta, cov_bias = marginal_covariances(prob, values)
+    try:
+        cov_theta, cov_bias = marginal_covariances(prob, values)
+    except RuntimeError:     # indeterminate: some direction of θ is not observable (reported as NaN)
+        cov_theta, cov_bias = np.full((THETA_DIM, THETA_DIM), np.nan), np.full((3, 3), np.nan)
     D, o, dip = unpack_theta(theta)
     std_theta = np.sqrt(np.maximum(np.diag(cov_theta), 0.0))
     cal = Calibration(
@@ -191,11 +212,35 @@ def _bias_values(values: gtsam.Values, n_seg: int) -> np.ndarray:
     return np.stack([values.atVector(keys.bias(i)) for i in range(n_seg)])
 
 
-def _theta_prior_sigma(theta0: np.ndarray) -> np.ndarray:
-    """Weak prior on θ: D entries ± 1 (relative to its scale), o ± 2 field norms, dip ± 90°."""
+def _theta_prior_sigma(theta0: np.ndarray, tight: bool = False) -> np.ndarray:
+    """Prior on θ: weak (D entries ± its scale, o ± 2 field norms, dip ± 90°), or tight around a sphere
+    (± 5 % of the scale) when the data do not identify D and o."""
     D0, _, _ = unpack_theta(theta0)
     s = float(np.cbrt(abs(np.linalg.det(D0)))) or 1.0
-    return np.concatenate([np.full(9, s), np.full(3, 2.0 * s), [np.pi / 2]])
+    f = 0.05 if tight else 1.0
+    return np.concatenate([np.full(9, f * s), np.full(3, 2.0 * f * s), [np.pi / 2]])
+
+
+def weak_initial(session: Session, reason: str):
+    """Initial estimate when D and o are not identifiable: D = median |y|·I, o = 0, dip from the mean
+    angle between field and accelerometer (m̂·û = −sin δ), noise and bias from rest."""
+    from types import SimpleNamespace
+
+    from imugraph.calibration.rest import detect_rest, noise_from_rest
+
+    rest = detect_rest(session)
+    nz = noise_from_rest(session, rest)
+    ok = session.mag_valid
+    y = session.mag[ok]
+    scale = float(np.median(np.linalg.norm(y, axis=1)))
+    u = session.acc[ok] / np.linalg.norm(session.acc[ok], axis=1, keepdims=True)
+    m = y / np.linalg.norm(y, axis=1, keepdims=True)
+    dip = float(np.arcsin(np.clip(-np.median(np.sum(m * u, axis=1)), -1, 1)))
+    return SimpleNamespace(D=scale * np.eye(3), o=np.zeros(3), dip_rad=dip,
+                           gyro_bias=np.asarray(nz["gyro_bias"], float),
+                           noise={k: np.asarray(nz[k], float) for k in ("gyr", "acc", "mag")}, rest=rest,
+                           coverage={"identifiable": False, "problems": [reason],
+                                     "fallback": "regularised around a sphere (D = s·I, o = 0, ±5 %)"})
 
 
 def marginal_covariances(prob: Problem, values: gtsam.Values) -> tuple[np.ndarray, np.ndarray]:

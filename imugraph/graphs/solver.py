@@ -91,10 +91,16 @@ def optimize(graph: gtsam.NonlinearFactorGraph, blocks: list, values: gtsam.Valu
                 sys_ = gtsam.GaussianFactorGraph()
                 sys_.push_back(gfg)
                 sys_.push_back(_damping(x, lam))
-            delta = sys_.optimize(ordering)
-            x_new = x.retract(delta)
-            new_cost = total_cost(graph, blocks, x_new)
-            if new_cost <= cost or p.method == "gn":
+            try:
+                delta = sys_.optimize(ordering)
+                x_new = x.retract(delta)
+                new_cost = total_cost(graph, blocks, x_new)
+            except RuntimeError:          # indeterminate linear system: damp harder (LM) or give up (GN)
+                if p.method == "gn":
+                    raise
+                new_cost = float("inf")
+                lam = max(lam, 1e-6)
+            if new_cost <= cost or (p.method == "gn" and np.isfinite(new_cost)):
                 accepted = True
                 break
             lam *= 10.0

@@ -9,7 +9,7 @@ Dispatch (extension first, then the file's first bytes when the extension is unk
 | `.mat` MATLAB v5 | BROAD (``imu_gyr``…) or Rasteiro (``SENSgyro``…) by the variables inside |
 | `.hdf5`, `.h5`, `.mat` v7.3 (HDF5) | BROAD HDF5 |
 | `.csv` | imugraph columns, or an x-io export recognised by its header |
-| `.txt` | Xsens MTw export (``//`` header lines) |
+| `.txt` | Xsens MTw export (``//`` header lines), else CSV |
 
 NPZ contract: ``gyr`` (N, 3) rad/s, ``acc`` (N, 3) m/s², ``mag`` (N, 3) any unit (NaN rows = no
 sample), and ``rate`` (Hz, scalar) or ``t`` (N,) s increasing; optional ``quat`` (N, 4) w,x,y,z
@@ -196,8 +196,10 @@ def _read_any(path: Path) -> Session:
         return read_mat(path)
     if ext == ".csv":
         return read_csv(path)
-    if ext == ".txt" or kind == "text":
-        return read_xsens_mtw(path) if _is_xsens(path) else read_csv(path)
+    if kind == "text" and _is_xsens(path):
+        return read_xsens_mtw(path)
+    if ext == ".txt":
+        return read_csv(path)
     raise SessionError(src, "file", f"unknown format (extension '{ext}')",
                        ".npz, .mat, .hdf5/.h5, .csv, .txt (Xsens) or an x-IMU3 folder")
 
@@ -220,5 +222,8 @@ def load_session(path: Union[str, Path], *, validate: bool = True) -> Session:
     Raises:
         SessionError: unreadable or invalid input; the message names the file and the field.
     """
-    session = _read_any(Path(path))
+    try:
+        session = _read_any(Path(path))
+    except OSError as exc:                    # permissions, I/O errors: still one clear line
+        raise SessionError(str(path), "file", f"unreadable ({exc.strerror or exc})", "a readable file") from None
     return validate_session(session) if validate else session

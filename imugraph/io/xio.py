@@ -192,6 +192,9 @@ def read_fusion_csv(path: Path, cols: list, data: np.ndarray) -> Session:
     t = data[:, ti] * _TIME_SCALE[tu]
     gyr = _block(src, spec, data, "gyr", converted)
     acc = _block(src, spec, data, "acc", converted)
+    if ("mag", "x") not in spec and path.name == "Inertial.csv":
+        raise SessionError(src, "Magnetometer X", "an x-IMU3 Inertial.csv alone (no magnetometer)",
+                           "the x-IMU3 folder holding Inertial.csv and Magnetometer.csv")
     mag, held = drop_held_rows(_block(src, spec, data, "mag", converted))
     duration = float(t[-1] - t[0]) if t.size > 1 else 0.0
     n_mag = int(np.sum(np.all(np.isfinite(mag), axis=1)))

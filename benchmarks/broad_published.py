@@ -1,0 +1,56 @@
+"""Issue 2c: batch smoothing of the published BROAD trials as they are (calibration estimated from each
+trial), side by side with offline VQF and VQF, scored over `movement` at the best time shift (±3 samples)
+and best constant heading offset. Prints a table and the means; writes bench_out/broad_published.json.
+
+    .venv/bin/python benchmarks/broad_published.py [TRIAL_NUMBERS,...]
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from benchmarks.common import broad_trials, load_broad_trial, print_table  # noqa: E402
+from benchmarks.peers import timed, vqf_offline, vqf_online  # noqa: E402
+from imugraph.calibration.ml import Options, calibrate  # noqa: E402
+from imugraph.evaluate import orientation_error  # noqa: E402
+
+
+def main(argv: list[str]) -> int:
+    select = set(argv[0].split(",")) if argv else None
+    rows = []
+    for path in broad_trials():
+        num = path.name[:2]
+        if select and num not in select:
+            continue
+        s = load_broad_trial(path)
+        mask = s.movement.astype(bool)
+        est, t_ig = timed(calibrate, s, Options(), allow_weak=True)
+        q_off, t_off = timed(vqf_offline, s)
+        q_on, _ = timed(vqf_online, s)
+        score = {name: orientation_error(q, s.quat, mask, s.rate).rms_deg
+                 for name, q in (("imugraph", est.quat), ("offline_vqf", q_off), ("vqf", q_on))}
+        rows.append({"trial": path.stem, **{k: round(v, 3) for k, v in score.items()},
+                     "ratio": round(score["imugraph"] / score["offline_vqf"], 2),
+                     "identifiable": bool(est.calibration.coverage.get("identifiable", True)),
+                     "t_imugraph_s": round(t_ig, 2), "t_offline_vqf_s": round(t_off, 3)})
+        print(rows[-1], flush=True)
+    print_table(rows, list(rows[0].keys()))
+    means = {k: float(np.mean([r[k] for r in rows])) for k in ("imugraph", "offline_vqf", "vqf")}
+    worse = [r["trial"] for r in rows if r["imugraph"] > r["offline_vqf"]]
+    print(f"mean RMS: imugraph {means['imugraph']:.2f}°, offline VQF {means['offline_vqf']:.2f}°, "
+          f"VQF {means['vqf']:.2f}°; ratio {means['imugraph'] / means['offline_vqf']:.2f}; "
+          f"trials worse than offline VQF: {len(worse)}/{len(rows)}")
+    out = Path("bench_out"); out.mkdir(exist_ok=True)
+    (out / "broad_published.json").write_text(json.dumps({"rows": rows, "means": means}, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))
