@@ -33,6 +33,9 @@ MIN_SAMPLES = 20          # rows with a finite magnetometer sample (9 unknowns, 
 MAX_ROWS = 5000           # evenly spread subsample for speed
 MAX_DESIGN_COND = 50.0    # σ_max / σ_2 of the normalised design; BROAD rotation trials: 5–12
 MAX_AXIS_RATIO = 5.0      # longest / shortest ellipsoid semi-axis
+INLIER_TOL = 0.06         # |‖D0⁻¹(y − o0)‖ − 1| of an inlier (undisturbed BROAD: RMS 0.02–0.03)
+GOOD_INLIERS = 0.90       # accept the plain fit when this share of rows are inliers
+MIN_INLIERS = 0.50        # a robust fit must explain at least this share of rows
 
 _TOO_LITTLE = ("data hold too little rotation: the samples cover only part of the sphere "
                "(a plane, a single axis or a small cap); rotate the sensor about all three axes")
@@ -49,6 +52,7 @@ class EllipsoidFit:
         axis_ratio: longest / shortest semi-axis.
         rms_norm_error: RMS of ‖D0⁻¹(y − o0)‖ − 1 over the rows used.
         n_used: rows used in the fit.
+        inlier_fraction: share of the rows used within INLIER_TOL of the unit sphere.
     """
 
     D0: np.ndarray
@@ -57,6 +61,7 @@ class EllipsoidFit:
     axis_ratio: float
     rms_norm_error: float
     n_used: int
+    inlier_fraction: float = 1.0
 
 
 def _valid_rows(b_mag: np.ndarray, source: str) -> np.ndarray:
@@ -96,21 +101,11 @@ def _solve_quadric(x: np.ndarray, source: str) -> tuple[np.ndarray, np.ndarray, 
     return A, th[6:9], float(th[9]), design_cond
 
 
-def fit_ellipsoid_report(b_mag: np.ndarray, source: str = "<memory>") -> EllipsoidFit:
-    """Fit ‖D0⁻¹(y − o0)‖ ≈ 1 to the valid magnetometer rows, with diagnostics.
-
-    Args:
-        b_mag: (N, 3) raw magnetometer, any unit; NaN rows are ignored.
-        source: file name for error messages.
-
-    Returns:
-        EllipsoidFit with D0 (3, 3) symmetric positive definite and o0 (3,), both in the raw unit.
-
-    Raises:
-        CalibrationError: fewer than MIN_SAMPLES valid rows, the quadric is not an ellipsoid, or the
-            fit is ill-conditioned (too little rotation); the message names the field 'mag'.
-    """
-    y = _valid_rows(b_mag, source)
+def _fit_rows(y: np.ndarray, source: str) -> EllipsoidFit:
+    """The algebraic fit on (M, 3) finite rows (see `fit_ellipsoid_report`)."""
+    if y.shape[0] < MIN_SAMPLES:
+        raise CalibrationError(f"{source}: field 'mag': found {y.shape[0]} usable samples; expected "
+                               f"at least {MIN_SAMPLES} to fit the ellipsoid")
     center = y.mean(axis=0)
     scale = float(np.sqrt(np.mean(np.sum((y - center) ** 2, axis=1))))
     if not scale > 0:
@@ -137,7 +132,66 @@ def fit_ellipsoid_report(b_mag: np.ndarray, source: str = "<memory>") -> Ellipso
     D0 = scale * (V * lam ** -0.5) @ V.T             # symmetric square root, back to the raw unit
     o0 = center + scale * x0
     r = np.linalg.norm(np.linalg.solve(D0, (y - o0).T), axis=0) - 1.0
-    return EllipsoidFit(D0, o0, design_cond, axis_ratio, float(np.sqrt(np.mean(r ** 2))), y.shape[0])
+    return EllipsoidFit(D0, o0, design_cond, axis_ratio, float(np.sqrt(np.mean(r ** 2))), y.shape[0],
+                        float(np.mean(np.abs(r) < INLIER_TOL)))
+
+
+def _inliers(fit: EllipsoidFit, y: np.ndarray) -> np.ndarray:
+    """(M,) bool: rows within INLIER_TOL of the fitted unit sphere."""
+    return np.abs(np.linalg.norm(np.linalg.solve(fit.D0, (y - fit.o0).T), axis=0) - 1.0) < INLIER_TOL
+
+
+def _window_fits(y: np.ndarray, source: str) -> list[EllipsoidFit]:
+    """Fits on contiguous stretches (a quarter of the rows, half-overlapping) that succeed."""
+    n = y.shape[0]
+    size = n // 4
+    fits = []
+    for start in range(0, n - size + 1, max(1, size // 2)):     # 7 windows, not a per-sample loop
+        try:
+            fits.append(_fit_rows(y[start:start + size], source))
+        except CalibrationError:
+            continue
+    return fits
+
+
+def fit_ellipsoid_report(b_mag: np.ndarray, source: str = "<memory>",
+                         robust: bool = True) -> EllipsoidFit:
+    """Fit ‖D0⁻¹(y − o0)‖ ≈ 1 to the valid magnetometer rows, with diagnostics.
+
+    Robust mode (against a field disturbed for part of the recording, e.g. a magnet attached for a
+    minute): when fewer than GOOD_INLIERS of the rows lie within INLIER_TOL of the fitted sphere,
+    fits on contiguous stretches are tried too; the fit with most inliers over ALL rows wins if they
+    are at least MIN_INLIERS of them, and is refitted on its inliers.
+
+    Args:
+        b_mag: (N, 3) raw magnetometer, any unit; NaN rows are ignored.
+        source: file name for error messages.
+        robust: allow the inlier search above.
+
+    Returns:
+        EllipsoidFit with D0 (3, 3) symmetric positive definite and o0 (3,), both in the raw unit.
+
+    Raises:
+        CalibrationError: fewer than MIN_SAMPLES valid rows, the quadric is not an ellipsoid, or the
+            fit is ill-conditioned (too little rotation); the message names the field 'mag'.
+    """
+    y = _valid_rows(b_mag, source)
+    try:
+        fits, error = [_fit_rows(y, source)], None
+    except CalibrationError as err:
+        fits, error = [], err
+    if not robust or (fits and fits[0].inlier_fraction >= GOOD_INLIERS):
+        if error is not None:
+            raise error
+        return fits[0]
+    fits += _window_fits(y, source)
+    scored = [(float(np.mean(_inliers(f, y))), i) for i, f in enumerate(fits)]
+    if not scored or max(scored)[0] < MIN_INLIERS:
+        if error is not None:
+            raise error
+        return fits[0]
+    best = fits[max(scored)[1]]
+    return _fit_rows(y[_inliers(best, y)], source)
 
 
 def fit_ellipsoid(b_mag: np.ndarray, source: str = "<memory>") -> tuple[np.ndarray, np.ndarray]:

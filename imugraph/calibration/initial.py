@@ -24,8 +24,8 @@ import numpy as np
 from imugraph.calibration.alignment import align_axes, estimate_mag_delay, gravity_up
 from imugraph.calibration.coverage import (check_coverage, integrated_rotation, pick_by_rotation,
                                            rotation_coverage)
-from imugraph.calibration.ellipsoid import EllipsoidFit, fit_ellipsoid_report
-from imugraph.calibration.rest import detect_rest, noise_from_rest
+from imugraph.calibration.ellipsoid import INLIER_TOL, EllipsoidFit, fit_ellipsoid_report
+from imugraph.calibration.rest import detect_rest, moving_mean, noise_from_rest
 from imugraph.calibration.result import Calibration
 from imugraph.errors import CalibrationError
 from imugraph.io.session import Session
@@ -33,6 +33,7 @@ from imugraph.io.session import Session
 MIN_ALIGN_SAMPLES = 50   # rows wanted for the inclination constraint
 MAX_ALIGN_RATE = 5.0     # rad/s: faster samples carry gyro-scale and sensor-timing errors
 ALIGN_STEP_DEG = 2.0     # one row per this much rotation
+UNDISTURBED_S = 2.0      # s: window in which ≥ 90 % of field samples must fit the ellipsoid
 
 
 @dataclass
@@ -80,12 +81,21 @@ class InitialEstimate:
                            coverage=dict(self.coverage))
 
 
-def _alignment_rows(session: Session, gyro_bias: np.ndarray, b_up: np.ndarray) -> np.ndarray:
-    """Row indices for the inclination constraint: valid magnetometer and "up" rows turning slower
-    than MAX_ALIGN_RATE, one per ALIGN_STEP_DEG of rotation (rests and back-and-forth motion count
-    once), or all such rows, evenly thinned, when that leaves fewer than MIN_ALIGN_SAMPLES."""
+def _alignment_rows(session: Session, gyro_bias: np.ndarray, b_up: np.ndarray,
+                    m_tilde: np.ndarray) -> np.ndarray:
+    """Row indices for the inclination constraint: rows with "up" and an undisturbed field
+    (‖m̃‖ within INLIER_TOL of 1) turning slower than MAX_ALIGN_RATE, one per ALIGN_STEP_DEG of
+    rotation (rests and back-and-forth motion count once), or all such rows when that leaves fewer
+    than MIN_ALIGN_SAMPLES."""
     w = np.asarray(session.gyr, float) - gyro_bias
-    ok = (session.mag_valid & np.all(np.isfinite(b_up), axis=1)
+    with np.errstate(invalid="ignore"):
+        inlier = np.abs(np.linalg.norm(m_tilde, axis=1) - 1.0) < INLIER_TOL
+    # a disturbed stretch can cross the unit sphere now and then: demand inliers all around
+    n = max(1, int(round(UNDISTURBED_S * session.rate)))
+    valid = session.mag_valid
+    share = moving_mean(inlier.astype(float), n) / np.maximum(moving_mean(valid.astype(float), n), 1e-9)
+    undisturbed = inlier & (share > 0.9)
+    ok = (undisturbed & np.all(np.isfinite(b_up), axis=1)
           & (np.linalg.norm(w, axis=1) < MAX_ALIGN_RATE))
     _, angle_deg = integrated_rotation(session, gyro_bias)
     idx = pick_by_rotation(angle_deg, ok, ALIGN_STEP_DEG)
@@ -121,10 +131,10 @@ def initial_calibration(session: Session, check: bool = True,
     if delay != 0.0:                                   # "up" at the instant the field was sensed
         b_up = np.stack([np.interp(session.t - delay, session.t, b_up[:, i]) for i in range(3)], 1)
         b_up /= np.linalg.norm(b_up, axis=1, keepdims=True)
-    rows = _alignment_rows(session, gyro_bias, b_up)
+    rows = _alignment_rows(session, gyro_bias, b_up, m_tilde)
     if rows.size < 4:
-        raise CalibrationError(f"{session.source}: field 'acc': found {rows.size} samples with both a "
-                               f"magnetometer and an accelerometer reading; expected at least 4")
+        raise CalibrationError(f"{session.source}: field 'mag': found {rows.size} samples with an "
+                               f"undisturbed field and an accelerometer reading; expected at least 4")
     R, dip, rms = align_axes(m_tilde[rows], b_up[rows])                                 # eq. 14
     D = fit.D0 @ R.T
     if dip_sign is not None and dip * dip_sign < 0:

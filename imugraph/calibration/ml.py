@@ -117,18 +117,22 @@ def calibrate(session: Session, options: Options | None = None, initial=None,
     history = []
     tau_fixed = None
     converged = False
-    prob: Problem | None = None
-    for outer in range(1, opt.max_outer + 1):
+    theta_sigma = _theta_prior_sigma(theta0, weak_reason is not None)
+
+    def solve_round(bias, noise, nRk, theta):
+        """Preintegrate at the current bias, build the graph, solve it (one round of the ML loop)."""
         pre = preintegrate(session.gyr, session.dt, kf, skf, _per_sample_bias(bias, seg, skf), noise.gyr,
                            opt.gyro_rate_error)
-        if nRk is None:
-            nRk = complementary_keyframes(pre, session.acc, m_cal0)
-        prob = build_problem(pre, session.acc, session.mag, noise, g, nRk, bias, theta,
-                             theta_prior_sigma=_theta_prior_sigma(theta0, weak_reason is not None),
-                             bias_prior_sigma=opt.bias_prior_sigma,
+        start = complementary_keyframes(pre, session.acc, m_cal0) if nRk is None else nRk
+        prob = build_problem(pre, session.acc, session.mag, noise, g, start, bias, theta,
+                             theta_prior_sigma=theta_sigma, bias_prior_sigma=opt.bias_prior_sigma,
                              acc_kernel=opt.acc_kernel, mag_kernel=opt.mag_kernel,
                              bias_segment=seg, bias_rw_sigma=opt.bias_rw)
         values, info = optimize(prob.graph, prob.blocks, prob.values, prob.ordering, opt.solver)
+        return pre, prob, values, info
+
+    for outer in range(1, opt.max_outer + 1):
+        pre, prob, values, info = solve_round(bias, noise, nRk, theta)
         nRk = keyframe_rotations(values, len(kf))
         theta = values.atVector(keys.CALIB)
         bias_new = _bias_values(values, n_seg)
@@ -162,14 +166,7 @@ def calibrate(session: Session, options: Options | None = None, initial=None,
             converged = True
             break
     # final solve at the converged noise levels and bias, then marginals
-    pre = preintegrate(session.gyr, session.dt, kf, skf, _per_sample_bias(bias, seg, skf), noise.gyr,
-                           opt.gyro_rate_error)
-    prob = build_problem(pre, session.acc, session.mag, noise, g, nRk, bias, theta,
-                         theta_prior_sigma=_theta_prior_sigma(theta0, weak_reason is not None),
-                         bias_prior_sigma=opt.bias_prior_sigma,
-                         acc_kernel=opt.acc_kernel, mag_kernel=opt.mag_kernel,
-                         bias_segment=seg, bias_rw_sigma=opt.bias_rw)
-    values, info = optimize(prob.graph, prob.blocks, prob.values, prob.ordering, opt.solver)
+    pre, prob, values, info = solve_round(bias, noise, nRk, theta)
     nRk = keyframe_rotations(values, len(kf))
     theta = values.atVector(keys.CALIB)
     bias_segments = _bias_values(values, n_seg)

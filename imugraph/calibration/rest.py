@@ -29,7 +29,7 @@ MIN_REST = 20                                                 # samples of rest 
 FLOOR = {"gyr": 1e-5, "acc": 1e-4, "mag": 1e-6}               # rad/s, m/s², relative to median ‖mag‖
 
 
-def _moving_mean(x: np.ndarray, n: int) -> np.ndarray:
+def moving_mean(x: np.ndarray, n: int) -> np.ndarray:
     """Centred moving mean of (N, …) x over n samples (truncated at the ends), via cumulative sums."""
     N = x.shape[0]
     c = np.concatenate([np.zeros((1,) + x.shape[1:]), np.cumsum(x, axis=0)])
@@ -43,8 +43,8 @@ def _moving_mean(x: np.ndarray, n: int) -> np.ndarray:
 def _moving_var(x: np.ndarray, n: int) -> np.ndarray:
     """Centred moving variance of (N, …) x (mean removed first for numerical stability)."""
     x = x - x.mean(axis=0)
-    m = _moving_mean(x, n)
-    return np.maximum(_moving_mean(x * x, n) - m * m, 0.0)
+    m = moving_mean(x, n)
+    return np.maximum(moving_mean(x * x, n) - m * m, 0.0)
 
 
 def detect_rest(session: Session, window_s: float = 0.5, gyr_thresh: float = 0.03,
@@ -68,11 +68,11 @@ def detect_rest(session: Session, window_s: float = 0.5, gyr_thresh: float = 0.0
     acc_norm = np.linalg.norm(acc, axis=1)
     gyr_std = np.sqrt(_moving_var(gyr, n).sum(axis=1))
     calm = ((gyr_std < gyr_thresh) & (np.sqrt(_moving_var(acc_norm, n)) < acc_thresh)
-            & (np.linalg.norm(_moving_mean(gyr, n), axis=1) < gyr_mean_thresh))
+            & (np.linalg.norm(moving_mean(gyr, n), axis=1) < gyr_mean_thresh))
     calm &= np.isfinite(gyr_std)
     if not calm.any():
         return calm
-    acc_mean = _moving_mean(acc_norm, n)
+    acc_mean = moving_mean(acc_norm, n)
     return calm & (np.abs(acc_mean - np.median(acc_mean[calm])) < acc_dev)
 
 
