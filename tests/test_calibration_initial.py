@@ -82,6 +82,17 @@ def test_ellipsoid_of_misaligned_D_gives_its_symmetric_polar_factor():
     assert np.max(np.abs(o0 - O_TRUE)) < 0.2
 
 
+def test_ellipsoid_ignores_a_disturbed_stretch():
+    """A magnet attached for a third of the recording (a second sphere, shifted by more than its
+    radius, as BROAD trial 32): the robust fit returns the undisturbed calibration."""
+    rng = np.random.default_rng(12)
+    y = _unit_sphere(rng, 6000) @ S_TRUE.T + O_TRUE + rng.normal(0, 0.5, (6000, 3))
+    y[2000:4000] += [-8.0, -1.0, 65.0]
+    D0, o0 = fit_ellipsoid(y)
+    assert np.max(np.abs(D0 - S_TRUE)) < 0.3
+    assert np.max(np.abs(o0 - O_TRUE)) < 0.3
+
+
 @pytest.mark.parametrize("case", ["circle", "plane", "few", "line"])
 def test_ellipsoid_refuses_degenerate_data(case):
     rng = np.random.default_rng(3)

@@ -1,6 +1,6 @@
 """Axis alignment of the ellipsoid-calibrated magnetometer to the inertial axes (Kok et al. 2012, step 3).
 
-Kok, Hol, Schön, Gustafsson, Luinge (FUSION 2012), Sec. IV-B. The ellipsoid fit gives D₀, o₀ with
+Kok, Hol, Schön, Gustafsson, Luinge (FUSION 2012), initial estimate, alignment step. The ellipsoid fit gives D₀, o₀ with
 m̃_t = D₀⁻¹(y_t − o₀) of unit norm, but any D = D₀Q with Q orthogonal fits it equally well. With the
 model y = D·bRn·n_mag + o (DESIGN.md) the calibrated field in the INERTIAL axes is
 
@@ -9,7 +9,7 @@ model y = D·bRn·n_mag + o (DESIGN.md) the calibrated field in the INERTIAL axe
 Inclination constraint: gravity and the field keep a constant angle. With the body "up" direction
 u_b = bRn·e_z (the accelerometer direction at rest, +g up) and n_mag = [cos δ, 0, −sin δ],
 
-    (R·m̃_t)ᵀ u_b,t = (bRn n_mag)ᵀ(bRn e_z) = n_magᵀ e_z = −sin δ        for every t      (Kok eq. 14)
+    (R·m̃_t)ᵀ u_b,t = (bRn n_mag)ᵀ(bRn e_z) = n_magᵀ e_z = −sin δ        for every t   [inclination]
 
 solved here by nonlinear least squares over (R, δ), R = Exp(φ) (rotation vector φ), from R = I and
 sin δ₀ = −mean(m̃ᵀu_b), with a soft-L1 loss against samples where the field or acceleration is off.
@@ -147,7 +147,7 @@ def estimate_mag_delay(t: np.ndarray, m_tilde: np.ndarray, b_gyr: np.ndarray,
 
 
 def _residuals(p: np.ndarray, m_tilde: np.ndarray, u_b: np.ndarray, w_prior: float) -> np.ndarray:
-    """Kok eq. 14: r_t = (Exp(φ) m̃_t)ᵀ u_b,t + sin δ, plus the gauge prior w·φ."""
+    """[inclination]: r_t = (Exp(φ) m̃_t)ᵀ u_b,t + sin δ, plus the gauge prior w·φ."""
     R = expmap(p[:3])
     r = np.einsum("ij,nj,ni->n", R, m_tilde, u_b) + np.sin(p[3])
     return np.concatenate([r, w_prior * p[:3]])
@@ -176,7 +176,7 @@ def _right_jacobian(phi: np.ndarray) -> np.ndarray:
 
 
 def align_axes(m_tilde: np.ndarray, u_b: np.ndarray) -> tuple[np.ndarray, float, float]:
-    """Rotation R and dip δ so that (R m̃_t)ᵀ u_b,t = −sin δ (Kok et al. 2012, eq. 14).
+    """Rotation R and dip δ so that (R m̃_t)ᵀ u_b,t = −sin δ (Kok et al. 2012, [inclination]).
 
     Args:
         m_tilde: (N, 3) ellipsoid-calibrated field D₀⁻¹(y − o₀) (unit norm, magnetometer axes);

@@ -1,7 +1,7 @@
 """What rotation a recording holds, and whether the magnetometer calibration is identifiable.
 
-Kok et al. (FUSION 2012) need the sensor "rotated in all directions": the ellipsoid (eq. 11–12) is
-determined only when the field direction spans three dimensions, and the axis alignment (eq. 14) only
+Kok et al. (FUSION 2012) need the sensor "rotated in all directions": the ellipsoid ([ellipsoid] in `ellipsoid.py`) is
+determined only when the field direction spans three dimensions, and the axis alignment ([inclination]) only
 when the sensor turns about at least two axes (see `alignment.py` for the unobservable family). This
 module measures that in terms a user can act on:
 

@@ -1,9 +1,9 @@
 """Ellipsoid fit of the raw magnetometer: Kok & Schön's initialisation, steps 1–2.
 
 Kok, Hol, Schön, Gustafsson, Luinge (FUSION 2012), "Calibration of a magnetometer in combination with
-inertial sensors", Sec. IV-A: without disturbances the measurements lie on an ellipsoid,
+inertial sensors", initial estimate, ellipsoid fitting step: without disturbances the measurements lie on an ellipsoid,
 
-    ‖D⁻¹(y_t − o)‖² = 1   ⇔   y_tᵀ A y_t + bᵀ y_t + c = 0,   A = D⁻ᵀD⁻¹ ≻ 0            (eq. 11–12)
+    ‖D⁻¹(y_t − o)‖² = 1   ⇔   y_tᵀ A y_t + bᵀ y_t + c = 0,   A = D⁻ᵀD⁻¹ ≻ 0            [ellipsoid]
 
 which is linear in (A, b, c). The fit here solves that algebraic least-squares problem on data
 normalised to zero mean and unit RMS radius (for numerical conditioning), takes the singular vector
@@ -80,7 +80,7 @@ def _valid_rows(b_mag: np.ndarray, source: str) -> np.ndarray:
 
 
 def _design(x: np.ndarray) -> np.ndarray:
-    """(N, 3) normalised points → (N, 10) rows [x², y², z², 2xy, 2xz, 2yz, 2x, 2y, 2z, 1] (eq. 12)."""
+    """(N, 3) normalised points → (N, 10) rows [x², y², z², 2xy, 2xz, 2yz, 2x, 2y, 2z, 1] ([ellipsoid], linear in θ)."""
     a, b, c = x[:, 0], x[:, 1], x[:, 2]
     return np.stack([a * a, b * b, c * c, 2 * a * b, 2 * a * c, 2 * b * c,
                      2 * a, 2 * b, 2 * c, np.ones_like(a)], axis=1)
@@ -195,7 +195,7 @@ def fit_ellipsoid_report(b_mag: np.ndarray, source: str = "<memory>",
 
 
 def fit_ellipsoid(b_mag: np.ndarray, source: str = "<memory>") -> tuple[np.ndarray, np.ndarray]:
-    """Ellipsoid fit (Kok et al. 2012, eq. 11–12): D0 symmetric, o0 so that ‖D0⁻¹(y − o0)‖ ≈ 1.
+    """Ellipsoid fit (Kok et al. 2012, [ellipsoid]): D0 symmetric, o0 so that ‖D0⁻¹(y − o0)‖ ≈ 1.
 
     Args:
         b_mag: (N, 3) raw magnetometer, any unit; NaN rows are ignored.

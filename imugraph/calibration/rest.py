@@ -1,7 +1,7 @@
-"""Rest detection and sensor noise levels from rest (the noise covariances of Kok et al. 2012, Sec. V).
+"""Rest detection and sensor noise levels from rest (the noise covariances of Kok et al. 2012).
 
 The maximum-likelihood calibration weighs each sensor by its noise covariance Σ_ω, Σ_a, Σ_m (Kok,
-Hol, Schön, Gustafsson, Luinge, FUSION 2012, eq. 4 and the cost (16)); the paper takes them from a
+Hol, Schön, Gustafsson, Luinge, FUSION 2012, weights of the ML cost); the paper takes them from a
 stationary stretch of the recording. Here:
 
 - `detect_rest` marks samples whose centred window (default 0.5 s) is calm: the gyroscope's window
