@@ -1,6 +1,7 @@
-"""Axis alignment of the ellipsoid-calibrated magnetometer to the inertial axes (Kok et al. 2012, step 3).
+"""Axis alignment of the ellipsoid-calibrated magnetometer to the inertial axes (Kok et al. 2012).
 
-Kok, Hol, Schön, Gustafsson, Luinge (FUSION 2012), initial estimate, alignment step. The ellipsoid fit gives D₀, o₀ with
+Kok, Hol, Schön, Gustafsson, Luinge (FUSION 2012), initial estimate, alignment step. The ellipsoid
+fit gives D₀, o₀ with
 m̃_t = D₀⁻¹(y_t − o₀) of unit norm, but any D = D₀Q with Q orthogonal fits it equally well. With the
 model y = D·bRn·n_mag + o (DESIGN.md) the calibrated field in the INERTIAL axes is
 
@@ -128,14 +129,15 @@ def estimate_mag_delay(t: np.ndarray, m_tilde: np.ndarray, b_gyr: np.ndarray,
     keep = np.linspace(0, mid.size - 1, min(mid.size, max_rows)).round().astype(int)
     lo, mid, hi = lo[keep], mid[keep], hi[keep]
     dm = mj[hi] - mj[lo]
-    omega = np.concatenate([np.zeros((1, 3)), np.cumsum(np.nan_to_num(b_gyr[:-1]) * np.diff(t)[:, None], 0)])
+    w_dt = np.nan_to_num(np.asarray(b_gyr, float)[:-1]) * np.diff(t)[:, None]
+    omega = np.concatenate([np.zeros((1, 3)), np.cumsum(w_dt, axis=0)])      # Ω(t_k)
     step = float(np.median(np.diff(t)))
     taus = np.arange(-max_delay_s, max_delay_s + 0.5 * step, step)
 
     def rss(tau: float) -> float:
         """Residual of the best A with the gyro shifted by τ."""
-        d_omega = np.stack([np.interp(tj[hi] - tau, t, omega[:, i]) - np.interp(tj[lo] - tau, t, omega[:, i])
-                            for i in range(3)], axis=1)
+        d_omega = np.stack([np.interp(tj[hi] - tau, t, omega[:, i])
+                            - np.interp(tj[lo] - tau, t, omega[:, i]) for i in range(3)], axis=1)
         return _delay_fit_rss(dm, mj[mid], d_omega)
 
     r = np.array([rss(tau) for tau in taus])                     # a loop over lags, not samples

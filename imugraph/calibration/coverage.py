@@ -1,9 +1,9 @@
 """What rotation a recording holds, and whether the magnetometer calibration is identifiable.
 
-Kok et al. (FUSION 2012) need the sensor "rotated in all directions": the ellipsoid ([ellipsoid] in `ellipsoid.py`) is
-determined only when the field direction spans three dimensions, and the axis alignment ([inclination]) only
-when the sensor turns about at least two axes (see `alignment.py` for the unobservable family). This
-module measures that in terms a user can act on:
+Kok et al. (FUSION 2012) need the sensor "rotated in all directions": the ellipsoid ([ellipsoid] in
+`ellipsoid.py`) is determined only when the field direction spans three dimensions, and the axis
+alignment ([inclination] in `alignment.py`) only when the sensor turns about at least two axes (see
+`alignment.py` for the unobservable family). This module measures that in terms a user can act on:
 
 - Every statistic is taken over samples picked at every `CELL_DEG` of rotation integrated from the
   gyro (bias removed, rates above the noise floor), so time spent at rest or turning back and forth
@@ -33,6 +33,7 @@ import numpy as np
 
 from imugraph.calibration.alignment import gravity_up
 from imugraph.errors import CalibrationError
+from imugraph.geometry import quat_to_rotmat
 from imugraph.io.session import Session
 
 MAG_MIN_SPREAD = 0.05      # smallest eigenvalue of the magnetometer point covariance (sum 1)
@@ -90,13 +91,17 @@ def _up_directions(session: Session, nRb: np.ndarray | None, gyro_bias: np.ndarr
                    angle_deg: np.ndarray) -> np.ndarray:
     """Body "up" u_b at the picked samples: bRn·e_z from nRb, else `gravity_up` (gyro + acc)."""
     if nRb is not None:
-        up = np.asarray(nRb, float)[:, 2, :]            # bRn e_z = row 2 of nRb
+        nRb = np.asarray(nRb, float)
+        if nRb.ndim == 2 and nRb.shape[1] == 4:         # quaternions w, x, y, z
+            nRb = quat_to_rotmat(nRb)
+        up = nRb[:, 2, :]                               # bRn e_z = row 2 of nRb
     else:
         up = gravity_up(session.gyr, session.acc, session.dt, gyro_bias)
     return _unit(up[pick_by_rotation(angle_deg, np.all(np.isfinite(up), axis=1))])
 
 
-def integrated_rotation(session: Session, gyro_bias: np.ndarray | None = None) -> tuple[dict, np.ndarray]:
+def integrated_rotation(session: Session,
+                        gyro_bias: np.ndarray | None = None) -> tuple[dict, np.ndarray]:
     """Rotation the gyro saw (rates below GYR_NOISE_FLOOR count as zero).
 
     Args:
@@ -156,7 +161,8 @@ def rotation_coverage(session: Session, nRb: np.ndarray | None = None,
 
     Args:
         session: the recording (gyr rad/s, acc m/s², mag any unit with NaN rows).
-        nRb: optional (N, 3, 3) orientation body→nav (truth or estimate); replaces acc for "up".
+        nRb: optional orientation body→nav, (N, 3, 3) or quaternions (N, 4) w,x,y,z (truth or
+            estimate; NaN rows ignored); replaces the accelerometer for "up".
         gyro_bias: optional (3,) rad/s removed before integrating the gyro.
 
     Returns:

@@ -1,7 +1,8 @@
 """Ellipsoid fit of the raw magnetometer: Kok & Schön's initialisation, steps 1–2.
 
 Kok, Hol, Schön, Gustafsson, Luinge (FUSION 2012), "Calibration of a magnetometer in combination with
-inertial sensors", initial estimate, ellipsoid fitting step: without disturbances the measurements lie on an ellipsoid,
+inertial sensors", initial estimate, ellipsoid-fitting step: without disturbances the measurements lie
+on an ellipsoid,
 
     ‖D⁻¹(y_t − o)‖² = 1   ⇔   y_tᵀ A y_t + bᵀ y_t + c = 0,   A = D⁻ᵀD⁻¹ ≻ 0            [ellipsoid]
 
@@ -80,7 +81,8 @@ def _valid_rows(b_mag: np.ndarray, source: str) -> np.ndarray:
 
 
 def _design(x: np.ndarray) -> np.ndarray:
-    """(N, 3) normalised points → (N, 10) rows [x², y², z², 2xy, 2xz, 2yz, 2x, 2y, 2z, 1] ([ellipsoid], linear in θ)."""
+    """(N, 3) normalised points → (N, 10) rows [x², y², z², 2xy, 2xz, 2yz, 2x, 2y, 2z, 1]:
+    [ellipsoid] is linear in θ = (A, g, j)."""
     a, b, c = x[:, 0], x[:, 1], x[:, 2]
     return np.stack([a * a, b * b, c * c, 2 * a * b, 2 * a * c, 2 * b * c,
                      2 * a, 2 * b, 2 * c, np.ones_like(a)], axis=1)

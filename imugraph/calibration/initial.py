@@ -6,7 +6,7 @@ inertial sensors": the maximum-likelihood problem is non-convex, so it starts fr
 1. rest segments → noise covariances Σ_ω, Σ_a, Σ_m and the gyro bias (`rest.py`);
 2. a check that the data hold enough rotation (`coverage.py`);
 3. the ellipsoid fit D₀, o₀ ([ellipsoid] in `ellipsoid.py`; robust to a disturbed stretch);
-4. the inclination constraint ([inclination] in `alignment.py`) for the rotation R and the dip δ (`alignment.py`):
+4. the inclination constraint ([inclination] in `alignment.py`) for the rotation R and the dip δ:
    D = D₀·Rᵀ, o = o₀, so that D⁻¹(y − o) = R·D₀⁻¹(y − o₀) is the field in the inertial axes.
 
 What real data (BROAD) needed beyond the paper's recipe, each worth degrees of dip:
@@ -132,7 +132,7 @@ def initial_calibration(session: Session, check: bool = True,
     gyro_bias = np.asarray(nz["gyro_bias"], float)
     coverage = (check_coverage if check else rotation_coverage)(session, None, gyro_bias)
     fit = fit_ellipsoid_report(session.mag, session.source)
-    m_tilde = np.linalg.solve(fit.D0, (np.asarray(session.mag, float) - fit.o0).T).T   # m̃ = D₀⁻¹(y − o₀)
+    m_tilde = np.linalg.solve(fit.D0, (np.asarray(session.mag, float) - fit.o0).T).T   # D₀⁻¹(y − o₀)
     b_up = gravity_up(session.gyr, session.acc, session.dt, gyro_bias)
     delay = estimate_mag_delay(session.t, m_tilde, np.asarray(session.gyr) - gyro_bias)
     if delay != 0.0:                                   # "up" at the instant the field was sensed
