@@ -7,8 +7,8 @@ and no temporary file survives an error.
 
 from __future__ import annotations
 
+import io
 import os
-import tempfile
 from pathlib import Path
 from typing import Mapping, Optional
 
@@ -37,19 +37,12 @@ def save_figure_atomic(fig: Figure, path: str | os.PathLike, dpi: int = 110) -> 
     Returns:
         The destination path.
     """
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
+    from imugraph.io.writers import atomic_write_bytes
+
     FigureCanvasAgg(fig)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=".png.tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            fig.savefig(fh, format="png", dpi=dpi)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
-    return path
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=dpi)
+    return atomic_write_bytes(Path(path), buf.getvalue())
 
 
 def _as_n3(name: str, value: np.ndarray, path: Path, n: Optional[int] = None) -> np.ndarray:
