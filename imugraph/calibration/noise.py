@@ -49,7 +49,6 @@ def reestimate(block: MeasurementBlock, nRk: np.ndarray, theta: np.ndarray, gyro
         traces["mag"] = _channel_info_trace(block, block.mag, e, J)
         raw["mag"] = e
     # gyro: each AHRS factor informs both its keyframes
-    g_err = np.array([f.whitenedError(values) for f in gyro_factors]) if gyro_factors else np.zeros((0, 3))
     g_tr = np.zeros(K)
     for i, f in enumerate(gyro_factors):
         info = np.linalg.inv(f.preintegratedMeasurements().preintMeasCov())
@@ -69,7 +68,6 @@ def reestimate(block: MeasurementBlock, nRk: np.ndarray, theta: np.ndarray, gyro
         out[name + "_tau"] = integrated_autocorrelation(e * np.sqrt(w)[:, None])
     # Σω is not re-estimated here: a chain of between-factors can absorb its own residuals (K states,
     # K−1 factors), so the gyro noise is not identifiable from them; it is measured at rest instead.
-    del g_err
     return out
 
 
