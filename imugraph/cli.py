@@ -2,6 +2,7 @@
 
     imugraph calibrate SESSION [--out DIR] [--keyframe-hz 10]
     imugraph smooth SESSION [--calibration FILE] [--out DIR] [--keyframe-hz 10]
+    imugraph batch SESSIONS... --out DIR [--scheduler ADDRESS] [--workers N] [--keyframe-hz 10]
     imugraph demo [--out DIR] [--seed 0] [--duration 120] [--rate 100]
     imugraph simulate --out FILE.npz [--seed 0] [--duration 120] [--rate 100]
 
@@ -9,6 +10,7 @@ Every command takes --out and --quiet; calibrate and smooth take --data-dir (a S
 exist as given is looked up there; default $IMUGRAPH_DATA, else ../shared/data). Results go to stdout,
 progress lines to stderr. Errors raised on purpose (`ImugraphError`, unreadable or unwritable files)
 print one line `imugraph: error: <message>` on stderr and exit with 2; Ctrl-C exits with 130.
+`batch` exits with 1 when some sessions failed (each reported on its own line; the others still ran).
 The heavy modules are imported by the command that needs them, so `--help` answers at once.
 """
 
@@ -28,6 +30,7 @@ EXIT_INTERRUPTED = 130
 COMMANDS = {
     "calibrate": ("calibrate", "run_calibrate"),
     "smooth": ("calibrate", "run_smooth"),
+    "batch": ("batch", "run_batch_command"),
     "demo": ("demo", "run_demo"),
     "simulate": ("simulate", "run_simulate"),
 }
@@ -59,6 +62,12 @@ def _keyframes(p: argparse.ArgumentParser) -> None:
                    help="orientation states per second (every sample is still used; default 10)")
 
 
+def _allow_weak(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--allow-weak", action="store_true",
+                   help="when the data do not identify the calibration (too little rotation), write a "
+                        "regularised estimate marked identifiable: false instead of failing")
+
+
 def _simulation(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     p.add_argument("--duration", type=_positive(float), default=120.0, metavar="S", help="length in s (default 120)")
@@ -79,6 +88,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("session", metavar="SESSION", help=session_help)
     _common(p, default_out, data_dir=True)
     _keyframes(p)
+    _allow_weak(p)
 
     p = sub.add_parser("smooth", help="smoothed orientation (with a known or estimated calibration)",
                        description="Writes orientation.npz (and calibration.json when it is estimated).")
@@ -86,6 +96,23 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--calibration", metavar="FILE", default=None, help="calibration.json to use instead of estimating one")
     _common(p, default_out, data_dir=True)
     _keyframes(p)
+
+    p = sub.add_parser("batch", help="calibrate and smooth many sessions in parallel on Dask",
+                       description="One folder DIR/<session stem> per session with the files of calibrate, "
+                       "and DIR/summary.json + summary.csv. Exit status 1 when any session failed.")
+    p.add_argument("sessions", metavar="SESSION", nargs="+", help=session_help)
+    p.add_argument("--out", metavar="DIR", required=True, help="output folder (one subfolder per session)")
+    p.add_argument("--quiet", action="store_true", help="no progress bar or lines on stderr")
+    p.add_argument("--data-dir", metavar="DIR", default=None,
+                   help="where to look for a SESSION that does not exist as given "
+                        "(default: $IMUGRAPH_DATA, else ../shared/data)")
+    p.add_argument("--scheduler", metavar="ADDRESS", default=None,
+                   help="address of a running dask scheduler (e.g. tcp://host:8786; its workers must see the "
+                        "session files and DIR); default: a local cluster of worker processes")
+    p.add_argument("--workers", type=_positive(int), default=None, metavar="N",
+                   help="worker processes of the local cluster (default: CPU count, at most one per session)")
+    _keyframes(p)
+    _allow_weak(p)
 
     p = sub.add_parser("demo", help="calibrate a simulated distorted magnetometer and compare with the truth",
                        description="Writes the same files as calibrate and prints true vs estimated values.")

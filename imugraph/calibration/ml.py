@@ -24,7 +24,7 @@ from imugraph.factors.gyro import keyframe_layout, preintegrate
 from imugraph.factors.robust import QUADRATIC, Kernel
 from imugraph.factors.theta import THETA_DIM, pack_theta, unpack_theta
 from imugraph.graphs.orientation_init import complementary_keyframes, sample_orientations
-from imugraph.graphs.single_imu import Noise, Problem, build_problem, keyframe_rotations
+from imugraph.graphs.single_imu import Noise, Problem, VelocityModel, build_problem, keyframe_rotations
 from imugraph.graphs.solver import SolverParams, optimize
 from imugraph.io.session import Session
 
@@ -51,6 +51,11 @@ class Options:
     progress: bool = False
     max_corr_s: float = 0.5           # cap on the residual correlation time used for σ inflation
     correlated_noise: bool = False    # inflate σ by √τ (integrated autocorrelation time of residuals)
+    linear_acceleration: str = "velocity"   # "velocity": keyframe velocities with a bounded-velocity
+    #                                         prior (imugraph.factors.velocity); "noise": per-sample gravity factor
+    velocity_sigma: float = 0.5       # σ_v, m/s: stationary std of the sensor's velocity
+    velocity_tau: float = 2.0         # τ_v, s: its correlation time
+    acc_rate_error: float = 0.01      # κ_a: accelerometer error growing with the specific force
 
 
 @dataclass
@@ -119,16 +124,24 @@ def calibrate(session: Session, options: Options | None = None, initial=None,
     converged = False
     theta_sigma = _theta_prior_sigma(theta0, weak_reason is not None)
 
+    vel_state = {"v": None}
+
     def solve_round(bias, noise, nRk, theta):
         """Preintegrate at the current bias, build the graph, solve it (one round of the ML loop)."""
         pre = preintegrate(session.gyr, session.dt, kf, skf, _per_sample_bias(bias, seg, skf), noise.gyr,
                            opt.gyro_rate_error)
         start = complementary_keyframes(pre, session.acc, m_cal0) if nRk is None else nRk
+        velocity = None
+        if opt.linear_acceleration == "velocity":
+            velocity = VelocityModel(opt.velocity_sigma, opt.velocity_tau, opt.acc_rate_error,
+                                     opt.acc_kernel, vel_state["v"])
         prob = build_problem(pre, session.acc, session.mag, noise, g, start, bias, theta,
                              theta_prior_sigma=theta_sigma, bias_prior_sigma=opt.bias_prior_sigma,
                              acc_kernel=opt.acc_kernel, mag_kernel=opt.mag_kernel,
-                             bias_segment=seg, bias_rw_sigma=opt.bias_rw)
+                             bias_segment=seg, bias_rw_sigma=opt.bias_rw, velocity=velocity, dt=session.dt)
         values, info = optimize(prob.graph, prob.blocks, prob.values, prob.ordering, opt.solver)
+        if velocity is not None:
+            vel_state["v"] = np.stack([values.atVector(keys.vel(k)) for k in range(len(kf))])
         return pre, prob, values, info
 
     for outer in range(1, opt.max_outer + 1):

@@ -40,7 +40,7 @@ def reestimate(block: MeasurementBlock, nRk: np.ndarray, theta: np.ndarray, gyro
 
     K = block.n_keyframes
     traces, raw = {}, {}
-    if block.acc is not None:
+    if block.acc is not None and block.use_acc:
         e, J = accelerometer_model(block.acc.kRb, nRk[block.acc.kf], block.acc.values, block.g)
         traces["acc"] = _channel_info_trace(block, block.acc, e, J)
         raw["acc"] = e

@@ -10,8 +10,9 @@ factors, `imugraph.graphs.cpp_smoother.smooth_fixed`), or estimated on the way (
 from __future__ import annotations
 
 import argparse
+from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Optional, Union
 
 from imugraph.commands import common
 from imugraph.calibration.result import Calibration
@@ -22,13 +23,29 @@ if TYPE_CHECKING:
     from imugraph.calibration.ml import Estimate
 
 
-def estimate_calibration(session: Session, keyframe_hz: float, progress: common.Progress) -> "Estimate":
+@dataclass(frozen=True)
+class CalibrateOptions:
+    """Settings of one `calibrate` run (plain values: picklable, sent to batch workers).
+
+    Attributes:
+        keyframe_hz: orientation states per second (every sample is still used).
+        allow_weak: when the data do not identify D and o, return a regularised estimate (coverage
+            "identifiable": false) instead of raising CalibrationError.
+    """
+
+    keyframe_hz: float = 10.0
+    allow_weak: bool = False
+
+
+def estimate_calibration(session: Session, keyframe_hz: float, progress: common.Progress,
+                         allow_weak: bool = False) -> "Estimate":
     """Run the ML calibration (`imugraph.calibration.ml.calibrate`), its per-round lines on stderr.
 
     Args:
         session: the recording.
         keyframe_hz: orientation states per second.
         progress: progress stream (quiet: the ML loop prints nothing either).
+        allow_weak: see `CalibrateOptions.allow_weak`.
 
     Returns:
         Estimate: calibration, t (N,), quat (N, 4) nRb w,x,y,z, whitened residuals per channel.
@@ -40,26 +57,62 @@ def estimate_calibration(session: Session, keyframe_hz: float, progress: common.
 
     progress.say(f"calibrating (keyframes at {keyframe_hz:g} Hz)")
     with progress.library_output():
-        estimate = calibrate(session, Options(keyframe_hz=keyframe_hz, progress=not progress.quiet))
+        estimate = calibrate(session, Options(keyframe_hz=keyframe_hz, progress=not progress.quiet),
+                             allow_weak=allow_weak)
     progress.say("calibration done")
     return estimate
 
 
+def calibrate_path(path: Union[str, Path], out_dir: Optional[Union[str, Path]],
+                   options: CalibrateOptions = CalibrateOptions(),
+                   progress: Optional[common.Progress] = None) -> dict:
+    """The whole `calibrate` command on one session file: read, calibrate, write the outputs, score.
+
+    Used by `imugraph calibrate` and, once per session on a worker, by `imugraph batch`.
+
+    Args:
+        path: session file or x-IMU3 folder (already resolved).
+        out_dir: output folder, created if missing; None for imugraph_out/<session stem>.
+        options: keyframe rate and weak-data policy.
+        progress: progress stream; default quiet.
+
+    Returns:
+        Plain values: session (name), path, out, samples, rate_hz, orientation_rms_deg (RMS error vs the
+        session's quat truth over `movement`, degrees; None without truth), norm_before / norm_after
+        (field-norm RMS, dimensionless), converged, iterations, identifiable, table (the printed table).
+
+    Raises:
+        SessionError: unreadable or invalid session, or an output folder that cannot be created.
+        CalibrationError: the data do not allow a calibration (unless options.allow_weak).
+    """
+    progress = progress or common.Progress(quiet=True)
+    path = Path(path)
+    session = common.load(path, progress)
+    out = common.out_dir_for(None if out_dir is None else str(out_dir), path.stem)
+    estimate = estimate_calibration(session, options.keyframe_hz, progress, options.allow_weak)
+    common.write_estimate(out, session, estimate, progress)
+    cal = estimate.calibration
+    scores = common.score(session, cal, estimate.quat)
+    title = f"calibration of {session.name}: {session.n} samples at {session.rate:.1f} Hz → {out}"
+    coverage = cal.coverage if isinstance(cal.coverage, dict) else {}
+    return {"session": session.name, "path": str(path), "out": str(out), "samples": int(session.n),
+            "rate_hz": float(session.rate), "orientation_rms_deg": scores.orientation_rms_deg,
+            "norm_before": float(scores.norm_before), "norm_after": float(scores.norm_after),
+            "converged": bool(cal.converged), "iterations": int(cal.iterations),
+            "identifiable": bool(coverage.get("identifiable", True)),
+            "table": calibration_table(cal, scores, title)}
+
+
 def run_calibrate(args: argparse.Namespace) -> int:
-    """calibrate SESSION [--out DIR] [--keyframe-hz HZ] [--data-dir DIR] [--quiet].
+    """calibrate SESSION [--out DIR] [--keyframe-hz HZ] [--allow-weak] [--data-dir DIR] [--quiet].
 
     Returns:
         0 on success (errors are raised as ImugraphError and reported by `imugraph.cli.main`).
     """
     progress = common.Progress(args.quiet)
     path = common.resolve_session_path(args.session, args.data_dir)
-    session = common.load(path, progress)
-    out = common.out_dir_for(args.out, Path(path).stem)
-    estimate = estimate_calibration(session, args.keyframe_hz, progress)
-    common.write_estimate(out, session, estimate, progress)
-    scores = common.score(session, estimate.calibration, estimate.quat)
-    title = f"calibration of {session.name}: {session.n} samples at {session.rate:.1f} Hz → {out}"
-    print(calibration_table(estimate.calibration, scores, title))
+    options = CalibrateOptions(args.keyframe_hz, getattr(args, "allow_weak", False))
+    print(calibrate_path(path, args.out, options, progress)["table"])
     return 0
 
 

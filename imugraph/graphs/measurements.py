@@ -47,6 +47,7 @@ class MeasurementBlock:
     mag: ChannelData | None
     g: float = 9.81
     use_theta: bool = True
+    use_acc: bool = True        # False: acc residuals are reported but not in the cost (velocity model)
     _last: dict = field(default_factory=dict, repr=False)
 
     # ---- residuals -------------------------------------------------------------------------------
@@ -65,6 +66,8 @@ class MeasurementBlock:
         """Σ ρ(|r_j|) over both channels (GTSAM's ½|r|² for the quadratic kernel)."""
         total = 0.0
         for name, r in self.residuals(nRk, theta).items():
+            if name == "acc" and not self.use_acc:
+                continue
             ch = getattr(self, name)
             rho = ch.kernel.rho(np.linalg.norm(r, axis=1))
             if ch.weight_floor is not None:
@@ -101,7 +104,7 @@ class MeasurementBlock:
         K = self.n_keyframes
         G11 = np.zeros((K, 3, 3)); g1 = np.zeros((K, 3)); f = np.zeros(K)
         G12 = np.zeros((K, 3, THETA_DIM)); G22 = np.zeros((K, THETA_DIM, THETA_DIM)); g2 = np.zeros((K, THETA_DIM))
-        if self.acc is not None:
+        if self.acc is not None and self.use_acc:
             e, J = accelerometer_model(self.acc.kRb, nRk[self.acc.kf], self.acc.values, self.g)
             a11, _, _, a1, _, af = self._channel_terms(self.acc, e, J, None)
             G11 += a11; g1 += a1; f += af

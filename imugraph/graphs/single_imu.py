@@ -19,6 +19,7 @@ from imugraph.factors.robust import QUADRATIC, Kernel
 from imugraph.factors.theta import THETA_DIM
 from imugraph.graphs.measurements import ChannelData, MeasurementBlock
 from imugraph.graphs.solver import chain_ordering
+from imugraph.graphs.velocity_block import VelocityBlock
 
 
 @dataclass
@@ -64,6 +65,21 @@ def channel(pre: Preintegration, values: np.ndarray, sigma, kernel: Kernel = QUA
 
 
 @dataclass
+class VelocityModel:
+    """Linear acceleration modelled by keyframe velocities (imugraph.factors.velocity).
+
+    sigma_v: stationary velocity std, m/s; tau_v: its correlation time, s; acc_rate_error: κ_a;
+    v0: (K, 3) initial velocities (None: zero).
+    """
+
+    sigma_v: float = 0.5
+    tau_v: float = 2.0
+    acc_rate_error: float = 0.01
+    kernel: Kernel = QUADRATIC
+    v0: np.ndarray | None = None
+
+
+@dataclass
 class Problem:
     graph: gtsam.NonlinearFactorGraph
     blocks: list
@@ -71,6 +87,7 @@ class Problem:
     ordering: gtsam.Ordering
     block: MeasurementBlock
     ordering_keys: list
+    velocity: VelocityBlock | None = None
 
 
 def build_problem(pre: Preintegration, b_acc: np.ndarray, b_mag: np.ndarray, noise: Noise, g: float,
@@ -78,7 +95,8 @@ def build_problem(pre: Preintegration, b_acc: np.ndarray, b_mag: np.ndarray, noi
                   theta_prior_sigma: np.ndarray | None = None, bias_prior_sigma: float = 0.05,
                   acc_kernel: Kernel = QUADRATIC, mag_kernel: Kernel = QUADRATIC,
                   estimate_theta: bool = True, mag_weights=None,
-                  bias_segment: np.ndarray | None = None, bias_rw_sigma: float = 0.0) -> Problem:
+                  bias_segment: np.ndarray | None = None, bias_rw_sigma: float = 0.0,
+                  velocity: VelocityModel | None = None, dt: np.ndarray | None = None) -> Problem:
     """Assemble the graph for a keyframe layout.
 
     Args:
@@ -89,6 +107,8 @@ def build_problem(pre: Preintegration, b_acc: np.ndarray, b_mag: np.ndarray, noi
         bias_segment: (K−1,) bias segment of each keyframe interval (None: one constant bias); bias0 is
         then (S, 3); bias_rw_sigma: random-walk density of the bias, rad/s/√s, between segments
         (BetweenFactorVector with σ = bias_rw_sigma·√Δt_segment).
+        velocity: model linear acceleration with keyframe velocities (needs dt (N,), the sample steps);
+        the per-sample gravity factor then leaves the cost (its residuals are still reported).
     """
     K = len(pre.kf_samples)
     graph = gtsam.NonlinearFactorGraph()
@@ -110,9 +130,20 @@ def build_problem(pre: Preintegration, b_acc: np.ndarray, b_mag: np.ndarray, noi
         if i > 0:
             graph.add(gtsam.BetweenFactorVector(keys.bias(i - 1), keys.bias(i), np.zeros(3), rw))
     # interleave each bias segment after its keyframes: fill-in stays local
+    vblock = None
+    if velocity is not None:
+        from imugraph.factors.velocity import velocity_increments
+        dv, sig_dv = velocity_increments(pre.kRb, pre.sample_kf, b_acc, dt, K, noise.acc,
+                                         velocity.acc_rate_error)
+        vblock = VelocityBlock(dv, sig_dv, pre.dt, g, velocity.sigma_v, velocity.tau_v, velocity.kernel)
+        v0 = np.zeros((K, 3)) if velocity.v0 is None else velocity.v0
+        for k in range(K):
+            values.insert(keys.vel(k), np.asarray(v0[k], float))
     order = []
     for k in range(K):
         order.append(keys.rot(k))
+        if vblock is not None:
+            order.append(keys.vel(k))
         if k < K - 1 and (k == K - 2 or seg[k + 1] != seg[k]):
             order.append(keys.bias(seg[k]))
     if K == 1:
@@ -129,10 +160,11 @@ def build_problem(pre: Preintegration, b_acc: np.ndarray, b_mag: np.ndarray, noi
         n_keyframes=K,
         acc=channel(pre, b_acc, noise.acc, acc_kernel),
         mag=channel(pre, b_mag, noise.mag, mag_kernel, mag_weights) if theta0 is not None else None,
-        g=g, use_theta=use_theta)
+        g=g, use_theta=use_theta, use_acc=vblock is None)
     adapter = BlockAdapter(block, None if use_theta else (None if theta0 is None else np.asarray(theta0)))
     ordering = chain_ordering(order, global_keys)
-    return Problem(graph, [adapter], values, ordering, block, order + global_keys)
+    blocks = [adapter] + ([vblock] if vblock is not None else [])
+    return Problem(graph, blocks, values, ordering, block, order + global_keys, vblock)
 
 
 def keyframe_rotations(values: gtsam.Values, K: int) -> np.ndarray:

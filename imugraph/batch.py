@@ -1,0 +1,230 @@
+"""Many sessions on Dask (`dask.distributed`): calibration and smoothing of each one, in parallel.
+
+    from imugraph.batch import run_batch
+    rows = run_batch(["a.npz", "b.mat"], "batch_out", workers=2)      # local cluster of 2 processes
+
+Graphs with Python factors cannot be pickled, so nothing but the session PATH, its output folder and
+plain options travel to a worker: `run_one` reads the session there, builds its own graph and writes
+DIR/<session stem>/ with the files of `imugraph calibrate` (through the same function,
+`imugraph.commands.calibrate.calibrate_path`). It never raises: a failure comes back as a row with
+status "failed" and the error on one line, and does not stop the other sessions.
+
+The default cluster is a `distributed.LocalCluster` of worker processes (processes=True,
+threads_per_worker=1); `scheduler="tcp://host:8786"` uses an existing cluster instead (its workers must
+see the session paths and the output folder, e.g. on a shared file system).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import csv
+import io
+import json
+import logging
+import math
+import os
+import sys
+import time
+from dataclasses import asdict
+from pathlib import Path
+from typing import Iterator, Optional, Sequence, Union
+
+from imugraph.commands.calibrate import CalibrateOptions
+from imugraph.errors import ImugraphError, SessionError
+
+PathLike = Union[str, Path]
+# summary.csv columns (summary.json rows carry the same keys, plus the calibrate figures when ok)
+COLUMNS = ("session", "status", "time_s", "error_deg", "out", "path", "error")
+MAX_ERROR_CHARS = 300
+
+
+def one_line(exc: BaseException) -> str:
+    """An exception as one short line: our own errors as they are, others prefixed by their type."""
+    if isinstance(exc, ImugraphError):
+        text = str(exc)
+    elif isinstance(exc, OSError) and exc.strerror:
+        text = f"{exc.filename + ': ' if exc.filename else ''}{exc.strerror}"
+    else:
+        text = f"{type(exc).__name__}: {exc}"
+    text = " ".join(text.split())          # gtsam errors can print whole graphs over many lines
+    return text if len(text) <= MAX_ERROR_CHARS else text[:MAX_ERROR_CHARS - 1] + "…"
+
+
+def output_folders(paths: Sequence[PathLike], out: PathLike) -> list[Path]:
+    """DIR/<session stem> per session; a stem seen before gets _2, _3, … (trial.mat in two folders)."""
+    seen: dict[str, int] = {}
+    folders = []
+    for p in paths:
+        stem = Path(p).stem or "session"
+        seen[stem] = seen.get(stem, 0) + 1
+        folders.append(Path(out) / (stem if seen[stem] == 1 else f"{stem}_{seen[stem]}"))
+    return folders
+
+
+def run_one(path: str, out_dir: str, options: CalibrateOptions) -> dict:
+    """The worker task: read one session, calibrate and smooth it, write its folder. Never raises.
+
+    Args:
+        path: session file (absolute, as the worker sees it).
+        out_dir: this session's output folder.
+        options: `CalibrateOptions` (keyframe rate, weak-data policy).
+
+    Returns:
+        {"session", "path", "out", "status": "ok"|"failed", "time_s", "error_deg" (RMS vs quat truth over
+        movement, None without truth), "error" ("" when ok)} plus, when ok, the scores of
+        `calibrate_path` (norm_before, norm_after, converged, iterations, identifiable, ...).
+    """
+    from imugraph.commands.calibrate import calibrate_path
+
+    start = time.perf_counter()
+    row = {"session": Path(path).stem, "path": path, "out": out_dir}
+    try:
+        result = calibrate_path(path, out_dir, options)       # quiet progress: prints nothing
+    except Exception as exc:      # noqa: BLE001 — any failure is this session's, reported, not raised
+        return {**row, "status": "failed", "time_s": time.perf_counter() - start, "error_deg": None,
+                "error": one_line(exc)}
+    result.pop("table", None)
+    result.pop("session", None)
+    return {**row, **result, "status": "ok", "time_s": time.perf_counter() - start,
+            "error_deg": result.get("orientation_rms_deg"), "error": ""}
+
+
+@contextlib.contextmanager
+def dask_client(scheduler: Optional[str] = None, workers: Optional[int] = None,
+                timeout_s: float = 10.0) -> Iterator["object"]:
+    """A `distributed.Client`: to `scheduler`, else to a new local cluster of `workers` processes.
+
+    Args:
+        scheduler: address of a running scheduler (e.g. tcp://10.0.0.5:8786), or None.
+        workers: local worker processes (default: the CPU count); ignored with a scheduler.
+        timeout_s: how long to wait for the scheduler to answer.
+
+    Raises:
+        SessionError: the scheduler does not answer (field 'scheduler').
+    """
+    from distributed import Client, LocalCluster
+
+    if scheduler:
+        try:
+            client = Client(scheduler, timeout=timeout_s)
+        except (OSError, ValueError, TypeError) as exc:
+            raise SessionError(scheduler, "scheduler", f"no scheduler answering ({one_line(exc)})",
+                               "the address of a running dask scheduler, e.g. tcp://host:8786") from None
+        with client:
+            yield client
+        return
+    n = workers or os.cpu_count() or 1
+    with LocalCluster(n_workers=n, processes=True, threads_per_worker=1, dashboard_address=None,
+                      silence_logs=logging.ERROR) as cluster, Client(cluster) as client:
+        yield client
+
+
+def run_batch(paths: Sequence[PathLike], out: PathLike, *, scheduler: Optional[str] = None,
+              workers: Optional[int] = None, options: CalibrateOptions = CalibrateOptions(),
+              progress: bool = True) -> list[dict]:
+    """Calibrate and smooth every session on Dask; one folder per session under `out`.
+
+    Args:
+        paths: session files or x-IMU3 folders.
+        out: output root (created); session i goes to `output_folders(paths, out)[i]`.
+        scheduler: address of an existing cluster; None for a local cluster of processes.
+        workers: processes of the local cluster (default: the CPU count, at most one per session).
+        options: `CalibrateOptions` of every session.
+        progress: a tqdm bar on stderr, and one line per failed session.
+
+    Returns:
+        One row per session, in the order of `paths` (see `run_one`).
+
+    Raises:
+        SessionError: `out` cannot be created, or the scheduler does not answer.
+    """
+    from distributed import as_completed
+    from tqdm import tqdm
+
+    root = Path(out).expanduser().absolute()
+    try:
+        root.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise SessionError(str(root), "out", f"a folder that cannot be created ({exc.strerror})",
+                           "a writable output folder (--out DIR)") from None
+    # absolute paths: a worker of an existing cluster does not share the client's working folder
+    files = [str(Path(p).expanduser().absolute()) for p in paths]
+    folders = [str(f) for f in output_folders(files, root)]
+    n_local = min(workers or os.cpu_count() or 1, max(len(files), 1))
+    rows: list[Optional[dict]] = [None] * len(files)
+    with dask_client(scheduler, n_local) as client:
+        # pure=False: a session listed twice is run twice, into its own folder
+        futures = [client.submit(run_one, f, d, options, pure=False, key=f"imugraph-{i}-{Path(f).stem}")
+                   for i, (f, d) in enumerate(zip(files, folders))]
+        index = {fut.key: i for i, fut in enumerate(futures)}
+        bar = tqdm(total=len(futures), unit="session", file=sys.stderr, disable=not progress, dynamic_ncols=True)
+        with bar:
+            for fut in as_completed(futures):
+                i = index[fut.key]
+                try:
+                    row = fut.result()
+                except Exception as exc:  # noqa: BLE001 — a worker that died (KilledWorker) or a lost task
+                    row = {"session": Path(files[i]).stem, "path": files[i], "out": folders[i],
+                           "status": "failed", "time_s": None, "error_deg": None, "error": one_line(exc)}
+                rows[i] = row
+                if row["status"] != "ok" and progress:
+                    bar.write(f"{row['session']}: failed: {row['error']}", file=sys.stderr)
+                bar.update(1)
+    return [r for r in rows if r is not None]
+
+
+def _cell(value) -> str:
+    if value is None or (isinstance(value, float) and not math.isfinite(value)):
+        return ""
+    if isinstance(value, float):
+        return f"{value:.3f}"
+    return str(value)
+
+
+def summary_table(rows: Sequence[dict]) -> str:
+    """Plain aligned table: session, status, time (s), error vs truth (°, blank without truth), error."""
+    head = ("session", "status", "time_s", "error_deg", "error")
+    cells = [[_cell(r.get(c)) for c in head] for r in rows]
+    widths = [max([len(h)] + [len(c[i]) for c in cells]) for i, h in enumerate(head)]
+
+    def line(values) -> str:
+        return "  ".join(v.ljust(w) if i in (0, 1, 4) else v.rjust(w)
+                         for i, (v, w) in enumerate(zip(values, widths))).rstrip()
+
+    ok = sum(r.get("status") == "ok" for r in rows)
+    return "\n".join([line(head), line("-" * w for w in widths), *map(line, cells),
+                      f"{ok}/{len(rows)} sessions ok"])
+
+
+def write_summary(out: PathLike, rows: Sequence[dict], meta: Optional[dict] = None) -> tuple[Path, Path]:
+    """Write out/summary.json ({"sessions": rows, "ok", "failed", **meta}) and out/summary.csv atomically.
+
+    summary.csv holds `COLUMNS`, one line per session; empty cells where a value does not apply.
+    """
+    from imugraph.io.writers import atomic_write_text
+
+    ok = sum(r.get("status") == "ok" for r in rows)
+    doc = {**(meta or {}), "ok": ok, "failed": len(rows) - ok, "sessions": list(rows)}
+    root = Path(out)
+    js = atomic_write_text(root / "summary.json", json.dumps(_jsonable(doc), indent=1, allow_nan=False) + "\n")
+    buffer = io.StringIO()
+    writer = csv.writer(buffer, lineterminator="\n")
+    writer.writerow(COLUMNS)
+    for r in rows:
+        writer.writerow([_cell(r.get(c)) for c in COLUMNS])
+    return js, atomic_write_text(root / "summary.csv", buffer.getvalue())
+
+
+def _jsonable(value):
+    """Strict-JSON values: numpy scalars → Python numbers, NaN/inf → None, options → dict."""
+    if isinstance(value, CalibrateOptions):
+        value = asdict(value)
+    if isinstance(value, dict):
+        return {str(k): _jsonable(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_jsonable(v) for v in value]
+    if hasattr(value, "item") and not isinstance(value, (str, bytes)):
+        value = value.item()
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    return value

@@ -1,0 +1,51 @@
+"""`imugraph batch SESSIONS… --out DIR [--scheduler ADDRESS] [--workers N]`: many sessions on Dask.
+
+Each session is calibrated and smoothed on a worker (`imugraph.batch.run_one`), into DIR/<session
+stem>/ with the files of `imugraph calibrate`. A progress bar and one line per failed session go to
+stderr; the summary table goes to stdout and to DIR/summary.json + DIR/summary.csv (written atomically).
+
+Exit status: 0 every session ok; 1 at least one session failed (the others still ran and are written);
+2 the batch could not run (bad arguments, --out not writable, scheduler not answering).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from dataclasses import asdict
+from pathlib import Path
+
+from imugraph.commands import common
+
+EXIT_SOME_FAILED = 1
+
+
+def run_batch_command(args: argparse.Namespace) -> int:
+    """batch SESSIONS… --out DIR [--scheduler ADDRESS] [--workers N] [--keyframe-hz HZ] [--allow-weak]
+    [--data-dir DIR] [--quiet].
+
+    Returns:
+        0 when every session succeeded, 1 when any failed (errors that stop the whole batch are raised
+        as ImugraphError and reported by `imugraph.cli.main` with exit status 2).
+    """
+    from imugraph.batch import run_batch, summary_table, write_summary
+    from imugraph.commands.calibrate import CalibrateOptions
+
+    paths = [common.resolve_session_path(s, args.data_dir) for s in args.sessions]
+    options = CalibrateOptions(args.keyframe_hz, args.allow_weak)
+    if args.scheduler and args.workers and not args.quiet:
+        print("imugraph: note: --workers applies to the local cluster only; ignored with --scheduler",
+              file=sys.stderr)
+    where = f"the scheduler at {args.scheduler}" if args.scheduler else \
+        f"a local cluster of {args.workers or 'CPU-count'} worker processes"
+    common.Progress(args.quiet).say(f"{len(paths)} sessions on {where} → {args.out}")
+    start = time.perf_counter()
+    rows = run_batch(paths, args.out, scheduler=args.scheduler, workers=args.workers, options=options,
+                     progress=not args.quiet)
+    wall = time.perf_counter() - start
+    meta = {"wall_s": wall, "scheduler": args.scheduler, "workers": args.workers, "options": asdict(options)}
+    js, csv_path = write_summary(Path(args.out).expanduser(), rows, meta)
+    print(summary_table(rows))
+    print(f"wall time {wall:.1f} s; summary in {js} and {csv_path}")
+    return 0 if all(r["status"] == "ok" for r in rows) else EXIT_SOME_FAILED

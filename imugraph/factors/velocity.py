@@ -1,0 +1,67 @@
+"""Linear acceleration as motion, not noise: keyframe velocities driven by the accelerometer, with a
+bounded-velocity (Gauss–Markov) prior.
+
+The accelerometer measures specific force, b_acc = bRn (n_acc − n_grav) + e (DESIGN.md). Integrated
+between keyframes k and k+1 (samples j of interval k attached through the preintegrated gyro ΔR_kj):
+
+    v_{k+1} = v_k + n_grav Δt_k + R_k Δv_k + e_k,     Δv_k = Σ_j ΔR_kj a_j dt_j     (Forster et al. 2017,
+                                                                                    velocity part, eq. 33)
+    Σ_e,k = Σ_j (σ_a² + κ_a² |a_j|²) dt_j² · I       (white noise, plus scale/misalignment error κ_a)
+
+Residual e_k = v_{k+1} − v_k − n_grav Δt_k − R_k Δv_k; Jacobians (right perturbation R_k Exp(ξ)):
+
+    ∂e_k/∂ξ = R_k [Δv_k]×,   ∂e_k/∂v_k = −I,   ∂e_k/∂v_{k+1} = I
+
+A sensor carried by a person or a robot arm does not drift away: its velocity stays bounded. That is
+the information that separates tilt from linear acceleration (a tilt error δ makes the integrated
+velocity drift by g·δ per second). It enters as a first-order Gauss–Markov prior on the velocity,
+stationary with standard deviation σ_v and correlation time τ_v:
+
+    v_0 ~ N(0, σ_v² I),   v_{k+1} = φ_k v_k + w_k,   φ_k = exp(−Δt_k/τ_v),   w_k ~ N(0, σ_v² (1 − φ_k²) I)
+
+Treating linear acceleration as white accelerometer noise (the per-sample gravity factor) is the
+limit this model replaces: real linear acceleration is strongly correlated in time and has no DC part.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from imugraph.geometry import skew
+
+
+def velocity_increments(kRb: np.ndarray, sample_kf: np.ndarray, b_acc: np.ndarray, dt: np.ndarray,
+                        n_keyframes: int, sigma_acc: np.ndarray, rate_error: float) -> tuple[np.ndarray, np.ndarray]:
+    """Δv_k in keyframe k's body frame (K−1, 3) and the std of its error (K−1,), m/s.
+
+    Args:
+        kRb: (N, 3, 3) ΔR_kj of each sample; sample_kf: (N,) keyframe of each sample; b_acc: (N, 3) m/s²;
+        dt: (N,) step from sample j to j+1, s; sigma_acc: (3,) white noise std per sample, m/s²;
+        rate_error: κ_a, relative accelerometer error (scale factor, misalignment).
+    """
+    a_k = np.einsum("nij,nj->ni", kRb, b_acc) * dt[:, None]
+    dv = np.zeros((n_keyframes, 3))
+    np.add.at(dv, sample_kf, a_k)
+    var = (float(np.mean(np.asarray(sigma_acc, float) ** 2)) + rate_error**2 * np.sum(b_acc**2, axis=1)) * dt**2
+    var_k = np.bincount(sample_kf, weights=var, minlength=n_keyframes)
+    # the last keyframe starts no interval (its own sample has no successor)
+    return dv[:-1], np.sqrt(np.maximum(var_k[:-1], 1e-12))
+
+
+def velocity_model(nRk: np.ndarray, v: np.ndarray, dv: np.ndarray, dt_k: np.ndarray, g: float):
+    """Residuals e (K−1, 3) and Jacobians J_R (K−1, 3, 3) of the velocity-increment factors.
+
+    nRk (K, 3, 3), v (K, 3) nav-frame velocities, dv (K−1, 3) body-frame increments, dt_k (K−1,) s.
+    ∂e/∂v_k = −I and ∂e/∂v_{k+1} = I are constant and not returned.
+    """
+    n_grav = np.array([0.0, 0.0, -g])
+    R = nRk[:-1]
+    e = v[1:] - v[:-1] - n_grav[None, :] * dt_k[:, None] - np.einsum("kij,kj->ki", R, dv)
+    J_R = R @ skew(dv)
+    return e, J_R
+
+
+def gauss_markov(dt_k: np.ndarray, sigma_v: float, tau_v: float) -> tuple[np.ndarray, np.ndarray]:
+    """φ_k = exp(−Δt_k/τ_v) and the std of w_k, σ_v √(1 − φ_k²), for each keyframe interval."""
+    phi = np.exp(-np.asarray(dt_k, float) / max(tau_v, 1e-9))
+    return phi, sigma_v * np.sqrt(np.maximum(1.0 - phi**2, 1e-12))
