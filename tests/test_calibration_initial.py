@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 import scipy.io
 
-from imugraph.calibration.alignment import align_axes, estimate_mag_delay, gravity_up
+from imugraph.calibration.alignment import align_axes, estimate_mag_delay, gravity_up, undelay_magnetometer
 from imugraph.calibration.coverage import check_coverage, rotation_coverage
 from imugraph.calibration.ellipsoid import fit_ellipsoid
 from imugraph.calibration.initial import initial_calibration
@@ -154,6 +154,19 @@ def test_mag_delay_is_found():
     lagged = np.vstack([np.repeat(m[:1], 2, axis=0), m[:-2]])   # 2 samples = 10 ms late
     assert abs(estimate_mag_delay(s.t, lagged, s.gyr) - 0.010) < 0.001
     assert abs(estimate_mag_delay(s.t, m, s.gyr)) < 0.001
+    # undoing the lag restores the original samples (away from the held first rows)
+    restored = undelay_magnetometer(s.t, lagged, 0.010)
+    np.testing.assert_allclose(restored[5:-5], m[5:-5], atol=1e-9)
+
+
+def test_undelay_keeps_missing_rows_missing():
+    t = np.arange(10) * 0.01
+    mag = np.column_stack([t, 2 * t, 3 * t])
+    mag[1::2] = np.nan                                   # a magnetometer at half the rate
+    out = undelay_magnetometer(t, mag, 0.005)
+    assert np.all(np.isnan(out[1::2])) and np.all(np.isfinite(out[0::2]))
+    np.testing.assert_allclose(out[0:-2:2, 0], t[0:-2:2] + 0.005)
+    assert np.isfinite(mag[0]).all() and np.isnan(mag[1]).all()     # the input is untouched
 
 
 # ---------------------------------------------------------------- rest and noise

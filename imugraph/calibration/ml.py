@@ -22,6 +22,7 @@ from imugraph.calibration.noise import reestimate
 from imugraph.calibration.result import Calibration
 from imugraph.factors.gyro import keyframe_layout, preintegrate
 from imugraph.factors.robust import QUADRATIC, Kernel
+from imugraph.factors.velocity import gravity_from_velocity
 from imugraph.factors.theta import THETA_DIM, pack_theta, unpack_theta
 from imugraph.graphs.orientation_init import complementary_keyframes, sample_orientations
 from imugraph.graphs.single_imu import Noise, Problem, VelocityModel, build_problem, keyframe_rotations
@@ -53,9 +54,11 @@ class Options:
     correlated_noise: bool = False    # inflate σ by √τ (integrated autocorrelation time of residuals)
     linear_acceleration: str = "velocity"   # "velocity": keyframe velocities with a bounded-velocity
     #                                         prior (imugraph.factors.velocity); "noise": per-sample gravity factor
-    velocity_sigma: float = 0.5       # σ_v, m/s: stationary std of the sensor's velocity
+    velocity_sigma: float = 0.5       # σ_v, m/s: stationary std of the sensor's velocity (start value)
+    estimate_velocity_sigma: bool = True   # re-estimate σ_v from the velocity states in the ML loop
     velocity_tau: float = 2.0         # τ_v, s: its correlation time
     acc_rate_error: float = 0.01      # κ_a: accelerometer error growing with the specific force
+    compensate_mag_delay: bool = True # pair each field sample with the orientation when it was sensed
 
 
 @dataclass
@@ -106,6 +109,10 @@ def calibrate(session: Session, options: Options | None = None, initial=None,
             weak_reason = str(exc)
             initial = weak_initial(session, weak_reason)
     init = initial
+    delay = float(getattr(init, "mag_delay_s", 0.0)) if opt.compensate_mag_delay else 0.0
+    if delay != 0.0:
+        from imugraph.calibration.alignment import undelay_magnetometer
+        session = session.with_mag(undelay_magnetometer(session.t, session.mag, delay))
     g = gravity_from(session, getattr(init, "rest", None))
     noise = Noise(np.asarray(init.noise["gyr"], float), np.asarray(init.noise["acc"], float),
                   np.asarray(init.noise["mag"], float))
@@ -124,7 +131,7 @@ def calibrate(session: Session, options: Options | None = None, initial=None,
     converged = False
     theta_sigma = _theta_prior_sigma(theta0, weak_reason is not None)
 
-    vel_state = {"v": None}
+    vel_state = {"v": None, "sigma": opt.velocity_sigma, "g": None}
 
     def solve_round(bias, noise, nRk, theta):
         """Preintegrate at the current bias, build the graph, solve it (one round of the ML loop)."""
@@ -133,15 +140,18 @@ def calibrate(session: Session, options: Options | None = None, initial=None,
         start = complementary_keyframes(pre, session.acc, m_cal0) if nRk is None else nRk
         velocity = None
         if opt.linear_acceleration == "velocity":
-            velocity = VelocityModel(opt.velocity_sigma, opt.velocity_tau, opt.acc_rate_error,
+            velocity = VelocityModel(vel_state["sigma"], opt.velocity_tau, opt.acc_rate_error,
                                      opt.acc_kernel, vel_state["v"])
-        prob = build_problem(pre, session.acc, session.mag, noise, g, start, bias, theta,
+        g_round = vel_state["g"] or g
+        prob = build_problem(pre, session.acc, session.mag, noise, g_round, start, bias, theta,
                              theta_prior_sigma=theta_sigma, bias_prior_sigma=opt.bias_prior_sigma,
                              acc_kernel=opt.acc_kernel, mag_kernel=opt.mag_kernel,
                              bias_segment=seg, bias_rw_sigma=opt.bias_rw, velocity=velocity, dt=session.dt)
         values, info = optimize(prob.graph, prob.blocks, prob.values, prob.ordering, opt.solver)
         if velocity is not None:
             vel_state["v"] = np.stack([values.atVector(keys.vel(k)) for k in range(len(kf))])
+            vel_state["g"] = gravity_from_velocity(keyframe_rotations(values, len(kf)), vel_state["v"],
+                                                   prob.velocity.dv, pre.dt)
         return pre, prob, values, info
 
     for outer in range(1, opt.max_outer + 1):
@@ -169,6 +179,12 @@ def calibrate(session: Session, options: Options | None = None, initial=None,
         history[-1]["tau"] = taus
         taus = tau_fixed or taus
         change = max(float(np.max(np.abs(np.log(new[c] / getattr(noise, c))))) for c in new)
+        if vel_state["v"] is not None and opt.estimate_velocity_sigma:
+            # ML of the stationary std given the smoothed velocities: σ_v² = mean |v_k|² / 3
+            sig_new = float(np.clip(np.sqrt(np.mean(vel_state["v"] ** 2)), 0.01, 5.0))
+            change = max(change, abs(np.log(sig_new / vel_state["sigma"])))
+            vel_state["sigma"] = sig_new
+            history[-1]["velocity_sigma"] = sig_new
         bias_change = float(np.max(np.linalg.norm(bias_new - bias, axis=1)))
         noise = Noise(new.get("gyr", noise.gyr), new.get("acc", noise.acc), new.get("mag", noise.mag))
         bias = bias_new
@@ -196,13 +212,16 @@ def calibrate(session: Session, options: Options | None = None, initial=None,
         std={"D": std_theta[:9].reshape(3, 3), "o": std_theta[9:12], "dip_deg": float(np.rad2deg(std_theta[12])),
              "gyro_bias": np.sqrt(np.maximum(np.diag(cov_bias), 0.0))},
         coverage=getattr(init, "coverage", {}) or {}, converged=bool(converged and info.converged),
-        iterations=len(history))
+        iterations=len(history), mag_delay_s=delay)
     quat = sample_orientations(nRk, pre)
     residuals = per_sample_residuals(prob, nRk, theta, session)
     return Estimate(cal, session.t, quat, residuals,
-                    {"history": history, "keyframes": len(kf), "stride": stride, "g": g,
+                    {"history": history, "keyframes": len(kf), "stride": stride, "g": vel_state["g"] or g,
                      "gyro_bias_segments": bias_segments, "noise_correlation": tau_fixed or {},
-                     "lm_iterations_final": info.iterations})
+                     "lm_iterations_final": info.iterations,
+                     "velocity": (np.stack([values.atVector(keys.vel(k)) for k in range(len(kf))])
+                                  if prob.velocity is not None else None),
+                     "velocity_sigma": vel_state["sigma"], "keyframe_samples": kf})
 
 
 def _bias_segments(session: Session, kf: np.ndarray, segment_s: float) -> np.ndarray:

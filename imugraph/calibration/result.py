@@ -25,6 +25,8 @@ class Calibration:
         std: marginal standard deviations {"D": (3, 3), "o": (3,)}.
         coverage: what rotation the data hold and whether the problem was identifiable.
         converged, iterations: state of the maximum-likelihood loop.
+        mag_delay_s: lag of the magnetometer behind the gyroscope, s (applied before the calibration:
+            `imugraph.calibration.alignment.undelay_magnetometer`).
     """
 
     D: np.ndarray
@@ -36,6 +38,7 @@ class Calibration:
     coverage: dict = field(default_factory=dict)
     converged: bool = False
     iterations: int = 0
+    mag_delay_s: float = 0.0
 
     @property
     def dip_rad(self) -> float:
@@ -58,7 +61,7 @@ class Calibration:
             "noise": {k: arr(v) for k, v in self.noise.items()},
             "std": {k: arr(v) for k, v in self.std.items()},
             "coverage": self.coverage, "converged": bool(self.converged),
-            "iterations": int(self.iterations),
+            "iterations": int(self.iterations), "mag_delay_s": float(self.mag_delay_s),
         }
 
     @classmethod
@@ -69,5 +72,5 @@ class Calibration:
             noise={k: np.asarray(v, float) for k, v in d.get("noise", {}).items()},
             std={k: np.asarray(v, float) for k, v in d.get("std", {}).items()},
             coverage=d.get("coverage", {}), converged=bool(d.get("converged", False)),
-            iterations=int(d.get("iterations", 0)),
+            iterations=int(d.get("iterations", 0)), mag_delay_s=float(d.get("mag_delay_s", 0.0)),
         )

@@ -17,6 +17,7 @@ import gtsam
 import numpy as np
 
 from imugraph import keys
+from imugraph.calibration.alignment import undelay_magnetometer
 from imugraph.calibration.result import Calibration
 from imugraph.factors.gyro import ahrs_factors, keyframe_layout, preintegrate
 from imugraph.graphs.orientation_init import complementary_keyframes, sample_orientations
@@ -39,7 +40,7 @@ def smooth_fixed(session: Session, cal: Calibration, keyframe_hz: float = 10.0, 
     kf, skf = keyframe_layout(session.n, stride)
     sig_g = np.asarray(cal.noise.get("gyr", np.full(3, 0.005)), float)
     pre = preintegrate(session.gyr, session.dt, kf, skf, cal.gyro_bias, sig_g, gyro_rate_error)
-    m_cal = cal.apply(session.mag)
+    m_cal = cal.apply(undelay_magnetometer(session.t, session.mag, cal.mag_delay_s))
     valid = np.all(np.isfinite(m_cal), axis=1)
     K = len(kf)
     up = np.zeros((K, 3)); np.add.at(up, skf, np.einsum("mij,mj->mi", pre.kRb, session.acc))
