@@ -22,7 +22,10 @@ from imugraph.calibration.noise import reestimate
 from imugraph.calibration.result import Calibration
 from imugraph.factors.gyro import keyframe_layout, preintegrate
 from imugraph.factors.robust import QUADRATIC, Kernel
+from imugraph.calibration.disturbance import apply_windows, detect_windows, fit_offsets
+from imugraph.calibration.result import n_mag_from_dip
 from imugraph.factors.velocity import gravity_from_velocity
+from imugraph.geometry import quat_to_rotmat
 from imugraph.factors.theta import THETA_DIM, pack_theta, unpack_theta
 from imugraph.graphs.orientation_init import complementary_keyframes, sample_orientations
 from imugraph.graphs.single_imu import Noise, Problem, VelocityModel, build_problem, keyframe_rotations
@@ -55,10 +58,11 @@ class Options:
     linear_acceleration: str = "velocity"   # "velocity": keyframe velocities with a bounded-velocity
     #                                         prior (imugraph.factors.velocity); "noise": per-sample gravity factor
     velocity_sigma: float = 0.5       # σ_v, m/s: stationary std of the sensor's velocity (start value)
-    estimate_velocity_sigma: bool = True   # re-estimate σ_v from the velocity states in the ML loop
+    estimate_velocity_sigma: bool = False  # re-estimate σ_v from the velocity states in the ML loop
     velocity_tau: float = 2.0         # τ_v, s: its correlation time
     acc_rate_error: float = 0.01      # κ_a: accelerometer error growing with the specific force
     compensate_mag_delay: bool = True # pair each field sample with the orientation when it was sensed
+    disturbance_windows: bool = True  # windowed hard-iron offsets (imugraph.calibration.disturbance)
 
 
 @dataclass
@@ -132,6 +136,8 @@ def calibrate(session: Session, options: Options | None = None, initial=None,
     theta_sigma = _theta_prior_sigma(theta0, weak_reason is not None)
 
     vel_state = {"v": None, "sigma": opt.velocity_sigma, "g": None}
+    windows = detect_windows(session.t, m_cal0) if opt.disturbance_windows else []
+    mag_state = {"y": session.mag, "w": apply_windows(windows, session.mag)[1] if windows else None}
 
     def solve_round(bias, noise, nRk, theta):
         """Preintegrate at the current bias, build the graph, solve it (one round of the ML loop)."""
@@ -143,10 +149,11 @@ def calibrate(session: Session, options: Options | None = None, initial=None,
             velocity = VelocityModel(vel_state["sigma"], opt.velocity_tau, opt.acc_rate_error,
                                      opt.acc_kernel, vel_state["v"])
         g_round = vel_state["g"] or g
-        prob = build_problem(pre, session.acc, session.mag, noise, g_round, start, bias, theta,
+        prob = build_problem(pre, session.acc, mag_state["y"], noise, g_round, start, bias, theta,
                              theta_prior_sigma=theta_sigma, bias_prior_sigma=opt.bias_prior_sigma,
                              acc_kernel=opt.acc_kernel, mag_kernel=opt.mag_kernel,
-                             bias_segment=seg, bias_rw_sigma=opt.bias_rw, velocity=velocity, dt=session.dt)
+                             bias_segment=seg, bias_rw_sigma=opt.bias_rw, velocity=velocity, dt=session.dt,
+                             mag_weights=mag_state["w"])
         values, info = optimize(prob.graph, prob.blocks, prob.values, prob.ordering, opt.solver)
         if velocity is not None:
             vel_state["v"] = np.stack([values.atVector(keys.vel(k)) for k in range(len(kf))])
@@ -185,6 +192,14 @@ def calibrate(session: Session, options: Options | None = None, initial=None,
             change = max(change, abs(np.log(sig_new / vel_state["sigma"])))
             vel_state["sigma"] = sig_new
             history[-1]["velocity_sigma"] = sig_new
+        if windows:
+            # windowed hard iron at the current orientations (linear given them), Kok's o + Δo_w
+            D_, o_, dip_ = unpack_theta(theta)
+            nRb = quat_to_rotmat(sample_orientations(nRk, pre))
+            fit_offsets(windows, session.t, session.mag, nRb, D_, o_, n_mag_from_dip(dip_),
+                        float(np.sqrt(np.mean(noise.mag ** 2))))
+            mag_state["y"], mag_state["w"] = apply_windows(windows, session.mag)
+            history[-1]["windows"] = [w.as_dict(session.t) for w in windows]
         bias_change = float(np.max(np.linalg.norm(bias_new - bias, axis=1)))
         noise = Noise(new.get("gyr", noise.gyr), new.get("acc", noise.acc), new.get("mag", noise.mag))
         bias = bias_new
@@ -221,7 +236,8 @@ def calibrate(session: Session, options: Options | None = None, initial=None,
                      "lm_iterations_final": info.iterations,
                      "velocity": (np.stack([values.atVector(keys.vel(k)) for k in range(len(kf))])
                                   if prob.velocity is not None else None),
-                     "velocity_sigma": vel_state["sigma"], "keyframe_samples": kf})
+                     "velocity_sigma": vel_state["sigma"],
+                     "disturbance_windows": [w.as_dict(session.t) for w in windows], "keyframe_samples": kf})
 
 
 def _bias_segments(session: Session, kf: np.ndarray, segment_s: float) -> np.ndarray:
