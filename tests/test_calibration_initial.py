@@ -156,16 +156,17 @@ def test_mag_delay_is_found():
     assert abs(estimate_mag_delay(s.t, m, s.gyr)) < 0.001
     # undoing the lag restores the original samples (away from the held first rows)
     restored = undelay_magnetometer(s.t, lagged, 0.010)
-    np.testing.assert_allclose(restored[5:-5], m[5:-5], atol=1e-9)
+    np.testing.assert_allclose(restored[5:-5], m[5:-5], atol=1e-12)
+    assert np.all(np.isnan(restored[-2:]))                # no sample was read after the end
 
 
 def test_undelay_keeps_missing_rows_missing():
     t = np.arange(10) * 0.01
     mag = np.column_stack([t, 2 * t, 3 * t])
     mag[1::2] = np.nan                                   # a magnetometer at half the rate
-    out = undelay_magnetometer(t, mag, 0.005)
-    assert np.all(np.isnan(out[1::2])) and np.all(np.isfinite(out[0::2]))
-    np.testing.assert_allclose(out[0:-2:2, 0], t[0:-2:2] + 0.005)
+    out = undelay_magnetometer(t, mag, 0.021)             # 2 rows
+    assert np.all(np.isnan(out[1::2])) and np.all(np.isfinite(out[0:-2:2]))
+    np.testing.assert_allclose(out[0:-2:2, 0], t[2::2])
     assert np.isfinite(mag[0]).all() and np.isnan(mag[1]).all()     # the input is untouched
 
 

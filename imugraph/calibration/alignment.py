@@ -100,7 +100,7 @@ def _delay_fit_rss(dm: np.ndarray, m: np.ndarray, w: np.ndarray) -> float:
 
 def estimate_mag_delay(t: np.ndarray, m_tilde: np.ndarray, b_gyr: np.ndarray,
                        max_delay_s: float = 0.05, window_s: float = 0.04,
-                       max_rows: int = 20000) -> float:
+                       max_rows: int = 4000) -> float:
     """Delay τ of the magnetometer behind the gyroscope (s; > 0: the magnetometer lags).
 
     A static field seen from a turning body obeys ṁ_b = m_b × ω. Over a window [t_j − h, t_j + h]:
@@ -214,23 +214,24 @@ def align_axes(m_tilde: np.ndarray, u_b: np.ndarray) -> tuple[np.ndarray, float,
 
 
 def undelay_magnetometer(t: np.ndarray, b_mag: np.ndarray, delay_s: float) -> np.ndarray:
-    """The field on the gyro's time base: row i holds the field at t_i, read τ later, y(t_i + τ).
+    """The field on the gyro's time base: row i holds the sample read n = round(τ/Δt) rows later.
 
     A magnetometer that lags by τ reports at t_i what the body saw at t_i − τ; pairing each sample with
     the orientation at its own time makes a turning body look like a field error ≈ |ω|·τ (0.9° at
-    100 °/s for BROAD's 9 ms). Rows without a sample (NaN, lower-rate magnetometers) stay NaN; values are
-    interpolated linearly between the valid samples around t_i + τ (ends held).
+    100 °/s for BROAD's 9 ms). The shift is by whole samples: interpolating between samples would
+    average their noise (and bias the noise estimate low); the remaining ≤ ½ sample is negligible.
+    Rows shifted in from beyond the end are NaN (no sample), as are rows that had none.
 
     Args:
         t: (N,) s; b_mag: (N, 3) field, NaN rows = no sample; delay_s: τ from `estimate_mag_delay`.
     """
     b_mag = np.asarray(b_mag, float)
-    if delay_s == 0.0:
-        return b_mag.copy()
-    valid = np.all(np.isfinite(b_mag), axis=1)
-    tv = np.asarray(t, float)[valid]
+    n = int(np.round(delay_s / float(np.median(np.diff(t))))) if len(t) > 1 else 0
     out = np.full_like(b_mag, np.nan)
-    query = np.asarray(t, float)[valid] + delay_s
-    for i in range(3):
-        out[valid, i] = np.interp(query, tv, b_mag[valid, i])
+    if n == 0:
+        out[:] = b_mag
+    elif n > 0:
+        out[:-n] = b_mag[n:]
+    else:
+        out[-n:] = b_mag[:n]
     return out

@@ -63,6 +63,8 @@ class Options:
     acc_rate_error: float = 0.01      # κ_a: accelerometer error growing with the specific force
     compensate_mag_delay: bool = True # pair each field sample with the orientation when it was sensed
     disturbance_windows: bool = True  # windowed hard-iron offsets (imugraph.calibration.disturbance)
+    round_min_samples: int = 8        # ML rounds see every n-th field sample, keeping at least this many
+    #                                   per keyframe (the dof correction needs them); the final solve sees all
 
 
 @dataclass
@@ -139,7 +141,17 @@ def calibrate(session: Session, options: Options | None = None, initial=None,
     windows = detect_windows(session.t, m_cal0) if opt.disturbance_windows else []
     mag_state = {"y": session.mag, "w": apply_windows(windows, session.mag)[1] if windows else None}
 
-    def solve_round(bias, noise, nRk, theta):
+    def thinned(y: np.ndarray, every: int) -> np.ndarray:
+        """Every `every`-th field sample kept (NaN elsewhere): the ML rounds only steer the noise levels,
+        bias and θ toward the final solve, which uses every sample."""
+        if every <= 1:
+            return y
+        out = np.full_like(y, np.nan)
+        idx = np.flatnonzero(np.all(np.isfinite(y), axis=1))[::every]
+        out[idx] = y[idx]
+        return out
+
+    def solve_round(bias, noise, nRk, theta, every=1):
         """Preintegrate at the current bias, build the graph, solve it (one round of the ML loop)."""
         pre = preintegrate(session.gyr, session.dt, kf, skf, _per_sample_bias(bias, seg, skf), noise.gyr,
                            opt.gyro_rate_error)
@@ -149,7 +161,7 @@ def calibrate(session: Session, options: Options | None = None, initial=None,
             velocity = VelocityModel(vel_state["sigma"], opt.velocity_tau, opt.acc_rate_error,
                                      opt.acc_kernel, vel_state["v"])
         g_round = vel_state["g"] or g
-        prob = build_problem(pre, session.acc, mag_state["y"], noise, g_round, start, bias, theta,
+        prob = build_problem(pre, session.acc, thinned(mag_state["y"], every), noise, g_round, start, bias, theta,
                              theta_prior_sigma=theta_sigma, bias_prior_sigma=opt.bias_prior_sigma,
                              acc_kernel=opt.acc_kernel, mag_kernel=opt.mag_kernel,
                              bias_segment=seg, bias_rw_sigma=opt.bias_rw, velocity=velocity, dt=session.dt,
@@ -162,7 +174,7 @@ def calibrate(session: Session, options: Options | None = None, initial=None,
         return pre, prob, values, info
 
     for outer in range(1, opt.max_outer + 1):
-        pre, prob, values, info = solve_round(bias, noise, nRk, theta)
+        pre, prob, values, info = solve_round(bias, noise, nRk, theta, max(1, stride // opt.round_min_samples))
         nRk = keyframe_rotations(values, len(kf))
         theta = values.atVector(keys.CALIB)
         bias_new = _bias_values(values, n_seg)
