@@ -101,3 +101,33 @@ def test_increments_integrate_simulated_specific_force():
     e, _ = velocity_model(nRk, n_v[kf], dv, pre.dt, params.g)
     assert np.max(np.abs(e)) < 0.02 * max(1.0, np.max(np.abs(n_v)))
     assert np.all(sig > 0)
+
+
+def test_heading_block_linearisation_is_gradient_along_the_vertical():
+    """The heading factor informs the rotation about the navigation vertical only: its linearisation
+    matches the cost's derivative for yaw perturbations and holds no information on tilt."""
+    from imugraph.graphs.heading_block import HeadingBlock
+
+    rng = np.random.default_rng(8)
+    K, M = 4, 40
+    nRk = expmap(rng.normal(size=(K, 3)))
+    kf = np.sort(rng.integers(0, K, M))
+    kRb = expmap(0.1 * rng.normal(size=(M, 3)))
+    m = rng.normal(size=(M, 3))
+    block = HeadingBlock(kf, kRb, m, 0.02, K, Kernel("huber", 2.0))
+    values = gtsam.Values()
+    for k in range(K):
+        values.insert(keys.rot(k), gtsam.Rot3(nRk[k]))
+    key_list = [keys.rot(k) for k in range(K)]
+    H = block.linearize(values).augmentedHessian(gtsam.Ordering(key_list))
+    grad, G = -H[:-1, -1], H[:-1, :-1]
+    h = 1e-6
+    for k, key in enumerate(key_list):
+        yaw = nRk[k].T @ np.array([0.0, 0.0, 1.0])      # body-frame axis of a nav-vertical rotation
+        p, q = gtsam.Values(values), gtsam.Values(values)
+        p.update(key, values.atRot3(key).retract(h * yaw)); q.update(key, values.atRot3(key).retract(-h * yaw))
+        numerical = (block.cost(p) - block.cost(q)) / (2 * h)
+        np.testing.assert_allclose(grad[3 * k:3 * k + 3] @ yaw, numerical, rtol=1e-5, atol=1e-6)
+        Gk = G[3 * k:3 * k + 3, 3 * k:3 * k + 3]
+        tilt = np.cross(yaw, rng.normal(size=3))        # a rotation about a horizontal nav axis
+        assert abs(tilt @ Gk @ tilt) < 1e-9 * np.trace(Gk) and abs(grad[3 * k:3 * k + 3] @ tilt) < 1e-9

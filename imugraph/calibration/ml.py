@@ -63,6 +63,7 @@ class Options:
     acc_rate_error: float = 0.01      # κ_a: accelerometer error growing with the specific force
     compensate_mag_delay: bool = True # pair each field sample with the orientation when it was sensed
     disturbance_windows: bool = True  # windowed hard-iron offsets (imugraph.calibration.disturbance)
+    heading_only_orientation: bool = True  # final orientations: field as heading only (graphs.heading_block)
     round_min_samples: int = 8        # ML rounds see every n-th field sample, keeping at least this many
     #                                   per keyframe (the dof correction needs them); the final solve sees all
 
@@ -240,8 +241,11 @@ def calibrate(session: Session, options: Options | None = None, initial=None,
              "gyro_bias": np.sqrt(np.maximum(np.diag(cov_bias), 0.0))},
         coverage=getattr(init, "coverage", {}) or {}, converged=bool(converged and info.converged),
         iterations=len(history), mag_delay_s=delay)
-    quat = sample_orientations(nRk, pre)
     residuals = per_sample_residuals(prob, nRk, theta, session)
+    if opt.heading_only_orientation and prob.block.mag is not None:
+        nRk = _heading_stage(session, opt, pre, prob, values, noise, g_used=vel_state["g"] or g,
+                             theta=theta, bias=bias_segments, seg=seg, mag_state=mag_state, vel=vel_state)
+    quat = sample_orientations(nRk, pre)
     return Estimate(cal, session.t, quat, residuals,
                     {"history": history, "keyframes": len(kf), "stride": stride, "g": vel_state["g"] or g,
                      "gyro_bias_segments": bias_segments, "noise_correlation": tau_fixed or {},
@@ -250,6 +254,30 @@ def calibrate(session: Session, options: Options | None = None, initial=None,
                                   if prob.velocity is not None else None),
                      "velocity_sigma": vel_state["sigma"],
                      "disturbance_windows": [w.as_dict(session.t) for w in windows], "keyframe_samples": kf})
+
+
+def _heading_stage(session, opt, pre, prob, values, noise, g_used, theta, bias, seg, mag_state, vel):
+    """Orientations with θ known and the field used as heading only, from the joint solution."""
+    from imugraph.graphs.heading_block import HeadingBlock
+
+    K = len(pre.kf_samples)
+    nRk = keyframe_rotations(values, K)
+    velocity = None
+    if opt.linear_acceleration == "velocity":
+        velocity = VelocityModel(vel["sigma"], opt.velocity_tau, opt.acc_rate_error, opt.acc_kernel, vel["v"])
+    no_mag = np.full_like(session.mag, np.nan)
+    stage = build_problem(pre, session.acc, no_mag, noise, g_used, nRk, bias, theta, estimate_theta=False,
+                          bias_prior_sigma=opt.bias_prior_sigma, acc_kernel=opt.acc_kernel,
+                          bias_segment=seg, bias_rw_sigma=opt.bias_rw, velocity=velocity, dt=session.dt)
+    D, o, _ = unpack_theta(theta)
+    y = mag_state["y"]
+    ok = np.all(np.isfinite(y), axis=1)
+    scale = float(np.cbrt(abs(np.linalg.det(D))))
+    heading = HeadingBlock(pre.sample_kf[ok], pre.kRb[ok], np.linalg.solve(D, (y[ok] - o).T).T,
+                           float(np.sqrt(np.mean(np.asarray(noise.mag) ** 2))) / scale, K, opt.mag_kernel,
+                           None if mag_state["w"] is None else mag_state["w"][ok])
+    out, _ = optimize(stage.graph, stage.blocks + [heading], stage.values, stage.ordering, opt.solver)
+    return keyframe_rotations(out, K)
 
 
 def _bias_segments(session: Session, kf: np.ndarray, segment_s: float) -> np.ndarray:

@@ -71,7 +71,7 @@ def smooth_fixed(session: Session, cal: Calibration, keyframe_hz: float = 10.0, 
                  linear_acceleration: str = "velocity", velocity_sigma: float = 0.5,
                  velocity_tau: float = 2.0, acc_rate_error: float = 0.01, acc_huber: bool = True,
                  bias_segment_s: float = 5.0, bias_rw: float = 2e-4, bias_prior_sigma: float = 0.01,
-                 max_iterations: int = 100) -> np.ndarray:
+                 max_iterations: int = 100, acc_bias_sigma: float = 1e-4) -> np.ndarray:
     """Smoothed per-sample orientation (N, 4) w,x,y,z for a session with a known calibration.
 
     Args:
@@ -125,8 +125,8 @@ def smooth_fixed(session: Session, cal: Calibration, keyframe_hz: float = 10.0, 
     if g is None:
         g = gravity_from_velocity(nRk0, np.zeros((K, 3)), dv, pre.dt)
     graph, values = _velocity_graph(session, cal, pre, nRk0, dv, sig_dv, float(g), mag_avg, n_mag, sig_m,
-                                    huber_k if acc_huber else None, huber_k, velocity_sigma, velocity_tau,
-                                    bias_segment_s, bias_rw, bias_prior_sigma)
+                                    (2.0 if acc_huber is True else acc_huber) if acc_huber else None, huber_k, velocity_sigma, velocity_tau,
+                                    bias_segment_s, bias_rw, bias_prior_sigma, acc_bias_sigma)
     result = gtsam.LevenbergMarquardtOptimizer(graph, values, params).optimize()
     nRk = np.stack([result.atPose3(X(k)).rotation().matrix() for k in range(K)])
     return sample_orientations(nRk, pre)
@@ -167,7 +167,8 @@ _SIGMA_ACC_BIAS = 1e-4
 
 
 def _velocity_graph(session, cal, pre: Preintegration, nRk0, dv, sig_dv, g, mag_avg, n_mag, sig_m,
-                    acc_huber, huber_k, sigma_v, tau_v, bias_segment_s, bias_rw, bias_prior_sigma):
+                    acc_huber, huber_k, sigma_v, tau_v, bias_segment_s, bias_rw, bias_prior_sigma,
+                    acc_bias_sigma):
     """Pose3 + velocity keyframes joined by ImuFactors, Gauss–Markov velocity prior, MagPoseFactorPose3."""
     K = len(pre.kf_samples)
     bg = np.asarray(cal.gyro_bias, float)
@@ -179,7 +180,7 @@ def _velocity_graph(session, cal, pre: Preintegration, nRk0, dv, sig_dv, g, mag_
     # ---- bias segments: prior about the calibration, random walk between segments
     zero3 = np.zeros(3)
     b_hat = gtsam.imuBias.ConstantBias(zero3, bg)
-    prior_b = gtsam.noiseModel.Diagonal.Sigmas(np.r_[np.full(3, _SIGMA_ACC_BIAS), np.full(3, bias_prior_sigma)])
+    prior_b = gtsam.noiseModel.Diagonal.Sigmas(np.r_[np.full(3, acc_bias_sigma), np.full(3, bias_prior_sigma)])
     seg_dt = float(pre.dt.sum()) / n_seg
     rw_b = gtsam.noiseModel.Diagonal.Sigmas(np.r_[np.full(3, _SIGMA_ACC_BIAS),
                                                   np.full(3, max(bias_rw, 1e-9) * np.sqrt(seg_dt))])
