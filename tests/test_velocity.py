@@ -48,11 +48,17 @@ def test_velocity_residual_zero_for_consistent_motion():
     np.testing.assert_allclose(e, 0.0, atol=1e-12)
 
 
-def test_block_linearisation_is_gradient_of_cost():
+@pytest.mark.parametrize("with_bias", [False, True])
+def test_block_linearisation_is_gradient_of_cost(with_bias):
     rng = np.random.default_rng(5)
     K = 7
     nRk, v, dv, dt_k = _random_state(rng, K)
-    block = VelocityBlock(dv, np.full(K - 1, 0.05), dt_k, 9.81, sigma_v=0.7, tau_v=1.5, kernel=Kernel("huber", 2.0))
+    B = expmap(rng.normal(size=(K - 1, 3))) * 0.1 if with_bias else None
+    block = VelocityBlock(dv, np.full(K - 1, 0.05), dt_k, 9.81, sigma_v=0.7, tau_v=1.5,
+                          kernel=Kernel("huber", 2.0), B=B, bias_sigma0=0.2, bias_rw=0.01)
+    if with_bias:
+        v = np.hstack([v, rng.normal(scale=0.1, size=(K, 3))])
+    dim = v.shape[1]
     values = gtsam.Values()
     for k in range(K):
         values.insert(keys.rot(k), gtsam.Rot3(nRk[k]))
@@ -64,8 +70,8 @@ def test_block_linearisation_is_gradient_of_cost():
     h = 1e-6
     num = []
     for key in key_list:
-        for i in range(3):
-            d = np.zeros(3); d[i] = h
+        for i in range(3 if gtsam.Symbol(key).chr() == ord("r") else dim):
+            d = np.zeros(3 if gtsam.Symbol(key).chr() == ord("r") else dim); d[i] = h
             p, m = gtsam.Values(values), gtsam.Values(values)
             if gtsam.Symbol(key).chr() == ord("r"):
                 p.update(key, values.atRot3(key).retract(d)); m.update(key, values.atRot3(key).retract(-d))

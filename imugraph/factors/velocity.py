@@ -19,6 +19,13 @@ stationary with standard deviation σ_v and correlation time τ_v:
 
     v_0 ~ N(0, σ_v² I),   v_{k+1} = φ_k v_k + w_k,   φ_k = exp(−Δt_k/τ_v),   w_k ~ N(0, σ_v² (1 − φ_k²) I)
 
+An accelerometer bias b_a (sensor frame, slowly varying) would otherwise make the integrated velocity
+drift as the sensor turns, which the bounded-velocity prior can only answer with a tilt error. It enters
+the increment linearly, with B_k = Σ_j ΔR_kj dt_j:
+
+    v_{k+1} = v_k + n_grav Δt_k + R_k (Δv_k − B_k b_k),   ∂e_k/∂b_k = R_k B_k,
+    b_{k+1} = b_k + w_b,k,   w_b,k ~ N(0, σ_b² Δt_k I)           (random walk; b_0 ~ N(0, σ_b0² I))
+
 Treating linear acceleration as white accelerometer noise (the per-sample gravity factor) is the
 limit this model replaces: real linear acceleration is strongly correlated in time and has no DC part.
 """
@@ -48,14 +55,25 @@ def velocity_increments(kRb: np.ndarray, sample_kf: np.ndarray, b_acc: np.ndarra
     return dv[:-1], np.sqrt(np.maximum(var_k[:-1], 1e-12))
 
 
-def velocity_model(nRk: np.ndarray, v: np.ndarray, dv: np.ndarray, dt_k: np.ndarray, g: float):
+def bias_integrals(kRb: np.ndarray, sample_kf: np.ndarray, dt: np.ndarray, n_keyframes: int) -> np.ndarray:
+    """B_k = Σ_j ΔR_kj dt_j (K−1, 3, 3): how a sensor-frame accelerometer bias enters Δv_k."""
+    B = np.zeros((n_keyframes, 3, 3))
+    np.add.at(B, sample_kf, kRb * dt[:, None, None])
+    return B[:-1]
+
+
+def velocity_model(nRk: np.ndarray, v: np.ndarray, dv: np.ndarray, dt_k: np.ndarray, g: float,
+                   b_a: np.ndarray | None = None, B: np.ndarray | None = None):
     """Residuals e (K−1, 3) and Jacobians J_R (K−1, 3, 3) of the velocity-increment factors.
 
-    nRk (K, 3, 3), v (K, 3) nav-frame velocities, dv (K−1, 3) body-frame increments, dt_k (K−1,) s.
-    ∂e/∂v_k = −I and ∂e/∂v_{k+1} = I are constant and not returned.
+    nRk (K, 3, 3), v (K, 3) nav-frame velocities, dv (K−1, 3) body-frame increments, dt_k (K−1,) s;
+    optional accelerometer bias b_a (K, 3) with B (K−1, 3, 3) from `bias_integrals`.
+    ∂e/∂v_k = −I, ∂e/∂v_{k+1} = I and ∂e/∂b_k = R_k B_k are not returned.
     """
     n_grav = np.array([0.0, 0.0, -g])
     R = nRk[:-1]
+    if b_a is not None:
+        dv = dv - np.einsum("kij,kj->ki", B, b_a[:-1])
     e = v[1:] - v[:-1] - n_grav[None, :] * dt_k[:, None] - np.einsum("kij,kj->ki", R, dv)
     J_R = R @ skew(dv)
     return e, J_R

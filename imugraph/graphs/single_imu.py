@@ -77,6 +77,9 @@ class VelocityModel:
     acc_rate_error: float = 0.01
     kernel: Kernel = QUADRATIC
     v0: np.ndarray | None = None
+    acc_bias: bool = True             # a sensor-frame accelerometer bias (random walk) in the state
+    acc_bias_sigma0: float = 0.3      # m/s², prior std of the bias
+    acc_bias_rw: float = 1e-3         # m/s²/√s, its random-walk density
 
 
 @dataclass
@@ -132,11 +135,13 @@ def build_problem(pre: Preintegration, b_acc: np.ndarray, b_mag: np.ndarray, noi
     # interleave each bias segment after its keyframes: fill-in stays local
     vblock = None
     if velocity is not None:
-        from imugraph.factors.velocity import velocity_increments
+        from imugraph.factors.velocity import bias_integrals, velocity_increments
         dv, sig_dv = velocity_increments(pre.kRb, pre.sample_kf, b_acc, dt, K, noise.acc,
                                          velocity.acc_rate_error)
-        vblock = VelocityBlock(dv, sig_dv, pre.dt, g, velocity.sigma_v, velocity.tau_v, velocity.kernel)
-        v0 = np.zeros((K, 3)) if velocity.v0 is None else velocity.v0
+        B = bias_integrals(pre.kRb, pre.sample_kf, dt, K) if velocity.acc_bias else None
+        vblock = VelocityBlock(dv, sig_dv, pre.dt, g, velocity.sigma_v, velocity.tau_v, velocity.kernel,
+                               B, velocity.acc_bias_sigma0, velocity.acc_bias_rw)
+        v0 = np.zeros((K, vblock.state_dim)) if velocity.v0 is None else velocity.v0
         for k in range(K):
             values.insert(keys.vel(k), np.asarray(v0[k], float))
     order = []

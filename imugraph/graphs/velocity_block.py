@@ -1,11 +1,13 @@
 """The velocity chain of the single-IMU graph as one vectorised block (see imugraph.factors.velocity).
 
-Per keyframe interval k one JacobianFactor on (R_k, v_k, v_{k+1}) stacks the accelerometer increment
-(robust-weighted) and the Gauss–Markov prior; one more factor holds v_0 ~ N(0, σ_v²):
+The state of keyframe k is s_k = v_k (3) or, with an accelerometer bias, s_k = (v_k, b_k) (6), one key,
+so that every interval is a three-key factor (GTSAM's Python JacobianFactor takes at most three keys).
+Per interval k one JacobianFactor on (R_k, s_k, s_{k+1}) stacks the accelerometer increment
+(robust-weighted), the Gauss–Markov prior and, with a bias, its random walk; one more holds s_0:
 
-    [ w^½ J_R/σ_e    −w^½ I/σ_e     w^½ I/σ_e ] [ξ_k ]      [ −w^½ e_k/σ_e               ]
-    [   0            −φ_k I/σ_w       I/σ_w   ] [δv_k ]  =  [ −(v_{k+1} − φ_k v_k)/σ_w    ]
-                                                [δv_k+1]
+    [ w^½ J_R/σ_e   w^½ [−I  R_k B_k]/σ_e   w^½ [I  0]/σ_e ] [ξ_k   ]     [ −w^½ e_k/σ_e            ]
+    [   0               [−φ_k I  0]/σ_w         [I  0]/σ_w ] [δs_k  ]  =  [ −(v_{k+1} − φ_k v_k)/σ_w ]
+    [   0               [0  −I]/σ_rw            [0  I]/σ_rw] [δs_k+1]     [ −(b_{k+1} − b_k)/σ_rw    ]
 """
 
 from __future__ import annotations
@@ -19,13 +21,15 @@ from imugraph import keys
 from imugraph.factors.robust import QUADRATIC, Kernel
 from imugraph.factors.velocity import gauss_markov, velocity_model
 
-_UNIT6 = gtsam.noiseModel.Unit.Create(6)
-_UNIT3 = gtsam.noiseModel.Unit.Create(3)
 
 
 @dataclass
 class VelocityBlock:
-    """Accelerometer increments Δv_k (K−1, 3) with error std (K−1,), interval lengths, and the prior."""
+    """Accelerometer increments Δv_k (K−1, 3) with error std (K−1,), interval lengths, and the priors.
+
+    B: (K−1, 3, 3) bias integrals (None: no accelerometer bias state); bias_sigma0: prior std of b_0,
+    m/s²; bias_rw: random-walk density of the bias, m/s²/√s.
+    """
 
     dv: np.ndarray
     sigma_dv: np.ndarray
@@ -34,47 +38,78 @@ class VelocityBlock:
     sigma_v: float = 0.5
     tau_v: float = 2.0
     kernel: Kernel = QUADRATIC
+    B: np.ndarray | None = None
+    bias_sigma0: float = 0.3
+    bias_rw: float = 1e-3
 
     @property
     def n_keyframes(self) -> int:
         return len(self.dv) + 1
 
+    @property
+    def state_dim(self) -> int:
+        return 3 if self.B is None else 6
+
     def _state(self, values: gtsam.Values):
         K = self.n_keyframes
         nRk = np.stack([values.atRot3(keys.rot(k)).matrix() for k in range(K)])
-        v = np.stack([values.atVector(keys.vel(k)) for k in range(K)])
-        return nRk, v
+        s = np.stack([values.atVector(keys.vel(k)) for k in range(K)])
+        return nRk, s
 
-    def terms(self, nRk: np.ndarray, v: np.ndarray):
-        """Whitened increment residuals r (K−1, 3), Jacobians, robust weights, and the prior residuals."""
-        e, J_R = velocity_model(nRk, v, self.dv, self.dt_k, self.g)
+    def terms(self, nRk: np.ndarray, s: np.ndarray):
+        """Whitened increment residuals r (K−1, 3), J_R, robust weights, GM and bias-walk residuals."""
+        v = s[:, :3]
+        b = None if self.B is None else s[:, 3:]
+        e, J_R = velocity_model(nRk, v, self.dv, self.dt_k, self.g, b, self.B)
         r = e / self.sigma_dv[:, None]
         w = self.kernel.weight(np.linalg.norm(r, axis=1))
         phi, sigma_w = gauss_markov(self.dt_k, self.sigma_v, self.tau_v)
         gm = (v[1:] - phi[:, None] * v[:-1]) / sigma_w[:, None]
-        return r, J_R, w, phi, sigma_w, gm
+        walk = None if b is None else (b[1:] - b[:-1]) / self._sigma_rw()[:, None]
+        return r, J_R, w, phi, sigma_w, gm, walk
 
-    def cost_at(self, nRk: np.ndarray, v: np.ndarray) -> float:
-        r, _, _, _, _, gm = self.terms(nRk, v)
-        return float(self.kernel.rho(np.linalg.norm(r, axis=1)).sum()
-                     + 0.5 * np.sum(gm**2) + 0.5 * np.sum((v[0] / self.sigma_v) ** 2))
+    def _sigma_rw(self) -> np.ndarray:
+        return np.maximum(self.bias_rw, 1e-9) * np.sqrt(self.dt_k)
+
+    def _prior_sigma(self) -> np.ndarray:
+        return np.r_[np.full(3, self.sigma_v), np.full(self.state_dim - 3, self.bias_sigma0)]
+
+    def cost_at(self, nRk: np.ndarray, s: np.ndarray) -> float:
+        r, _, _, _, _, gm, walk = self.terms(nRk, s)
+        total = self.kernel.rho(np.linalg.norm(r, axis=1)).sum() + 0.5 * np.sum(gm**2)
+        total += 0.5 * np.sum((s[0] / self._prior_sigma()) ** 2)
+        if walk is not None:
+            total += 0.5 * np.sum(walk**2)
+        return float(total)
 
     def cost(self, values: gtsam.Values) -> float:
         return self.cost_at(*self._state(values))
 
     def linearize(self, values: gtsam.Values) -> gtsam.GaussianFactorGraph:
-        nRk, v = self._state(values)
-        r, J_R, w, phi, sigma_w, gm = self.terms(nRk, v)
+        nRk, s = self._state(values)
+        r, J_R, w, phi, sigma_w, gm, walk = self.terms(nRk, s)
+        d = self.state_dim
+        rows = 6 if walk is None else 9
         sw = np.sqrt(w) / self.sigma_dv                       # (K−1,) row scale of the increment rows
         eye = np.eye(3)
         gfg = gtsam.GaussianFactorGraph()
-        gfg.push_back(gtsam.JacobianFactor(keys.vel(0), eye / self.sigma_v, -v[0] / self.sigma_v, _UNIT3))
-        zero = np.zeros((3, 3))
+        ps = self._prior_sigma()
+        gfg.push_back(gtsam.JacobianFactor(keys.vel(0), np.diag(1.0 / ps), -s[0] / ps,
+                                           gtsam.noiseModel.Unit.Create(d)))
+        unit = gtsam.noiseModel.Unit.Create(rows)
+        if walk is not None:
+            RB = np.einsum("kij,kjl->kil", nRk[:-1], self.B)
+            srw = self._sigma_rw()
         for k in range(len(r)):
-            A_R = np.vstack([J_R[k] * sw[k], zero])
-            A_v0 = np.vstack([-eye * sw[k], -phi[k] / sigma_w[k] * eye])
-            A_v1 = np.vstack([eye * sw[k], eye / sigma_w[k]])
-            b = -np.concatenate([r[k] * np.sqrt(w[k]), gm[k]])
-            gfg.push_back(gtsam.JacobianFactor(keys.rot(k), A_R, keys.vel(k), A_v0, keys.vel(k + 1), A_v1,
-                                               b, _UNIT6))
+            A_R = np.zeros((rows, 3)); A0 = np.zeros((rows, d)); A1 = np.zeros((rows, d))
+            A_R[:3] = J_R[k] * sw[k]
+            A0[:3, :3] = -eye * sw[k]; A1[:3, :3] = eye * sw[k]
+            A0[3:6, :3] = -phi[k] / sigma_w[k] * eye; A1[3:6, :3] = eye / sigma_w[k]
+            b = [r[k] * np.sqrt(w[k]), gm[k]]
+            if walk is not None:
+                A0[:3, 3:] = RB[k] * sw[k]
+                A0[6:9, 3:] = -eye / srw[k]; A1[6:9, 3:] = eye / srw[k]
+                b.append(walk[k])
+            gfg.push_back(gtsam.JacobianFactor(keys.rot(k), A_R, keys.vel(k), A0, keys.vel(k + 1), A1,
+                                               -np.concatenate(b), unit))
         return gfg
