@@ -55,3 +55,20 @@ def test_attached_magnet_window_is_modelled():
     assert np.linalg.norm(cal.o - truth.o) < 0.05 * truth.field_norm
     err = orientation_error(est.quat, s.quat, s.movement.astype(bool), s.rate).rms_deg
     assert err < 2.0
+
+
+def test_calibration_carries_windows_to_a_known_calibration_smoother():
+    from imugraph.calibration.result import Calibration
+
+    t = np.arange(0, 10, 0.1)
+    y = np.ones((len(t), 3))
+    cal = Calibration(D=np.eye(3), o=np.zeros(3), dip_deg=60.0, disturbances=[
+        {"t_start": 2.0, "t_end": 3.0, "offset": [0.5, 0.0, -0.5], "modelled": True},
+        {"t_start": 6.0, "t_end": 7.0, "offset": None, "modelled": False}])
+    back = Calibration.from_dict(cal.to_dict())            # through calibration.json
+    out = back.corrected(t, y)
+    inside = (t >= 2.0) & (t <= 3.0)
+    np.testing.assert_allclose(out[inside], [[0.5, 1.0, 1.5]] * inside.sum())
+    assert np.all(np.isnan(out[(t >= 6.0) & (t <= 7.0)]))
+    np.testing.assert_allclose(out[t < 1.9], 1.0)
+    assert np.all(y == 1.0)                                # the input is untouched

@@ -27,6 +27,8 @@ class Calibration:
         converged, iterations: state of the maximum-likelihood loop.
         mag_delay_s: lag of the magnetometer behind the gyroscope, s (applied before the calibration:
             `imugraph.calibration.alignment.undelay_magnetometer`).
+        disturbances: lasting disturbances found (`imugraph.calibration.disturbance`): a list of
+            {"t_start", "t_end" (s), "offset" (3, raw unit, or None), "modelled"}; `corrected` applies them.
     """
 
     D: np.ndarray
@@ -39,6 +41,7 @@ class Calibration:
     converged: bool = False
     iterations: int = 0
     mag_delay_s: float = 0.0
+    disturbances: list = field(default_factory=list)
 
     @property
     def dip_rad(self) -> float:
@@ -52,6 +55,20 @@ class Calibration:
         """Calibrated field D⁻¹(b_mag − o): unit norm, in the inertial sensor axes. (N, 3) → (N, 3)."""
         return np.linalg.solve(self.D, (np.asarray(b_mag, float) - self.o).T).T
 
+    def corrected(self, t: np.ndarray, b_mag: np.ndarray) -> np.ndarray:
+        """The raw field on the gyro's time base with the disturbance windows applied: the lag removed,
+        modelled offsets subtracted, unexplained windows set to NaN (no sample). (N, 3) → (N, 3)."""
+        from imugraph.calibration.alignment import undelay_magnetometer
+
+        y = undelay_magnetometer(t, b_mag, self.mag_delay_s)
+        for d in self.disturbances:
+            inside = (t >= d["t_start"]) & (t <= d["t_end"])
+            if d.get("modelled") and d.get("offset") is not None:
+                y[inside] -= np.asarray(d["offset"], float)
+            else:
+                y[inside] = np.nan
+        return y
+
     def to_dict(self) -> dict:
         def arr(x):
             return np.asarray(x, float).tolist()
@@ -62,6 +79,7 @@ class Calibration:
             "std": {k: arr(v) for k, v in self.std.items()},
             "coverage": self.coverage, "converged": bool(self.converged),
             "iterations": int(self.iterations), "mag_delay_s": float(self.mag_delay_s),
+            "disturbances": [dict(d) for d in self.disturbances],
         }
 
     @classmethod
@@ -73,4 +91,5 @@ class Calibration:
             std={k: np.asarray(v, float) for k, v in d.get("std", {}).items()},
             coverage=d.get("coverage", {}), converged=bool(d.get("converged", False)),
             iterations=int(d.get("iterations", 0)), mag_delay_s=float(d.get("mag_delay_s", 0.0)),
+            disturbances=list(d.get("disturbances", [])),
         )

@@ -1,9 +1,9 @@
 """Orientation smoothing with a known calibration, from GTSAM's C++ factors only.
 
 With θ fixed the magnetometer becomes a direction measurement: m_j = D⁻¹(y_j − o) (unit norm, inertial
-axes; the magnetometer's lag `cal.mag_delay_s` removed first). Every sample of a keyframe interval is rotated
-into the keyframe's body frame with the preintegrated gyro ΔR_kj and averaged, m̄_k = Σ_j ΔR_kj m_j / n_k:
-one Huber-robust magnetometer factor per keyframe, with covariance
+axes; `cal.corrected` first: the lag removed, disturbance-window offsets subtracted, unexplained windows
+dropped). Every sample of a keyframe interval is rotated into the keyframe's body frame with the
+preintegrated gyro ΔR_kj and averaged, m̄_k = Σ_j ΔR_kj m_j / n_k: one Huber-robust magnetometer factor per keyframe, with covariance
 
     Σ_m̄,k = Σ_j ΔR_kj D⁻¹ diag(σ_y²) D⁻ᵀ ΔR_kjᵀ / n_k²        (σ_y: per-axis noise of the raw field)
 
@@ -37,7 +37,6 @@ import gtsam
 import numpy as np
 
 from imugraph import keys
-from imugraph.calibration.alignment import undelay_magnetometer
 from imugraph.calibration.result import Calibration
 from imugraph.errors import SessionError
 from imugraph.factors.gyro import Preintegration, ahrs_factors, keyframe_layout, preintegrate
@@ -89,7 +88,7 @@ def smooth_fixed(session: Session, cal: Calibration, keyframe_hz: float = 10.0, 
         raise SessionError(name, "samples", str(session.n), f"at least {stride + 1}")
     sig_g = np.asarray(cal.noise.get("gyr", np.full(3, 0.005)), float)
     pre = preintegrate(session.gyr, session.dt, kf, skf, cal.gyro_bias, sig_g, gyro_rate_error)
-    m_cal = cal.apply(undelay_magnetometer(session.t, session.mag, cal.mag_delay_s))
+    m_cal = cal.apply(cal.corrected(session.t, session.mag))
     valid = np.all(np.isfinite(m_cal), axis=1)
     K = len(kf)
     mag = np.zeros((K, 3)); np.add.at(mag, skf[valid], np.einsum("mij,mj->mi", pre.kRb[valid], m_cal[valid]))
