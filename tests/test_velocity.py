@@ -49,13 +49,15 @@ def test_velocity_residual_zero_for_consistent_motion():
 
 
 @pytest.mark.parametrize("with_bias", [False, True])
-def test_block_linearisation_is_gradient_of_cost(with_bias):
+@pytest.mark.parametrize("with_rest", [False, True])
+def test_block_linearisation_is_gradient_of_cost(with_bias, with_rest):
     rng = np.random.default_rng(5)
     K = 7
     nRk, v, dv, dt_k = _random_state(rng, K)
     B = expmap(rng.normal(size=(K - 1, 3))) * 0.1 if with_bias else None
     block = VelocityBlock(dv, np.full(K - 1, 0.05), dt_k, 9.81, sigma_v=0.7, tau_v=1.5,
-                          kernel=Kernel("huber", 2.0), B=B, bias_sigma0=0.2, bias_rw=0.01)
+                          kernel=Kernel("huber", 2.0), B=B, bias_sigma0=0.2, bias_rw=0.01,
+                          rest=np.array([True, True, False, False, False, True, False]) if with_rest else None)
     if with_bias:
         v = np.hstack([v, rng.normal(scale=0.1, size=(K, 3))])
     dim = v.shape[1]

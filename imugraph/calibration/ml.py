@@ -61,6 +61,8 @@ class Options:
     estimate_velocity_sigma: bool = False  # re-estimate σ_v from the velocity states in the ML loop
     velocity_tau: float = 2.0         # τ_v, s: its correlation time
     acc_rate_error: float = 0.01      # κ_a: accelerometer error growing with the specific force
+    zero_velocity_at_rest: bool = False  # v = 0 ± 0.02 m/s at detected rest: BROAD 04 1.79 → 0.92°,
+    #                                      but 01 1.59 → 1.99°, 30 1.11 → 2.01° (acc errors then tilt)
     acc_bias: bool = False            # a slowly varying accelerometer bias in the velocity state: off,
     #                                   on BROAD it absorbed the linear acceleration of the translation trials
     compensate_mag_delay: bool = True # pair each field sample with the orientation when it was sensed
@@ -141,7 +143,9 @@ def calibrate(session: Session, options: Options | None = None, initial=None,
     converged = False
     theta_sigma = _theta_prior_sigma(theta0, weak_reason is not None)
 
-    vel_state = {"v": None, "s": None, "sigma": opt.velocity_sigma, "g": None}
+    rest_mask = getattr(init, "rest", None) if opt.zero_velocity_at_rest else None
+
+    vel_state = {"v": None, "s": None, "sigma": opt.velocity_sigma, "g": None, "rest": rest_mask}
     windows = detect_windows(session.t, m_cal0) if opt.disturbance_windows else []
     mag_state = {"y": session.mag, "w": apply_windows(windows, session.mag)[1] if windows else None}
 
@@ -163,9 +167,10 @@ def calibrate(session: Session, options: Options | None = None, initial=None,
         velocity = None
         if opt.linear_acceleration == "velocity":
             velocity = VelocityModel(vel_state["sigma"], opt.velocity_tau, opt.acc_rate_error,
-                                     opt.acc_kernel, vel_state["s"], opt.acc_bias)
+                                     opt.acc_kernel, vel_state["s"], opt.acc_bias, rest=rest_mask)
         g_round = vel_state["g"] or g
-        prob = build_problem(pre, session.acc, thinned(mag_state["y"], every), noise, g_round, start, bias, theta,
+        prob = build_problem(pre, session.acc, thinned(mag_state["y"], every), noise, g_round, start,
+                             bias, theta,
                              theta_prior_sigma=theta_sigma, bias_prior_sigma=opt.bias_prior_sigma,
                              acc_kernel=opt.acc_kernel, mag_kernel=opt.mag_kernel,
                              bias_segment=seg, bias_rw_sigma=opt.bias_rw, velocity=velocity, dt=session.dt,
@@ -271,7 +276,7 @@ def _heading_stage(session, opt, pre, prob, values, noise, g_used, theta, bias, 
     velocity = None
     if opt.linear_acceleration == "velocity":
         velocity = VelocityModel(vel["sigma"], opt.velocity_tau, opt.acc_rate_error, opt.acc_kernel, vel["s"],
-                                 opt.acc_bias)
+                                 opt.acc_bias, rest=vel.get("rest"))
     no_mag = np.full_like(session.mag, np.nan)
     stage = build_problem(pre, session.acc, no_mag, noise, g_used, nRk, bias, theta, estimate_theta=False,
                           bias_prior_sigma=opt.bias_prior_sigma, acc_kernel=opt.acc_kernel,

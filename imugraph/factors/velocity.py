@@ -85,43 +85,6 @@ def gauss_markov(dt_k: np.ndarray, sigma_v: float, tau_v: float) -> tuple[np.nda
     return phi, sigma_v * np.sqrt(np.maximum(1.0 - phi**2, 1e-12))
 
 
-# ---- accelerometer calibration: f = (I + M) b_acc − b_a ------------------------------------------------
-# With a corrected specific force the increment is linear in (vec M, b_a):
-#     Δv_k(M, b_a) = Δv_k + P_k vec(M) − B_k b_a,   P_k[i, 3a+c] = Σ_j ΔR_kj[i, a] a_j[c] dt_j,
-#                                                  B_k = Σ_j ΔR_kj dt_j
-ACC_CAL_DIM = 12
-
-
-def acc_calibration_terms(kRb: np.ndarray, sample_kf: np.ndarray, b_acc: np.ndarray, dt: np.ndarray,
-                          n_keyframes: int) -> tuple[np.ndarray, np.ndarray]:
-    """P (K−1, 3, 9) and B (K−1, 3, 3) of the linear accelerometer-calibration model above."""
-    P = np.zeros((n_keyframes, 3, 9))
-    np.add.at(P, sample_kf, np.einsum("nia,nc->niac", kRb, b_acc * dt[:, None]).reshape(-1, 3, 9))
-    B = np.zeros((n_keyframes, 3, 3))
-    np.add.at(B, sample_kf, kRb * dt[:, None, None])
-    return P[:-1], B[:-1]
-
-
-def corrected_increments(dv: np.ndarray, P: np.ndarray, B: np.ndarray, acc_cal: np.ndarray) -> np.ndarray:
-    """Δv_k with the accelerometer calibration (vec M, b_a) applied, (K−1, 3)."""
-    acc_cal = np.asarray(acc_cal, float)
-    return dv + P @ acc_cal[:9] - B @ acc_cal[9:]
-
-
-def solve_acc_calibration(nRk: np.ndarray, v: np.ndarray, dv: np.ndarray, P: np.ndarray, B: np.ndarray,
-                          dt_k: np.ndarray, g: float, weights: np.ndarray, prior_sigma: np.ndarray) -> np.ndarray:
-    """Least-squares (vec M, b_a) given orientations and velocities (the increments are linear in them).
-
-    e_k(x) = e_k(0) − R_k [P_k  −B_k] x;  minimise Σ_k w_k |e_k(x)|² + |x / prior_sigma|².
-    weights: (K−1,) 1/σ_e² times the robust weight of each increment.
-    """
-    e0, _ = velocity_model(nRk, v, dv, dt_k, g)
-    A = -np.einsum("kij,kjl->kil", nRk[:-1], np.concatenate([P, -B], axis=2))    # (K−1, 3, 12)
-    H = np.einsum("k,kia,kib->ab", weights, A, A) + np.diag(1.0 / np.asarray(prior_sigma, float) ** 2)
-    rhs = -np.einsum("k,kia,ki->a", weights, A, e0)
-    return np.linalg.solve(H, rhs)
-
-
 def gravity_from_velocity(nRk: np.ndarray, v: np.ndarray, dv: np.ndarray, dt_k: np.ndarray) -> float:
     """g that closes the vertical velocity budget of a bounded motion: Σ_k (R_k Δv_k)_z − g T = 0.
 

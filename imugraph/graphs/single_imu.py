@@ -80,6 +80,8 @@ class VelocityModel:
     acc_bias: bool = True             # a sensor-frame accelerometer bias (random walk) in the state
     acc_bias_sigma0: float = 0.3      # m/s², prior std of the bias
     acc_bias_rw: float = 1e-3         # m/s²/√s, its random-walk density
+    rest: np.ndarray | None = None    # (N,) samples at rest: keyframes whose interval rests get v = 0
+    sigma_rest: float = 0.02          # m/s, std of that zero-velocity prior
 
 
 @dataclass
@@ -139,8 +141,12 @@ def build_problem(pre: Preintegration, b_acc: np.ndarray, b_mag: np.ndarray, noi
         dv, sig_dv = velocity_increments(pre.kRb, pre.sample_kf, b_acc, dt, K, noise.acc,
                                          velocity.acc_rate_error)
         B = bias_integrals(pre.kRb, pre.sample_kf, dt, K) if velocity.acc_bias else None
+        rest_kf = None
+        if velocity.rest is not None:
+            moving = np.bincount(pre.sample_kf, weights=~np.asarray(velocity.rest, bool), minlength=K)
+            rest_kf = moving == 0
         vblock = VelocityBlock(dv, sig_dv, pre.dt, g, velocity.sigma_v, velocity.tau_v, velocity.kernel,
-                               B, velocity.acc_bias_sigma0, velocity.acc_bias_rw)
+                               B, velocity.acc_bias_sigma0, velocity.acc_bias_rw, rest_kf, velocity.sigma_rest)
         v0 = np.zeros((K, vblock.state_dim)) if velocity.v0 is None else velocity.v0
         for k in range(K):
             values.insert(keys.vel(k), np.asarray(v0[k], float))

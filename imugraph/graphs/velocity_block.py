@@ -41,6 +41,8 @@ class VelocityBlock:
     B: np.ndarray | None = None
     bias_sigma0: float = 0.3
     bias_rw: float = 1e-3
+    rest: np.ndarray | None = None    # (K,) keyframes at rest: zero-velocity prior v_k ~ N(0, σ_rest²)
+    sigma_rest: float = 0.02
 
     @property
     def n_keyframes(self) -> int:
@@ -80,6 +82,8 @@ class VelocityBlock:
         total += 0.5 * np.sum((s[0] / self._prior_sigma()) ** 2)
         if walk is not None:
             total += 0.5 * np.sum(walk**2)
+        if self.rest is not None:
+            total += 0.5 * np.sum((s[self.rest, :3] / self.sigma_rest) ** 2)
         return float(total)
 
     def cost(self, values: gtsam.Values) -> float:
@@ -112,4 +116,10 @@ class VelocityBlock:
                 b.append(walk[k])
             gfg.push_back(gtsam.JacobianFactor(keys.rot(k), A_R, keys.vel(k), A0, keys.vel(k + 1), A1,
                                                -np.concatenate(b), unit))
+        if self.rest is not None:
+            A = np.zeros((3, d)); A[:, :3] = eye / self.sigma_rest
+            unit3 = gtsam.noiseModel.Unit.Create(3)
+            for k in np.flatnonzero(self.rest):
+                gfg.push_back(gtsam.JacobianFactor(keys.vel(int(k)), A, -s[k, :3] / self.sigma_rest, unit3))
         return gfg
+
