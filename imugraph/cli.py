@@ -1,8 +1,9 @@
 """The `imugraph` command line (DESIGN.md, "Command line").
 
-    imugraph calibrate SESSION [--out DIR] [--keyframe-hz 10]
-    imugraph smooth SESSION [--calibration FILE] [--out DIR] [--keyframe-hz 10]
-    imugraph batch SESSIONS... --out DIR [--scheduler ADDRESS] [--workers N] [--keyframe-hz 10]
+    imugraph calibrate SESSION [--out DIR] [--keyframe-hz 5]
+    imugraph smooth SESSION [--calibration FILE] [--out DIR] [--keyframe-hz 5]
+    imugraph stream SESSION [--out DIR] [--lag S] [--bootstrap-s 30] [--calibration FILE] [--keyframe-hz 10]
+    imugraph batch SESSIONS... --out DIR [--scheduler ADDRESS] [--workers N] [--keyframe-hz 5]
     imugraph demo [--out DIR] [--seed 0] [--duration 120] [--rate 100]
     imugraph simulate --out FILE.npz [--seed 0] [--duration 120] [--rate 100]
 
@@ -30,6 +31,7 @@ EXIT_INTERRUPTED = 130
 COMMANDS = {
     "calibrate": ("calibrate", "run_calibrate"),
     "smooth": ("calibrate", "run_smooth"),
+    "stream": ("stream", "run_stream"),
     "batch": ("batch", "run_batch_command"),
     "demo": ("demo", "run_demo"),
     "simulate": ("simulate", "run_simulate"),
@@ -58,7 +60,7 @@ def _common(p: argparse.ArgumentParser, out_help: str, data_dir: bool = False) -
 
 
 def _keyframes(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--keyframe-hz", type=_positive(float), default=10.0, metavar="HZ",
+    p.add_argument("--keyframe-hz", type=_positive(float), default=5.0, metavar="HZ",
                    help="orientation states per second (every sample is still used; default 10)")
 
 
@@ -94,6 +96,20 @@ def build_parser() -> argparse.ArgumentParser:
                        description="Writes orientation.npz (and calibration.json when it is estimated).")
     p.add_argument("session", metavar="SESSION", help=session_help)
     p.add_argument("--calibration", metavar="FILE", default=None, help="calibration.json to use instead of estimating one")
+    _common(p, default_out, data_dir=True)
+    _keyframes(p)
+
+    p = sub.add_parser("stream", help="incremental orientation: samples in arrival order through iSAM2",
+                       description="Writes orientation.npz (smoothed), orientation_filtered.npz (available "
+                       "when each sample arrived), calibration.json and timing.json. The calibration comes "
+                       "from a batch bootstrap on the first seconds (or --calibration) and is held fixed.")
+    p.add_argument("session", metavar="SESSION", help=session_help)
+    p.add_argument("--lag", type=_positive(float), default=None, metavar="S",
+                   help="fixed-lag smoother keeping S seconds (default: iSAM2 over the whole stream)")
+    p.add_argument("--bootstrap-s", type=_positive(float), default=30.0, metavar="S",
+                   help="seconds calibrated in batch before streaming (default 30)")
+    p.add_argument("--calibration", metavar="FILE", default=None,
+                   help="calibration.json to hold fixed instead of the bootstrap")
     _common(p, default_out, data_dir=True)
     _keyframes(p)
 

@@ -41,7 +41,7 @@ class Options:
     acc_kernel / mag_kernel: per-sample robust kernels (whitened units).
     """
 
-    keyframe_hz: float = 10.0
+    keyframe_hz: float = 5.0
     max_outer: int = 8
     noise_tol: float = 0.02
     reestimate_noise: bool = True

@@ -33,7 +33,7 @@ class CalibrateOptions:
             "identifiable": false) instead of raising CalibrationError.
     """
 
-    keyframe_hz: float = 10.0
+    keyframe_hz: float = 5.0
     allow_weak: bool = False
 
 

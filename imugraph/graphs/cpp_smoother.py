@@ -48,7 +48,7 @@ from imugraph.io.session import Session
 MODES = ("velocity", "noise")
 
 
-def smooth_fixed(session: Session, cal: Calibration, keyframe_hz: float = 10.0, huber_k: float = 2.0,
+def smooth_fixed(session: Session, cal: Calibration, keyframe_hz: float = 5.0, huber_k: float = 2.0,
                  g: float | None = None, gyro_rate_error: float = 0.01, *,
                  linear_acceleration: str = "velocity", velocity_sigma: float = 0.5, velocity_tau: float = 2.0,
                  acc_rate_error: float = 0.01, acc_huber_k: float | None = 2.0, acc_bias_sigma: float = 1e-4,
