@@ -2,7 +2,7 @@
 trial), side by side with offline VQF and VQF, scored over `movement` at the best time shift (±3 samples)
 and best constant heading offset. Prints a table and the means; writes bench_out/broad_published.json.
 
-    .venv/bin/python benchmarks/broad_published.py [TRIAL_NUMBERS,...]
+    .venv/bin/python benchmarks/broad_published.py [TRIAL_NUMBERS,...] [--keyframe-hz HZ]
 """
 
 from __future__ import annotations
@@ -23,6 +23,11 @@ from imugraph.evaluate import orientation_error  # noqa: E402
 
 
 def main(argv: list[str]) -> int:
+    options = Options()
+    if "--keyframe-hz" in argv:
+        i = argv.index("--keyframe-hz")
+        options = Options(keyframe_hz=float(argv[i + 1]))
+        argv = argv[:i] + argv[i + 2:]
     select = set(argv[0].split(",")) if argv else None
     rows = []
     for path in broad_trials():
@@ -31,7 +36,7 @@ def main(argv: list[str]) -> int:
             continue
         s = load_broad_trial(path)
         mask = s.movement.astype(bool)
-        est, t_ig = timed(calibrate, s, Options(), allow_weak=True)
+        est, t_ig = timed(calibrate, s, options, allow_weak=True)
         q_off, t_off = timed(vqf_offline, s)
         q_on, _ = timed(vqf_online, s)
         score = {name: orientation_error(q, s.quat, mask, s.rate).rms_deg
