@@ -2,7 +2,7 @@
 
     imugraph calibrate SESSION [--out DIR] [--keyframe-hz 5]
     imugraph smooth SESSION [--calibration FILE] [--out DIR] [--keyframe-hz 5]
-    imugraph stream SESSION [--out DIR] [--lag S] [--bootstrap-s 30] [--calibration FILE] [--keyframe-hz 10]
+    imugraph stream SESSION [--out DIR] [--lag S] [--bootstrap-s 30] [--calibration FILE] [--keyframe-hz 5]
     imugraph batch SESSIONS... --out DIR [--scheduler ADDRESS] [--workers N] [--keyframe-hz 5]
     imugraph demo [--out DIR] [--seed 0] [--duration 120] [--rate 100]
     imugraph simulate --out FILE.npz [--seed 0] [--duration 120] [--rate 100]

@@ -1,0 +1,96 @@
+"""Issue 3, incremental runs: BROAD trials streamed sample by sample, beside online VQF in the same run.
+
+Per trial (read once, not timed):
+    stream iSAM2 / stream lag   imugraph.graphs.stream_run.stream_session: bootstrap calibration on the
+                                first --bootstrap-s seconds (batch ML, held fixed; its wall time is given
+                                apart), then every sample pushed in order; iSAM2 over the whole trial, and
+                                the fixed-lag smoother with --lag seconds
+    batch smooth                imugraph.graphs.cpp_smoother.smooth_fixed with the same calibration: what
+                                the smoothed stream should reproduce ("vs batch": RMS difference, no alignment)
+    online VQF                  benchmarks.peers.vqf_online (VQF(Ts).updateBatch) on the published field
+Reported: real-time factor (samples per second streamed ÷ sampling rate; the bootstrap not included),
+per-update latency p50/p99 (ms; one update per keyframe), and the orientation error vs opt_quat over
+`movement` (imugraph.evaluate.orientation_error: best heading offset and time shift) of the filtered
+(causal) and smoothed outputs. The filtered rows of the bootstrap window are a replay with the bootstrap
+calibration (see docs/stream.md). Wall times; the machine may be shared: compare ratios in one run.
+
+    .venv/bin/python benchmarks/stream_speed.py [TRIALS] [--lag 2] [--bootstrap-s 30]
+
+TRIALS: comma-separated BROAD trial numbers (default 01). Writes bench_out/stream_speed.json.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+from benchmarks.common import broad_trials, load_broad_trial, peak_memory_mb, print_table, trial_number  # noqa: E402
+from benchmarks.output import write_json  # noqa: E402
+from benchmarks.peers import timed, vqf_online  # noqa: E402
+
+
+def _err(q, s):
+    from imugraph.evaluate import orientation_error
+    return orientation_error(q, s.quat, s.movement, s.rate).rms_deg
+
+
+def run_trial(path: Path, lag: float, bootstrap_s: float) -> list[dict]:
+    from imugraph.evaluate import orientation_error
+    from imugraph.graphs.cpp_smoother import smooth_fixed
+    from imugraph.graphs.stream import StreamOptions
+    from imugraph.graphs.stream_run import bootstrap_calibration, stream_session
+
+    s = load_broad_trial(path)
+    name = f"{trial_number(path):02d}"
+    start = time.perf_counter()
+    cal, n_boot = bootstrap_calibration(s, bootstrap_s)
+    boot = time.perf_counter() - start
+    q_batch, t_batch = timed(smooth_fixed, s, cal)
+    rows = []
+    for label, lag_s in (("stream iSAM2", None), (f"stream lag {lag:g} s", lag)):
+        r = stream_session(s, cal, StreamOptions(lag_s=lag_s))
+        tm = r.timing
+        rows.append({"trial": name, "method": label, "rt_factor": tm["realtime_factor"], "p50_ms": tm["p50_ms"],
+                     "p99_ms": tm["p99_ms"], "filtered_deg": _err(r.filtered, s), "smoothed_deg": _err(r.smoothed, s),
+                     "vs_batch_deg": orientation_error(r.smoothed, q_batch, None, s.rate, heading=False,
+                                                       max_shift=0.0).rms_deg,
+                     "seconds": tm["seconds"], "bootstrap_s": boot, "failed": r.counts["failed_updates"]})
+    rows.append({"trial": name, "method": "batch smooth", "smoothed_deg": _err(q_batch, s), "seconds": t_batch,
+                 "rt_factor": s.n / s.rate / t_batch})
+    q_vqf, t_vqf = timed(vqf_online, s)
+    rows.append({"trial": name, "method": "online VQF", "filtered_deg": _err(q_vqf, s), "seconds": t_vqf,
+                 "rt_factor": s.n / s.rate / t_vqf})
+    for r in rows:
+        r.update(samples=s.n, rate_hz=round(s.rate, 1), bootstrap_samples=n_boot)
+    return rows
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("trials", nargs="?", default="01")
+    ap.add_argument("--lag", type=float, default=2.0)
+    ap.add_argument("--bootstrap-s", type=float, default=30.0)
+    a = ap.parse_args(argv)
+    wanted = {int(x) for x in a.trials.split(",")}
+    paths = [p for p in broad_trials() if trial_number(p) in wanted]
+    if not paths:
+        print(f"no BROAD trial {a.trials} in the data folder", file=sys.stderr)
+        return 2
+    rows = [r for p in paths for r in run_trial(p, a.lag, a.bootstrap_s)]
+    cols = ["trial", "method", "rt_factor", "p50_ms", "p99_ms", "filtered_deg", "smoothed_deg", "vs_batch_deg",
+            "seconds", "bootstrap_s"]
+    print_table(rows, cols)
+    print(f"peak memory {peak_memory_mb():.0f} MB")
+    write_json("stream_speed.json", {"rows": rows, "lag_s": a.lag, "bootstrap_s": a.bootstrap_s,
+                                "command": " ".join(sys.argv)})
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

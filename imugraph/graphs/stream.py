@@ -1,0 +1,402 @@
+"""Incremental orientation with a known calibration: the graph of `cpp_smoother.smooth_fixed` ("velocity"),
+built keyframe by keyframe and solved by iSAM2 (or gtsam's IncrementalFixedLagSmoother with a lag).
+
+One model, two solvers: every closed keyframe interval k → k+1 adds exactly the factors the batch graph
+holds for it (imugraph.graphs.cpp_velocity) — the two split super-sample `ImuFactor`s (gyro rows, Huber
+velocity rows), the Gauss–Markov bounded-velocity factor, the Huber `MagPoseFactorPose3` on keyframe k's
+averaged calibrated field with its full covariance, a new gyro-bias segment (prior + random walk) when the
+interval starts one — then one `update`. Interval k closes when the first sample of keyframe k+1 arrives
+(keyframes every `stride` samples, as `keyframe_layout`), so its preintegration is that of the batch path.
+
+Filtered orientation (`push`'s return): the latest estimate of the newest keyframe, carried to the sample
+by the gyro integrated since (with the current bias estimate) — available when the sample arrives.
+Smoothed orientation (`smoothed()`): iSAM2's estimate of every keyframe at the end (a few relinearising
+updates first), or with a lag the estimate each keyframe had when it left the window; per-sample values
+blended between keyframes as the batch path does (`sample_orientations`).
+
+Arrival problems, all counted in `StreamStats`, none raises: a repeated time stamp is dropped
+(`duplicates`); a sample older than the newest one is inserted in time order while its keyframe interval is
+still open (`late_inserted`), else dropped (`late_dropped`); rows with non-finite gyro or accelerometer
+are dropped (`invalid`); a time step over 1.5 nominal steps is a gap (`gaps`, `missing`): the gyro is
+integrated across it (held rate) and the covariances grow with the step. A NaN magnetometer row is "no
+sample" (lower magnetometer rates); a keyframe interval without one gets no magnetometer factor.
+The calibration (D, o, dip, noise, lag, disturbance windows) is held fixed; only the gyro bias (per
+segment) and gravity are estimated with the orientations.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field, replace
+
+import gtsam
+import numpy as np
+
+from imugraph import keys
+from imugraph.calibration.result import Calibration
+from imugraph.errors import SessionError
+from imugraph.factors.gyro import Preintegration, preintegrate
+from imugraph.factors.velocity import velocity_increments
+from imugraph.geometry import rotmat_to_quat
+from imugraph.graphs.cpp_velocity import (G_KEY, SIGMA_ACC_BIAS_RW, SIGMA_G, SIGMA_POS, gauss_markov_factors,
+                                          imu_bias_key, pose_key, robust, split_noise, super_sample_pim,
+                                          super_samples)
+from imugraph.graphs.orientation_init import sample_orientations, triad
+
+
+def _quat(R: gtsam.Rot3) -> np.ndarray:
+    """w, x, y, z of a Rot3 (w ≥ 0)."""
+    q = R.toQuaternion()
+    out = np.array([q.w(), q.x(), q.y(), q.z()])
+    return -out if out[0] < 0 else out
+
+
+@dataclass(frozen=True)
+class StreamOptions:
+    """Settings of a stream (defaults: those of `smooth_fixed`).
+
+    Attributes:
+        keyframe_hz: keyframes per second (stride = round(rate / keyframe_hz) samples).
+        lag_s: None: iSAM2 over the whole stream; a number: fixed-lag smoother keeping lag_s seconds.
+        g: gravity, m/s², held fixed; None: estimated (started at `g0`, the caller's median |acc|).
+        final_updates: relinearising iSAM2 updates at `finish` (iSAM2 only).
+        relinearize_threshold: iSAM2's relinearisation threshold (tangent-space step).
+        keep_history: keep per-sample data for `smoothed()` (memory O(N)); False: filtered output only.
+        Other fields: as `smooth_fixed`.
+    """
+
+    keyframe_hz: float = 10.0
+    lag_s: float | None = None
+    g: float | None = None
+    huber_k: float = 2.0
+    gyro_rate_error: float = 0.01
+    velocity_sigma: float = 0.5
+    velocity_tau: float = 2.0
+    acc_rate_error: float = 0.01
+    acc_huber_k: float | None = 2.0
+    acc_bias_sigma: float = 1e-4
+    bias_segment_s: float = 5.0
+    bias_rw: float = 2e-4
+    bias_prior_sigma: float = 0.01
+    final_updates: int = 3
+    relinearize_threshold: float = 0.01
+    keep_history: bool = True
+
+
+@dataclass
+class StreamStats:
+    """Counters of what arrived, and the wall time of every solver update (s)."""
+
+    accepted: int = 0
+    duplicates: int = 0
+    late_inserted: int = 0
+    late_dropped: int = 0
+    invalid: int = 0
+    gaps: int = 0
+    missing: int = 0
+    mag_samples: int = 0
+    mag_dropped: int = 0
+    failed_updates: int = 0
+    update_s: list = field(default_factory=list)
+
+    def counts(self) -> dict:
+        return {k: v for k, v in self.__dict__.items() if k != "update_s"}
+
+
+class StreamSmoother:
+    """Push samples in arrival order; get the filtered orientation of each at once, the smoothed ones at the end.
+
+    Args:
+        cal: the calibration (held fixed); rate: nominal sampling rate, Hz; options: `StreamOptions`;
+        g0: start value of gravity when options.g is None (default 9.81; `stream_session` passes the
+        bootstrap's median |acc|, as the batch path uses the session's).
+    """
+
+    def __init__(self, cal: Calibration, rate: float, options: StreamOptions = StreamOptions(), g0: float = 9.81):
+        if not (np.isfinite(rate) and rate > 0):
+            raise SessionError("stream", "rate", repr(rate), "a positive sampling rate in Hz")
+        self.cal, self.rate, self.opt = cal, float(rate), options
+        self.stride = max(1, int(round(rate / options.keyframe_hz)))
+        self.stats = StreamStats()
+        self._D_inv = np.linalg.inv(cal.D)
+        self._cal0 = replace(cal, mag_delay_s=0.0)       # disturbance windows only; the lag is shifted here
+        self._mag_shift = int(round(cal.mag_delay_s * rate))
+        scale = float(np.cbrt(abs(np.linalg.det(cal.D))))
+        tau = cal.coverage.get("noise_correlation", {}) if isinstance(cal.coverage, dict) else {}
+        sig_y = np.asarray(cal.noise.get("mag", np.full(3, 0.01 * scale)), float) * np.sqrt(tau.get("mag", 1.0))
+        self._S_m = self._D_inv @ np.diag(sig_y**2) @ self._D_inv.T
+        self._sig_g = np.asarray(cal.noise.get("gyr", np.full(3, 0.005)), float)
+        self._sig_acc = np.asarray(cal.noise.get("acc", np.full(3, 0.05)), float)
+        self._b_hat = np.asarray(cal.gyro_bias, float)
+        self._estimate_g = options.g is None
+        self._g = float(options.g if options.g is not None else g0)
+        self._pim_params = gtsam.PreintegrationParams.MakeSharedU(self._g)
+        params = gtsam.ISAM2Params()
+        params.setRelinearizeThreshold(options.relinearize_threshold)
+        params.relinearizeSkip = 1
+        if options.lag_s is None:
+            self._solver = gtsam.ISAM2(params)
+        else:
+            self._solver = gtsam.IncrementalFixedLagSmoother(float(options.lag_s), params)
+        self._buf: list = []                 # open interval: rows (t, gyr(3), acc(3), mag(3) or NaN)
+        self._k = 0                          # index of the open interval's keyframe
+        self._t0 = None                      # time of keyframe 0
+        self._t_last = -np.inf
+        self._kf_t: list = []                # keyframe times
+        self._nRk = None                     # latest estimate of keyframe k's rotation
+        self._v = self._p = np.zeros(3)      # latest estimates of keyframe k's velocity and position
+        self._seg = -1                       # newest bias segment
+        self._kRb_open = gtsam.Rot3()        # gyro-integrated rotation of the newest sample in keyframe k
+        self._hist_kRb: list = []            # per closed interval: (n, 3, 3) kRb, and ΔR
+        self._hist_dR: list = []
+        self._hist_t: list = []
+        self._smoothed_kf: dict = {}         # fixed lag: keyframe → last estimate inside the window
+        self._b_gyr_est = None               # latest gyro-bias estimate (None: the calibration's)
+        self._finished = False
+
+    # ------------------------------------------------------------------ arrival
+    def push(self, t: float, gyr, acc, mag=None) -> np.ndarray:
+        """Add one sample; returns the filtered orientation nRb (4,) w,x,y,z available now (for a dropped
+        sample: that of the newest accepted one; NaN before any sample)."""
+        t = float(t)
+        gyr, acc = np.asarray(gyr, float).reshape(3), np.asarray(acc, float).reshape(3)
+        mag = np.full(3, np.nan) if mag is None else np.asarray(mag, float).reshape(3)
+        if self._finished or not (np.isfinite(t) and np.all(np.isfinite(gyr)) and np.all(np.isfinite(acc))):
+            self.stats.invalid += 1
+            return self._filtered()
+        if t <= self._t_last:
+            return self._late(t, gyr, acc, mag)
+        if np.all(np.isfinite(mag)):
+            self.stats.mag_samples += 1
+        self.stats.accepted += 1
+        if self._t0 is None:
+            self._t0 = t
+            self._kf_t.append(t)
+        elif len(self._buf) >= self.stride:
+            self._close(t, gyr, acc)          # this sample is keyframe k+1
+            self._t_last = t
+            self._buf = [(t, gyr, acc, mag)]
+            self._kRb_open = gtsam.Rot3()
+            self._attach_delayed_mag(mag)
+            return self._filtered()
+        else:
+            t_prev, w_prev = self._buf[-1][0], self._buf[-1][1]
+            self._kRb_open = self._kRb_open.compose(gtsam.Rot3.Expmap((w_prev - self._bias_now()) * (t - t_prev)))
+        self._t_last = t
+        self._buf.append((t, gyr, acc, mag))
+        self._attach_delayed_mag(mag)
+        return self._filtered()
+
+    def _attach_delayed_mag(self, mag) -> None:
+        """A lagging magnetometer (cal.mag_delay_s) reports what the body saw `shift` samples earlier."""
+        if self._mag_shift <= 0:
+            return
+        t, w, a, _ = self._buf[-1]
+        self._buf[-1] = (t, w, a, np.full(3, np.nan))          # its own field arrives `shift` samples later
+        i = len(self._buf) - 1 - self._mag_shift
+        if np.all(np.isfinite(mag)):
+            if i >= 0:
+                ti, wi, ai, _ = self._buf[i]
+                self._buf[i] = (ti, wi, ai, mag)
+            else:
+                self.stats.mag_dropped += 1
+
+    def _late(self, t, gyr, acc, mag) -> np.ndarray:
+        times = [row[0] for row in self._buf]
+        if t in times or t == self._t_last:
+            self.stats.duplicates += 1
+        elif self._buf and t > times[0] and self._mag_shift <= 0:
+            i = int(np.searchsorted(times, t))
+            self._buf.insert(i, (t, gyr, acc, mag))
+            self.stats.late_inserted += 1
+            self.stats.accepted += 1
+            self.stats.mag_samples += int(np.all(np.isfinite(mag)))
+            self._kRb_open = self._integrate_open()
+        else:
+            self.stats.late_dropped += 1
+        return self._filtered()
+
+    def _integrate_open(self) -> np.ndarray:
+        R = gtsam.Rot3()
+        for (t0, w0, _, _), (t1, _, _, _) in zip(self._buf[:-1], self._buf[1:]):
+            R = R.compose(gtsam.Rot3.Expmap((w0 - self._bias_now()) * (t1 - t0)))
+        return R
+
+    def _bias_now(self) -> np.ndarray:
+        return self._b_hat if self._b_gyr_est is None else self._b_gyr_est
+
+    def _filtered(self) -> np.ndarray:
+        if self._nRk is None:
+            if not self._buf:
+                return np.full(4, np.nan)
+            _, _, a, m = self._buf[0]
+            m = self.cal.apply(m[None])[0] if np.all(np.isfinite(m)) else np.cross(a, [0.0, 1.0, 0.0])
+            return _quat(gtsam.Rot3(triad(a[None], m[None])[0]).compose(self._kRb_open))
+        return _quat(self._nRk.compose(self._kRb_open))
+
+    # ------------------------------------------------------------------ keyframes
+    def _close(self, t_next: float, gyr_next, acc_next) -> None:
+        """Interval k (the buffer) → keyframe k+1 (at t_next): its factors, then one solver update."""
+        start = time.perf_counter()
+        n, k = len(self._buf), self._k
+        t = np.array([r[0] for r in self._buf] + [t_next])
+        w = np.vstack([[r[1] for r in self._buf], gyr_next[None]])
+        a = np.vstack([[r[2] for r in self._buf], acc_next[None]])
+        m_raw = np.array([r[3] for r in self._buf])
+        steps = np.diff(t)
+        dt = np.append(steps, np.median(steps))
+        gap = steps > 1.5 / self.rate                  # counted on the interval as accepted (late rows in)
+        self.stats.gaps += int(gap.sum())
+        self.stats.missing += int(np.sum(np.round(steps[gap] * self.rate) - 1))
+        kf, skf = np.array([0, n]), np.r_[np.zeros(n, int), 1]
+        pre = preintegrate(w, dt, kf, skf, self._b_hat, self._sig_g, self.opt.gyro_rate_error)
+        dv, sig_dv = velocity_increments(pre.kRb, skf, a, dt, 2, self._sig_acc, self.opt.acc_rate_error)
+        m_cal = (m_raw - self.cal.o) @ self._D_inv.T
+        if self.cal.disturbances:
+            m_cal = self.cal.apply(self._cal0.corrected(t[:-1], m_raw))
+        ok = np.all(np.isfinite(m_cal), axis=1)
+        kRb = pre.kRb[:n]
+        graph, values, stamps = gtsam.NonlinearFactorGraph(), gtsam.Values(), {}
+        if k == 0:
+            self._start(graph, values, stamps, pre, a, m_cal, ok)
+        seg = int(np.floor((t[0] - self._t0) / self.opt.bias_segment_s)) if self.opt.bias_segment_s > 0 else 0
+        if seg != self._seg:
+            self._new_segment(graph, values, seg, t_next - self._t0)
+        # gyro and velocity rows of the batch path's super-sample ImuFactor, Gauss–Markov, magnetometer
+        omega, acc_s = super_samples(pre.delta_R, dv, pre.dt, pre.bias_hat)
+        pim = super_sample_pim(self._pim_params, omega[0], acc_s[0], float(pre.dt[0]), pre.bias_hat[0])
+        ends = (pose_key(k), keys.vel(k), pose_key(k + 1), keys.vel(k + 1), imu_bias_key(seg))
+        f = gtsam.ImuFactorWithGravityVector(*ends, G_KEY, pim) if self._estimate_g else gtsam.ImuFactor(*ends, pim)
+        for model in split_noise(pre.cov, sig_dv, self.opt.acc_huber_k)[0]:
+            graph.add(f.cloneWithNewNoiseModel(model))
+        gm = gauss_markov_factors(pre.dt, self.opt.velocity_sigma, self.opt.velocity_tau, key=lambda i: keys.vel(k + i))
+        for g_f in gm[1:]:
+            graph.add(g_f)
+        if ok.any():
+            m_avg = np.einsum("mij,mj->i", kRb[ok], m_cal[ok]) / ok.sum()
+            cov = np.einsum("mij,jl,mkl->ik", kRb[ok], self._S_m, kRb[ok]) / ok.sum() ** 2
+            mdl = robust(gtsam.noiseModel.Gaussian.Covariance(cov), self.opt.huber_k)
+            graph.add(gtsam.MagPoseFactorPose3(pose_key(k), m_avg, 1.0, self.cal.n_mag, np.zeros(3), mdl))
+        # prediction of keyframe k+1 from the latest estimate of keyframe k
+        nRk = self._nRk.matrix()
+        c = np.array([0.0, 0.0, -self._g]) * pre.dt[0] + nRk @ dv[0]
+        R_next = nRk @ pre.delta_R[0]
+        values.insert(pose_key(k + 1), gtsam.Pose3(gtsam.Rot3(R_next), self._p + self._v * pre.dt[0] + 0.5 * c * pre.dt[0]))
+        values.insert(keys.vel(k + 1), self._v + c)
+        for key in (pose_key(k + 1), keys.vel(k + 1), imu_bias_key(seg)) + ((G_KEY,) if self._estimate_g else ()):
+            stamps[key] = t_next - self._t0
+        self._update(graph, values, stamps, k + 1, seg, R_next)
+        self._kf_t.append(t_next)
+        if self.opt.keep_history:
+            self._hist_kRb.append(rotmat_to_quat(kRb))
+            self._hist_dR.append(pre.delta_R[0])
+            self._hist_t.append(t[:-1])
+        self._k = k + 1
+        self.stats.update_s.append(time.perf_counter() - start)
+
+    def _start(self, graph, values, stamps, pre: Preintegration, a, m_cal, ok) -> None:
+        """Keyframe 0: TRIAD of interval 0's mean accelerometer and field, gauges, gravity."""
+        n = len(ok)
+        up = np.einsum("mij,mj->i", pre.kRb[:n], a[:n])
+        fld = np.einsum("mij,mj->i", pre.kRb[:n][ok], m_cal[ok]) if ok.any() else np.cross(up, [0.0, 1.0, 0.0])
+        self._nRk = gtsam.Rot3(triad(up[None], fld[None])[0])
+        values.insert(pose_key(0), gtsam.Pose3(self._nRk, np.zeros(3)))
+        values.insert(keys.vel(0), np.zeros(3))
+        graph.add(gauss_markov_factors(np.array([1.0]), self.opt.velocity_sigma, self.opt.velocity_tau)[0])
+        graph.add(gtsam.PoseTranslationPrior3D(pose_key(0), np.zeros(3), gtsam.noiseModel.Isotropic.Sigma(3, SIGMA_POS)))
+        if self._estimate_g:
+            n_grav = np.array([0.0, 0.0, -self._g])
+            values.insert(G_KEY, n_grav)
+            graph.add(gtsam.PriorFactorVector(G_KEY, n_grav, gtsam.noiseModel.Diagonal.Sigmas(SIGMA_G)))
+        stamps[pose_key(0)] = stamps[keys.vel(0)] = 0.0
+
+    def _new_segment(self, graph, values, seg: int, elapsed: float) -> None:
+        """A gyro-bias segment: prior about the calibration's bias, random walk from the previous one."""
+        o = self.opt
+        b_hat = gtsam.imuBias.ConstantBias(np.zeros(3), self._b_hat)
+        prior = gtsam.noiseModel.Diagonal.Sigmas(np.r_[np.full(3, o.acc_bias_sigma), np.full(3, o.bias_prior_sigma)])
+        values.insert(imu_bias_key(seg), gtsam.imuBias.ConstantBias(np.zeros(3), self._bias_now()))
+        graph.add(gtsam.PriorFactorConstantBias(imu_bias_key(seg), b_hat, prior))
+        if self._seg >= 0:
+            # the batch path spreads the walk over equal segments of the whole session; here: segment length
+            rw = gtsam.noiseModel.Diagonal.Sigmas(np.r_[np.full(3, SIGMA_ACC_BIAS_RW),
+                                                        np.full(3, max(o.bias_rw, 1e-9) * np.sqrt(o.bias_segment_s))])
+            graph.add(gtsam.BetweenFactorConstantBias(imu_bias_key(self._seg), imu_bias_key(seg),
+                                                      gtsam.imuBias.ConstantBias(), rw))
+        self._seg = seg
+
+    def _update(self, graph, values, stamps, k_new: int, seg: int, R_pred) -> None:
+        try:
+            if self.opt.lag_s is None:
+                self._solver.update(graph, values)
+                est_pose = self._solver.calculateEstimatePose3(pose_key(k_new))
+                est_v = self._solver.calculateEstimateVector(keys.vel(k_new))
+                est_b = self._solver.calculateEstimateConstantBias(imu_bias_key(seg))
+            else:
+                ts = gtsam.FixedLagSmootherKeyTimestampMap()
+                for key, s in stamps.items():
+                    ts.insert((key, float(s)))
+                self._solver.update(graph, values, ts)
+                est = self._solver.calculateEstimate()
+                poses = gtsam.utilities.extractPose3(est)
+                first = k_new + 1 - poses.shape[0]
+                for i, row in enumerate(poses):
+                    self._smoothed_kf[first + i] = row[:9].reshape(3, 3).copy()
+                est_pose, est_v = est.atPose3(pose_key(k_new)), est.atVector(keys.vel(k_new))
+                est_b = est.atConstantBias(imu_bias_key(seg))
+        except RuntimeError:
+            # an ill-conditioned update (counted): keep the prediction
+            self.stats.failed_updates += 1
+            self._nRk = gtsam.Rot3(R_pred)
+            return
+        self._nRk, self._p, self._v = est_pose.rotation(), est_pose.translation(), est_v
+        self._b_gyr_est = est_b.gyroscope()
+
+    # ------------------------------------------------------------------ end
+    def finish(self) -> None:
+        """Close the last interval (its newest sample becomes the last keyframe, as `keyframe_layout`)."""
+        if self._finished:
+            return
+        if len(self._buf) >= 2:
+            last = self._buf.pop()
+            self._close(last[0], last[1], last[2])
+            self._buf = [last]
+        if self.opt.lag_s is None and self._k > 0:
+            for _ in range(self.opt.final_updates):
+                self._solver.update()
+        self._finished = True
+
+    def keyframe_rotations(self) -> np.ndarray:
+        """(K, 3, 3) smoothed nRb of every keyframe (after `finish`)."""
+        self.finish()
+        if self._k == 0:
+            return (self._nRk.matrix() if self._nRk is not None else np.eye(3))[None]
+        if self.opt.lag_s is None:
+            return gtsam.utilities.extractPose3(self._solver.calculateEstimate())[:, :9].reshape(-1, 3, 3)
+        return np.stack([self._smoothed_kf[k] for k in range(self._k + 1)])
+
+    def smoothed(self) -> np.ndarray:
+        """(N, 4) smoothed nRb w,x,y,z of every accepted sample in time order (needs keep_history)."""
+        from imugraph.geometry import quat_to_rotmat
+
+        if not self.opt.keep_history:
+            raise SessionError("stream", "keep_history", "False", "True to reconstruct per-sample orientations")
+        nRk = self.keyframe_rotations()
+        if self._k == 0:
+            return np.array([self._filtered()] * self.stats.accepted).reshape(-1, 4)
+        # after finish() the buffer holds the last keyframe's own sample only
+        lengths = np.array([len(q) for q in self._hist_kRb] + [1])
+        kRb = quat_to_rotmat(np.vstack(self._hist_kRb + [np.array([[1.0, 0.0, 0.0, 0.0]])]))
+        kf_samples = np.r_[0, np.cumsum(lengths[:-1])]
+        sample_kf = np.repeat(np.arange(len(lengths)), lengths)
+        pre = Preintegration(kf_samples, sample_kf, kRb, np.array(self._hist_dR), None, None, None, None)
+        return sample_orientations(nRk, pre)
+
+    def times(self) -> np.ndarray:
+        """Keyframe times, s (K,)."""
+        return np.asarray(self._kf_t)
+
+    def sample_times(self) -> np.ndarray:
+        """Times of the accepted samples in time order, s: the rows of `smoothed()` (after `finish`)."""
+        self.finish()
+        return np.concatenate(self._hist_t + [np.array([r[0] for r in self._buf])])
