@@ -51,10 +51,11 @@ class MeasurementBlock:
     _last: dict = field(default_factory=dict, repr=False)
 
     # ---- residuals -------------------------------------------------------------------------------
-    def residuals(self, nRk: np.ndarray, theta: np.ndarray) -> dict:
-        """Whitened residuals per channel: {"acc": (M, 3), "mag": (M, 3)} at keyframe rotations nRk."""
+    def residuals(self, nRk: np.ndarray, theta: np.ndarray, in_cost_only: bool = False) -> dict:
+        """Whitened residuals per channel: {"acc": (M, 3), "mag": (M, 3)} at keyframe rotations nRk
+        (in_cost_only: skip a channel that is reported but not in the cost)."""
         out = {}
-        if self.acc is not None:
+        if self.acc is not None and (self.use_acc or not in_cost_only):
             e, _ = accelerometer_model(self.acc.kRb, nRk[self.acc.kf], self.acc.values, self.g)
             out["acc"] = e / self.acc.sigma
         if self.mag is not None:
@@ -65,9 +66,7 @@ class MeasurementBlock:
     def cost(self, nRk: np.ndarray, theta: np.ndarray) -> float:
         """Σ ρ(|r_j|) over both channels (GTSAM's ½|r|² for the quadratic kernel)."""
         total = 0.0
-        for name, r in self.residuals(nRk, theta).items():
-            if name == "acc" and not self.use_acc:
-                continue
+        for name, r in self.residuals(nRk, theta, in_cost_only=True).items():
             ch = getattr(self, name)
             rho = ch.kernel.rho(np.linalg.norm(r, axis=1))
             if ch.weight_floor is not None:

@@ -42,14 +42,14 @@ class SolveInfo:
     history: list = field(default_factory=list)
 
 
-def _damping(values: gtsam.Values, lam: float) -> gtsam.GaussianFactorGraph:
+def _damping(key_dims: list[tuple[int, int]], lam: float) -> gtsam.GaussianFactorGraph:
+    """√λ I on every variable: the Levenberg–Marquardt damping as unary factors."""
     damp = gtsam.GaussianFactorGraph()
     s = float(np.sqrt(lam))
-    model_cache: dict[int, gtsam.noiseModel.Unit] = {}
-    for key in values.keys():
-        dim = _key_dim(values, key)
-        model = model_cache.setdefault(dim, gtsam.noiseModel.Unit.Create(dim))
-        damp.push_back(gtsam.JacobianFactor(key, s * np.eye(dim), np.zeros(dim), model))
+    blocks = {d: (s * np.eye(d), np.zeros(d), gtsam.noiseModel.Unit.Create(d)) for d in {d for _, d in key_dims}}
+    for key, dim in key_dims:
+        A, b, model = blocks[dim]
+        damp.push_back(gtsam.JacobianFactor(key, A, b, model))
     return damp
 
 
@@ -80,6 +80,7 @@ def optimize(graph: gtsam.NonlinearFactorGraph, blocks: list, values: gtsam.Valu
     cost = total_cost(graph, blocks, x)
     info = SolveInfo(cost_initial=cost, history=[cost])
     lam = p.lambda_initial if p.method == "lm" else 0.0
+    key_dims = [(key, _key_dim(x, key)) for key in x.keys()]
     for it in range(1, p.max_iterations + 1):
         gfg = graph.linearize(x)
         for b in blocks:
@@ -90,7 +91,7 @@ def optimize(graph: gtsam.NonlinearFactorGraph, blocks: list, values: gtsam.Valu
             if lam > 0:
                 sys_ = gtsam.GaussianFactorGraph()
                 sys_.push_back(gfg)
-                sys_.push_back(_damping(x, lam))
+                sys_.push_back(_damping(key_dims, lam))
             try:
                 delta = sys_.optimize(ordering)
                 x_new = x.retract(delta)
