@@ -41,19 +41,35 @@ class StreamResult:
 
 
 def bootstrap_calibration(session: Session, bootstrap_s: float, keyframe_hz: float = 10.0,
-                          allow_weak: bool = True) -> tuple[Calibration, int]:
-    """ML calibration of the first `bootstrap_s` seconds: (calibration, number of samples used).
+                          allow_weak: bool = True, grow: float = 1.5) -> tuple[Calibration, int]:
+    """ML calibration of the first seconds of the stream: (calibration, number of samples used).
+
+    Starts with `bootstrap_s` seconds and, while that window holds too little rotation to identify D and o
+    (the coverage check of `calibrate` says so by name), waits for more: the window grows by `grow` until
+    it identifies the calibration or the session ends (recordings often start with a long rest: BROAD 01
+    rests for its first ≈ 20 s). Then, with allow_weak, the regularised fallback of `calibrate`.
 
     Raises:
         SessionError: a bootstrap window shorter than 2 s of data.
-        CalibrationError: (allow_weak False) the window does not identify the calibration.
+        CalibrationError: (allow_weak False) no window identifies the calibration.
     """
     from imugraph.calibration.ml import Options, calibrate
+    from imugraph.errors import CalibrationError
 
-    n = int(np.searchsorted(session.t, session.t[0] + bootstrap_s, side="right"))
-    if session.t[n - 1] - session.t[0] < 2.0:
-        raise SessionError(session.name, "bootstrap_s", f"{bootstrap_s:g} s ({n} samples)", "at least 2 s of data")
-    return calibrate(session.slice(0, n), Options(keyframe_hz=keyframe_hz), allow_weak=allow_weak).calibration, n
+    span = bootstrap_s
+    while True:
+        n = int(np.searchsorted(session.t, session.t[0] + span, side="right"))
+        if session.t[n - 1] - session.t[0] < 2.0:
+            raise SessionError(session.name, "bootstrap_s", f"{bootstrap_s:g} s ({n} samples)",
+                               "at least 2 s of data")
+        last = n >= session.n
+        try:
+            est = calibrate(session.slice(0, n), Options(keyframe_hz=keyframe_hz), allow_weak=last and allow_weak)
+            return est.calibration, n
+        except CalibrationError:
+            if last:
+                raise
+        span *= grow
 
 
 def timing_summary(update_s: list, seconds: float, n_samples: int, rate: float) -> dict:
