@@ -137,7 +137,9 @@ class StreamSmoother:
         if options.lag_s is None:
             self._solver = gtsam.ISAM2(params)
         else:
-            self._solver = gtsam.IncrementalFixedLagSmoother(float(options.lag_s), params)
+            # BatchFixedLagSmoother: gtsam's IncrementalFixedLagSmoother fails to marginalise a key that sits
+            # inside a clique (borglab/gtsam #1638, #1680; seen here on BROAD 01: "key 'x0' has no clique")
+            self._solver = gtsam.BatchFixedLagSmoother(float(options.lag_s))
         self._buf: list = []                 # open interval: rows (t, gyr(3), acc(3), mag(3) or NaN)
         self._k = 0                          # index of the open interval's keyframe
         self._t0 = None                      # time of keyframe 0
@@ -344,8 +346,8 @@ class StreamSmoother:
                     self._smoothed_kf[first + i] = row[:9].reshape(3, 3).copy()
                 est_pose, est_v = est.atPose3(pose_key(k_new)), est.atVector(keys.vel(k_new))
                 est_b = est.atConstantBias(imu_bias_key(seg))
-        except RuntimeError:
-            # an ill-conditioned update (counted): keep the prediction
+        except (RuntimeError, IndexError, ValueError):
+            # an ill-conditioned or failed update (counted): keep the prediction
             self.stats.failed_updates += 1
             self._nRk = gtsam.Rot3(R_pred)
             return
