@@ -366,6 +366,11 @@ class StreamSmoother:
         if self.opt.lag_s is None and self._k > 0:
             for _ in range(self.opt.final_updates):
                 self._solver.update()
+            # the end-of-stream smoothing: Levenberg–Marquardt on iSAM2's own factors from its estimate
+            # (iSAM2 relinearises only past a threshold and can stop short of the batch optimum)
+            lm = gtsam.LevenbergMarquardtOptimizer(self._solver.getFactorsUnsafe(),
+                                                   self._solver.calculateEstimate(), gtsam.LevenbergMarquardtParams())
+            self._final = lm.optimize()
         self._finished = True
 
     def keyframe_rotations(self) -> np.ndarray:
@@ -374,7 +379,7 @@ class StreamSmoother:
         if self._k == 0:
             return (self._nRk.matrix() if self._nRk is not None else np.eye(3))[None]
         if self.opt.lag_s is None:
-            return gtsam.utilities.extractPose3(self._solver.calculateEstimate())[:, :9].reshape(-1, 3, 3)
+            return gtsam.utilities.extractPose3(self._final)[:, :9].reshape(-1, 3, 3)
         return np.stack([self._smoothed_kf[k] for k in range(self._k + 1)])
 
     def smoothed(self) -> np.ndarray:
