@@ -43,7 +43,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks.common import (broad_trials, load_broad_trial, peak_memory_mb, print_table,  # noqa: E402
-                               trial_groups, trial_number)
+                               finite_mean, trial_groups, trial_number)
 from benchmarks.output import write_json  # noqa: E402
 from benchmarks.peers import fit_ellipsoid, timed, vqf_offline  # noqa: E402
 from imugraph.calibration.ml import Options, calibrate  # noqa: E402
@@ -131,11 +131,6 @@ def run_trial(path: Path, seed: int, seconds: float | None) -> dict:
     return row
 
 
-def _mean(rows: list[dict], key: str) -> float:
-    vals = [r[key] for r in rows if key in r and np.isfinite(r[key])]
-    return float(np.mean(vals)) if vals else float("nan")
-
-
 def main(argv: list[str]) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("trials", nargs="?", help="comma-separated trial numbers, e.g. 01,06 (default: all)")
@@ -163,8 +158,8 @@ def main(argv: list[str]) -> int:
     print_table([{**r, "trial": r["trial"][:28]} for r in rows], cols)
     rot_rows = [r for r in rows if trial_number(r["trial"]) in rot]
     und_rows = [r for r in rows if trial_number(r["trial"]) in und]
-    means_rot = {m: _mean(rot_rows, m) for m in METHODS}
-    means_all = {m: _mean(rows, m) for m in METHODS}
+    means_rot = {m: finite_mean(rot_rows, m) for m in METHODS}
+    means_all = {m: finite_mean(rows, m) for m in METHODS}
     worse = [r["trial"] for r in und_rows if not r["imugraph"] <= r["vqf_undist"]]
     summary = {
         "rotation_rule": rule, "rotation_trials": [r["trial"] for r in rot_rows],

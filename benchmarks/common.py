@@ -151,3 +151,9 @@ def peak_memory_mb() -> float:
     """Peak resident memory of this process so far, MB (ru_maxrss: KiB on Linux, bytes on macOS)."""
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     return peak / 2**20 if sys.platform == "darwin" else peak / 1024.0
+
+
+def finite_mean(rows: Sequence[dict], key: str) -> float:
+    """Mean of rows[i][key] over the rows that have a finite value (NaN when none has)."""
+    vals = [r[key] for r in rows if key in r and np.isfinite(r[key])]
+    return float(np.mean(vals)) if vals else float("nan")

@@ -36,7 +36,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from benchmarks.common import peak_memory_mb, print_table  # noqa: E402
+from benchmarks.common import finite_mean, peak_memory_mb, print_table  # noqa: E402
 from benchmarks.output import write_json  # noqa: E402
 from benchmarks.peers import ellipsoid_calibrated_mag, timed, vqf_offline, vqf_online  # noqa: E402
 from imugraph.calibration.ml import Options, calibrate  # noqa: E402
@@ -111,11 +111,6 @@ def run_file(path: Path, max_shift_s: float) -> dict:
     return row
 
 
-def _mean(rows: list[dict], key: str) -> float:
-    vals = [r[key] for r in rows if key in r and np.isfinite(r[key])]
-    return float(np.mean(vals)) if vals else float("nan")
-
-
 def main(argv: list[str]) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("sensors", nargs="?", help=f"comma-separated subset of {','.join(SENSORS)}")
@@ -148,7 +143,7 @@ def main(argv: list[str]) -> int:
             "shift_s_ig", "identifiable", "t_imugraph_s"]
     print("\nnorm = |calibrated field| − 1 RMS (%); hdg = heading RMS vs robot (°, best shift, heading offset "
           "removed); tot = total orientation RMS (°)")
-    means = {k: _mean(rows, k) for k in cols[3:] if k not in ("identifiable",)}
+    means = {k: finite_mean(rows, k) for k in cols[3:] if k not in ("identifiable",)}
     print_table(rows + [{"file": "mean", **means}], cols)
     over = [r["file"] for r in rows if not r.get("norm_ig", np.inf) <= 1.0]
     summary = {"means": means, "norm_ig_over_1pct": over, "target_norm_le_1pct": not over,

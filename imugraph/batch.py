@@ -25,7 +25,6 @@ import math
 import os
 import sys
 import time
-from dataclasses import asdict
 from pathlib import Path
 from typing import Iterator, Optional, Sequence, Union
 
@@ -201,30 +200,15 @@ def write_summary(out: PathLike, rows: Sequence[dict], meta: Optional[dict] = No
 
     summary.csv holds `COLUMNS`, one line per session; empty cells where a value does not apply.
     """
-    from imugraph.io.writers import atomic_write_text
+    from imugraph.io.writers import atomic_write_text, json_ready
 
     ok = sum(r.get("status") == "ok" for r in rows)
     doc = {**(meta or {}), "ok": ok, "failed": len(rows) - ok, "sessions": list(rows)}
     root = Path(out)
-    js = atomic_write_text(root / "summary.json", json.dumps(_jsonable(doc), indent=1, allow_nan=False) + "\n")
+    js = atomic_write_text(root / "summary.json", json.dumps(json_ready(doc), indent=1, allow_nan=False) + "\n")
     buffer = io.StringIO()
     writer = csv.writer(buffer, lineterminator="\n")
     writer.writerow(COLUMNS)
     for r in rows:
         writer.writerow([_cell(r.get(c)) for c in COLUMNS])
     return js, atomic_write_text(root / "summary.csv", buffer.getvalue())
-
-
-def _jsonable(value):
-    """Strict-JSON values: numpy scalars → Python numbers, NaN/inf → None, options → dict."""
-    if isinstance(value, CalibrateOptions):
-        value = asdict(value)
-    if isinstance(value, dict):
-        return {str(k): _jsonable(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_jsonable(v) for v in value]
-    if hasattr(value, "item") and not isinstance(value, (str, bytes)):
-        value = value.item()
-    if isinstance(value, float) and not math.isfinite(value):
-        return None
-    return value

@@ -10,12 +10,17 @@ from imugraph.evaluate import orientation_error
 from imugraph.sim.scenario import distorted_session
 
 
-def test_detect_windows_finds_a_step_in_the_norm():
-    rng = np.random.default_rng(1)
+def _calibrated_field(seed: int, norm_noise: float) -> tuple[np.ndarray, np.ndarray]:
+    """60 s at 100 Hz of random unit-field directions whose norm scatters by norm_noise (relative)."""
+    rng = np.random.default_rng(seed)
     t = np.arange(0, 60, 0.01)
     m = rng.normal(size=(len(t), 3))
     m /= np.linalg.norm(m, axis=1, keepdims=True)
-    m *= 1 + 0.01 * rng.normal(size=(len(t), 1))
+    return t, m * (1 + norm_noise * rng.normal(size=(len(t), 1)))
+
+
+def test_detect_windows_finds_a_step_in_the_norm():
+    t, m = _calibrated_field(1, 0.01)
     m[2000:3500] *= 1.4                                   # 20 s–35 s: 40 % off the sphere
     wins = detect_windows(t, m)
     assert len(wins) == 1
@@ -23,11 +28,7 @@ def test_detect_windows_finds_a_step_in_the_norm():
 
 
 def test_undisturbed_field_has_no_window():
-    rng = np.random.default_rng(2)
-    t = np.arange(0, 60, 0.01)
-    m = rng.normal(size=(len(t), 3))
-    m /= np.linalg.norm(m, axis=1, keepdims=True)
-    m *= 1 + 0.02 * rng.normal(size=(len(t), 1))
+    t, m = _calibrated_field(2, 0.02)
     assert detect_windows(t, m) == []
 
 

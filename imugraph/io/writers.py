@@ -59,14 +59,14 @@ def atomic_write_text(path: PathLike, text: str, encoding: str = "utf-8") -> Pat
     return atomic_write_bytes(path, text.encode(encoding))
 
 
-def _strict(obj):
-    """JSON-ready copy: numpy → Python, non-finite floats → None."""
+def json_ready(obj):
+    """JSON-ready copy: numpy → Python, non-finite floats → None (strict JSON), recursively."""
     if isinstance(obj, dict):
-        return {str(k): _strict(v) for k, v in obj.items()}
+        return {str(k): json_ready(v) for k, v in obj.items()}
     if isinstance(obj, (list, tuple)):
-        return [_strict(v) for v in obj]
+        return [json_ready(v) for v in obj]
     if isinstance(obj, np.ndarray):
-        return _strict(obj.tolist())
+        return json_ready(obj.tolist())
     if isinstance(obj, (np.bool_, bool)):
         return bool(obj)
     if isinstance(obj, (np.integer,)):
@@ -85,7 +85,7 @@ def write_calibration_json(path: PathLike, cal: Calibration) -> Path:
     Returns:
         The target path.
     """
-    text = json.dumps(_strict(cal.to_dict()), indent=2, allow_nan=False)
+    text = json.dumps(json_ready(cal.to_dict()), indent=2, allow_nan=False)
     return atomic_write_text(path, text + "\n")
 
 
@@ -110,7 +110,7 @@ def write_orientation_npz(path: PathLike, t: np.ndarray, quat: np.ndarray) -> Pa
 
 
 def _nan(x):
-    """Inverse of `_strict` for numbers: None → NaN, recursively in lists."""
+    """Inverse of `json_ready` for numbers: None → NaN, recursively in lists."""
     if x is None:
         return float("nan")
     if isinstance(x, list):
