@@ -164,10 +164,7 @@ def calibrate(session: Session, options: Options | None = None, initial=None,
         pre = preintegrate(session.gyr, session.dt, kf, skf, _per_sample_bias(bias, seg, skf), noise.gyr,
                            opt.gyro_rate_error)
         start = complementary_keyframes(pre, session.acc, m_cal0) if nRk is None else nRk
-        velocity = None
-        if opt.linear_acceleration == "velocity":
-            velocity = VelocityModel(vel_state["sigma"], opt.velocity_tau, opt.acc_rate_error,
-                                     opt.acc_kernel, vel_state["s"], opt.acc_bias, rest=rest_mask)
+        velocity = _velocity_model(opt, vel_state)
         g_round = vel_state["g"] or g
         prob = build_problem(pre, session.acc, thinned(mag_state["y"], every), noise, g_round, start,
                              bias, theta,
@@ -181,7 +178,7 @@ def calibrate(session: Session, options: Options | None = None, initial=None,
             vel_state["v"] = vel_state["s"][:, :3]
             vb = prob.velocity
             dv = vb.dv if vb.B is None else vb.dv - np.einsum("kij,kj->ki", vb.B, vel_state["s"][:-1, 3:])
-            vel_state["g"] = gravity_from_velocity(keyframe_rotations(values, len(kf)), vel_state["v"], dv, pre.dt)
+            vel_state["g"] = gravity_from_velocity(keyframe_rotations(values, len(kf)), dv, pre.dt)
         return pre, prob, values, info
 
     for outer in range(1, opt.max_outer + 1):
@@ -253,7 +250,7 @@ def calibrate(session: Session, options: Options | None = None, initial=None,
         iterations=len(history), mag_delay_s=delay, disturbances=[w.as_dict(session.t) for w in windows])
     residuals = per_sample_residuals(prob, nRk, theta, session)
     if opt.heading_only_orientation and prob.block.mag is not None:
-        nRk = _heading_stage(session, opt, pre, prob, values, noise, g_used=vel_state["g"] or g,
+        nRk = _heading_stage(session, opt, pre, values, noise, g_used=vel_state["g"] or g,
                              theta=theta, bias=bias_segments, seg=seg, mag_state=mag_state, vel=vel_state)
     quat = sample_orientations(nRk, pre)
     return Estimate(cal, session.t, quat, residuals,
@@ -267,16 +264,21 @@ def calibrate(session: Session, options: Options | None = None, initial=None,
                      "disturbance_windows": [w.as_dict(session.t) for w in windows], "keyframe_samples": kf})
 
 
-def _heading_stage(session, opt, pre, prob, values, noise, g_used, theta, bias, seg, mag_state, vel):
+def _velocity_model(opt: Options, vel: dict) -> VelocityModel | None:
+    """The velocity chain's settings for the next solve (None: linear acceleration treated as noise)."""
+    if opt.linear_acceleration != "velocity":
+        return None
+    return VelocityModel(vel["sigma"], opt.velocity_tau, opt.acc_rate_error, opt.acc_kernel, vel["s"],
+                         opt.acc_bias, rest=vel["rest"])
+
+
+def _heading_stage(session, opt, pre, values, noise, g_used, theta, bias, seg, mag_state, vel):
     """Orientations with θ known and the field used as heading only, from the joint solution."""
     from imugraph.graphs.heading_block import HeadingBlock
 
     K = len(pre.kf_samples)
     nRk = keyframe_rotations(values, K)
-    velocity = None
-    if opt.linear_acceleration == "velocity":
-        velocity = VelocityModel(vel["sigma"], opt.velocity_tau, opt.acc_rate_error, opt.acc_kernel, vel["s"],
-                                 opt.acc_bias, rest=vel.get("rest"))
+    velocity = _velocity_model(opt, vel)
     no_mag = np.full_like(session.mag, np.nan)
     stage = build_problem(pre, session.acc, no_mag, noise, g_used, nRk, bias, theta, estimate_theta=False,
                           bias_prior_sigma=opt.bias_prior_sigma, acc_kernel=opt.acc_kernel,

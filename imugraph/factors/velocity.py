@@ -85,7 +85,7 @@ def gauss_markov(dt_k: np.ndarray, sigma_v: float, tau_v: float) -> tuple[np.nda
     return phi, sigma_v * np.sqrt(np.maximum(1.0 - phi**2, 1e-12))
 
 
-def gravity_from_velocity(nRk: np.ndarray, v: np.ndarray, dv: np.ndarray, dt_k: np.ndarray) -> float:
+def gravity_from_velocity(nRk: np.ndarray, dv: np.ndarray, dt_k: np.ndarray) -> float:
     """g that closes the vertical velocity budget of a bounded motion: Σ_k (R_k Δv_k)_z − g T = 0.
 
     The magnitude at rest (median |a|) differs from the mean vertical specific force in motion by the
