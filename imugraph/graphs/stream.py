@@ -1,5 +1,5 @@
 """Incremental orientation with a known calibration: the graph of `cpp_smoother.smooth_fixed` ("velocity"),
-built keyframe by keyframe and solved by iSAM2 (or gtsam's IncrementalFixedLagSmoother with a lag).
+built keyframe by keyframe and solved by iSAM2 (or gtsam's BatchFixedLagSmoother with a lag).
 
 One model, two solvers: every closed keyframe interval k → k+1 adds exactly the factors the batch graph
 holds for it (imugraph.graphs.cpp_velocity) — the two split super-sample `ImuFactor`s (gyro rows, Huber
@@ -10,8 +10,8 @@ interval starts one — then one `update`. Interval k closes when the first samp
 
 Filtered orientation (`push`'s return): the latest estimate of the newest keyframe, carried to the sample
 by the gyro integrated since (with the current bias estimate) — available when the sample arrives.
-Smoothed orientation (`smoothed()`): iSAM2's estimate of every keyframe at the end (a few relinearising
-updates first), or with a lag the estimate each keyframe had when it left the window; per-sample values
+Smoothed orientation (`smoothed()`): at the end, Levenberg–Marquardt on iSAM2's factors from its estimate
+(a few relinearising updates first), or with a lag the estimate each keyframe had when it left the window; per-sample values
 blended between keyframes as the batch path does (`sample_orientations`).
 
 Arrival problems, all counted in `StreamStats`, none raises: a repeated time stamp is dropped
@@ -27,7 +27,7 @@ segment) and gravity are estimated with the orientations.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field, replace
+from dataclasses import replace
 
 import gtsam
 import numpy as np
@@ -42,6 +42,9 @@ from imugraph.graphs.cpp_velocity import (G_KEY, SIGMA_ACC_BIAS_RW, SIGMA_G, SIG
                                           imu_bias_key, pose_key, robust, split_noise, super_sample_pim,
                                           super_samples)
 from imugraph.graphs.orientation_init import sample_orientations, triad
+from imugraph.graphs.stream_options import StreamOptions, StreamStats
+
+__all__ = ["StreamOptions", "StreamSmoother", "StreamStats"]
 
 
 def _quat(R: gtsam.Rot3) -> np.ndarray:
@@ -49,58 +52,6 @@ def _quat(R: gtsam.Rot3) -> np.ndarray:
     q = R.toQuaternion()
     out = np.array([q.w(), q.x(), q.y(), q.z()])
     return -out if out[0] < 0 else out
-
-
-@dataclass(frozen=True)
-class StreamOptions:
-    """Settings of a stream (defaults: those of `smooth_fixed`).
-
-    Attributes:
-        keyframe_hz: keyframes per second (stride = round(rate / keyframe_hz) samples).
-        lag_s: None: iSAM2 over the whole stream; a number: fixed-lag smoother keeping lag_s seconds.
-        g: gravity, m/s², held fixed; None: estimated (started at `g0`, the caller's median |acc|).
-        final_updates: relinearising iSAM2 updates at `finish` (iSAM2 only).
-        relinearize_threshold: iSAM2's relinearisation threshold (tangent-space step).
-        keep_history: keep per-sample data for `smoothed()` (memory O(N)); False: filtered output only.
-        Other fields: as `smooth_fixed`.
-    """
-
-    keyframe_hz: float = 10.0
-    lag_s: float | None = None
-    g: float | None = None
-    huber_k: float = 2.0
-    gyro_rate_error: float = 0.01
-    velocity_sigma: float = 0.5
-    velocity_tau: float = 2.0
-    acc_rate_error: float = 0.01
-    acc_huber_k: float | None = 2.0
-    acc_bias_sigma: float = 1e-4
-    bias_segment_s: float = 5.0
-    bias_rw: float = 2e-4
-    bias_prior_sigma: float = 0.01
-    final_updates: int = 3
-    relinearize_threshold: float = 0.01
-    keep_history: bool = True
-
-
-@dataclass
-class StreamStats:
-    """Counters of what arrived, and the wall time of every solver update (s)."""
-
-    accepted: int = 0
-    duplicates: int = 0
-    late_inserted: int = 0
-    late_dropped: int = 0
-    invalid: int = 0
-    gaps: int = 0
-    missing: int = 0
-    mag_samples: int = 0
-    mag_dropped: int = 0
-    failed_updates: int = 0
-    update_s: list = field(default_factory=list)
-
-    def counts(self) -> dict:
-        return {k: v for k, v in self.__dict__.items() if k != "update_s"}
 
 
 class StreamSmoother:

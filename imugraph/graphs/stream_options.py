@@ -1,0 +1,57 @@
+"""Settings and counters of an incremental run (imugraph.graphs.stream)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+
+@dataclass(frozen=True)
+class StreamOptions:
+    """Settings of a stream (defaults: those of `smooth_fixed`).
+
+    Attributes:
+        keyframe_hz: keyframes per second (stride = round(rate / keyframe_hz) samples).
+        lag_s: None: iSAM2 over the whole stream; a number: fixed-lag smoother keeping lag_s seconds.
+        g: gravity, m/s², held fixed; None: estimated (started at `g0`, the caller's median |acc|).
+        final_updates: relinearising iSAM2 updates at `finish` (iSAM2 only).
+        relinearize_threshold: iSAM2's relinearisation threshold (tangent-space step).
+        keep_history: keep per-sample data for `smoothed()` (memory O(N)); False: filtered output only.
+        Other fields: as `smooth_fixed`.
+    """
+
+    keyframe_hz: float = 10.0
+    lag_s: float | None = None
+    g: float | None = None
+    huber_k: float = 2.0
+    gyro_rate_error: float = 0.01
+    velocity_sigma: float = 0.5
+    velocity_tau: float = 2.0
+    acc_rate_error: float = 0.01
+    acc_huber_k: float | None = 2.0
+    acc_bias_sigma: float = 1e-4
+    bias_segment_s: float = 5.0
+    bias_rw: float = 2e-4
+    bias_prior_sigma: float = 0.01
+    final_updates: int = 3
+    relinearize_threshold: float = 0.01
+    keep_history: bool = True
+
+
+@dataclass
+class StreamStats:
+    """Counters of what arrived, and the wall time of every solver update (s)."""
+
+    accepted: int = 0
+    duplicates: int = 0
+    late_inserted: int = 0
+    late_dropped: int = 0
+    invalid: int = 0
+    gaps: int = 0
+    missing: int = 0
+    mag_samples: int = 0
+    mag_dropped: int = 0
+    failed_updates: int = 0
+    update_s: list = field(default_factory=list)
+
+    def counts(self) -> dict:
+        return {k: v for k, v in self.__dict__.items() if k != "update_s"}
