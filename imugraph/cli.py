@@ -6,6 +6,8 @@
     imugraph batch SESSIONS... --out DIR [--scheduler ADDRESS] [--workers N] [--keyframe-hz 5]
     imugraph demo [--out DIR] [--seed 0] [--duration 120] [--rate 100]
     imugraph simulate --out FILE.npz [--seed 0] [--duration 120] [--rate 100]
+    imugraph diagnose SESSION [--out DIR] [--effects NAMES] [--seed 0]
+    imugraph bench diagnose [--trials 01,02,...] [--sims 2] [--n 2] [--duration 60] [--out DIR]
 
 Every command takes --out and --quiet; calibrate and smooth take --data-dir (a SESSION that does not
 exist as given is looked up there; default $IMUGRAPH_DATA, else ../shared/data). Results go to stdout,
@@ -35,6 +37,8 @@ COMMANDS = {
     "batch": ("batch", "run_batch_command"),
     "demo": ("demo", "run_demo"),
     "simulate": ("simulate", "run_simulate"),
+    "diagnose": ("diagnose", "run_diagnose"),
+    "bench": ("bench", "run_bench"),
 }
 
 
@@ -141,6 +145,23 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", metavar="FILE.npz", required=True, help="session file to write")
     p.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
     _simulation(p)
+
+    p = sub.add_parser("diagnose", help="where the sim-to-real gap lies and which unmodelled effect explains it",
+                       description="Writes diagnosis.json, diagnosis.md, gap_over_time.png, residuals.png.")
+    p.add_argument("session", metavar="SESSION", help=session_help)
+    _common(p, default_out, data_dir=True)
+    _keyframes(p)
+    p.add_argument("--seed", type=int, default=0, help="seed of the simulations (default 0)")
+    p.add_argument("--effects", metavar="NAMES", default=None,
+                   help="comma-separated effect names to try (default: all)")
+
+    p = sub.add_parser("bench", help="validation benchmarks (bench diagnose: the diagnosis harness)")
+    bsub = p.add_subparsers(dest="bench", metavar="BENCH", required=True)
+    pd = bsub.add_parser("diagnose", help="inject effects into real and simulated sessions, hide the label, "
+                         "score the diagnosis (confusion matrix, window IoU, gap shrink)",
+                         description="Writes harness.json and harness.md in --out.")
+    from imugraph.diagnose.bench import add_arguments as bench_diagnose_arguments
+    bench_diagnose_arguments(pd)
     return parser
 
 

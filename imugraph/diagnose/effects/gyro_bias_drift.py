@@ -1,0 +1,100 @@
+"""gyro_bias_drift: the gyroscope bias drifts over the session (warm-up, temperature).
+
+Model: b_gyr,j = ω_j + δ_ω + β(t_j) + e_ω with a smooth drift β(t) = Σ_p c_p P_p(τ_j), P_p the Legendre
+polynomials of degree 1…3 in τ = 2(t − t₀)/(t₁ − t₀) − 1 (9 parameters; the constant is the base bias).
+
+Fit (first order, base rule 1): the base model's bias segments b_s(j) absorb part of a drift; the extended
+model's bias is b̄ + β(t), so the gyro changes by Δω_j = b_s(j) − b̄ − β(t_j) and every channel's
+residuals move linearly with the coefficients c_p (base (E1)–(E3)): linear least squares over the training
+samples of all channels, whitened by σ. β is smooth and global, so the held-out blocks are interpolated.
+
+Injection ranges (RANGES): total change |β(t₁) − β(t₀)| or peak-to-peak 0.1–1 °/s over the session in a
+random direction; shape "warm-up" (1 − e^{−(t−t₀)/τ}, τ = 0.2–1 × duration), "linear" ramp, or "wander"
+(two slow sinusoids, periods 0.5–2 × duration).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from imugraph.diagnose.effects.base import (Correction, Effect, check_train, gyro_refit, noise_scale,
+                                             replace_session)
+
+RANGES = {"drift_deg_s": (0.1, 1.0), "shapes": ("warm-up", "linear", "wander")}
+DEGREE = 3
+
+
+def legendre_basis(t: np.ndarray, t0: float, t1: float, degree: int = DEGREE) -> np.ndarray:
+    """(N, degree) Legendre polynomials P_1…P_degree of τ ∈ [−1, 1]."""
+    tau = 2.0 * (t - t0) / max(t1 - t0, 1e-9) - 1.0
+    return np.stack([np.polynomial.legendre.Legendre.basis(p)(tau) for p in range(1, degree + 1)], axis=1)
+
+
+class DriftCorrection(Correction):
+    def raw_residuals(self, fit) -> dict:
+        return gyro_refit(fit, self.deltas["d_omega"])[0]
+
+
+class GyroBiasDrift(Effect):
+    name = "gyro_bias_drift"
+    channel = "gyr"
+    windowed = False
+    ranges = RANGES
+
+    def inject(self, session, rng, *, window=None, strength=None):
+        """Add β(t). strength: drift magnitude in °/s (default random in RANGES)."""
+        mag = np.deg2rad(float(strength) if strength is not None else rng.uniform(*RANGES["drift_deg_s"]))
+        t = session.t
+        T = float(t[-1] - t[0])
+        x = (t - t[0]) / max(T, 1e-9)
+        shape = str(rng.choice(RANGES["shapes"]))
+        if shape == "warm-up":
+            s = 1.0 - np.exp(-x / rng.uniform(0.2, 1.0))
+        elif shape == "linear":
+            s = x
+        else:
+            p1, p2 = rng.uniform(0.5, 2.0, 2)
+            s = np.sin(2 * np.pi * x / p1 + rng.uniform(0, 2 * np.pi)) + 0.5 * np.sin(2 * np.pi * x / p2)
+        s = s - s[0]
+        s = s / max(float(np.ptp(s)), 1e-12)
+        d = rng.standard_normal(3)
+        d /= np.linalg.norm(d)
+        beta = mag * s[:, None] * d
+        truth = {"params": {"drift_rad_s": float(mag), "drift_deg_s": float(np.rad2deg(mag)), "shape": shape,
+                            "direction": d.tolist()}, "t_start": None, "t_end": None}
+        return replace_session(session, gyr=session.gyr + beta, name_suffix="+gyro_bias_drift",
+                               meta={"injected": {self.name: truth}}), truth
+
+    def fit(self, fit, train, window=None) -> Correction:
+        train = check_train(fit, train)
+        t = fit.session.t
+        B = legendre_basis(t, float(t[0]), float(t[-1]))
+        seg = fit.b_gyr_bias - np.asarray(fit.calibration.gyro_bias, float)         # b_s(j) − b̄
+        base = fit.residuals
+        r0, _ = gyro_refit(fit, seg)                                                 # β = 0
+        cols = []
+        for p in range(B.shape[1]):
+            for a in range(3):
+                d = np.zeros((fit.n, 3))
+                d[:, a] = -B[:, p]
+                r1, _ = gyro_refit(fit, seg + d)
+                cols.append({c: r1[c] - r0[c] for c in base})
+        rows_A, rows_y = [], []
+        for c in ("gyr", "acc", "mag"):
+            ok = train & np.all(np.isfinite(r0[c]), axis=1)
+            s = np.asarray(fit.sigma[c], float)
+            rows_A.append(np.stack([(col[c][ok] / s).reshape(-1) for col in cols], axis=1))
+            rows_y.append((r0[c][ok] / s).reshape(-1))
+        coef = np.linalg.lstsq(np.concatenate(rows_A), -np.concatenate(rows_y), rcond=None)[0]
+        C = coef.reshape(B.shape[1], 3)
+        beta = B @ C
+        d_omega = seg - beta
+        corr = DriftCorrection(self.name, {"legendre_coefficients_rad_s": C.tolist(),
+                                           "peak_to_peak_deg_s": float(np.rad2deg(np.max(np.ptp(beta, axis=0))))},
+                               n_params=C.size, channel=self.channel, deltas={"d_omega": d_omega})
+        res = corr.raw_residuals(fit)
+        corr.deltas["noise_scale"] = noise_scale(fit, res, train, ["gyr", "acc", "mag"])
+        return corr
+
+
+EFFECT = GyroBiasDrift()

@@ -1,0 +1,119 @@
+"""saturation: a channel clips at the sensor's measurement range.
+
+Model: y_c,j,a = clip(h_c,a(x_j) + e, −L_c, +L_c): a sample at the rail only says |true value| ≥ L_c (a
+censored measurement).                                                                                 (C1)
+
+Fit: rails are found on all samples (a sensor property, like a window's location: one clipped episode
+may lie in a held-out block) — per channel (gyr, acc) and axis, the extreme value (max or
+min) repeated in runs of ≥ 2 consecutive samples, ≥ 3 times in all (a smooth signal almost never repeats
+its extreme exactly; a clipped one sits on it). Correction at every sample whose value equals a rail:
+acc rows are dropped (NaN: censored, (C1)); gyro peaks are reconstructed from a quadratic through the
+`CONTEXT` unclipped samples on either side (never inside the rail), and the change Δω enters the first-
+order refit (base (E1)–(E3)). One parameter (the level) per rail.
+
+Injection ranges (RANGES): the channel (gyr or acc, p = 0.5 each) clips on all axes at ±L, L = 70–90 %
+of the largest |value| the channel reaches in the session; the rail value is held exactly. The
+accelerometer is only clipped when that level is ≥ 2 g (`acc_min_level`: no accelerometer's range is near
+1 g), else the gyroscope is.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from imugraph.diagnose.effects.base import (Correction, Effect, check_train, gyro_refit, noise_scale,
+                                             replace_session)
+from imugraph.io.validate import runs
+
+RANGES = {"level_frac": (0.7, 0.9), "channel_p": {"gyr": 0.5, "acc": 0.5}, "acc_min_level": 2.0 * 9.81}
+CONTEXT = 6
+MIN_RUN, MIN_COUNT = 2, 3
+
+
+def find_rails(y: np.ndarray, mask: np.ndarray) -> list:
+    """[(axis, sign, level)] of the rails of y (N, 3) over the samples in mask (module doc)."""
+    out = []
+    for a in range(y.shape[1]):
+        v = y[mask, a]
+        v = v[np.isfinite(v)]
+        if len(v) < 10:
+            continue
+        for sign, level in ((1.0, float(np.max(v))), (-1.0, float(np.min(v)))):
+            tol = 1e-9 * max(1.0, abs(level))
+            hit = mask & (np.abs(y[:, a] - level) <= tol)
+            a0, a1 = runs(hit)
+            if hit.sum() >= MIN_COUNT and np.any(a1 - a0 >= MIN_RUN):
+                out.append((a, sign, level))
+    return out
+
+
+def reconstruct_peaks(t: np.ndarray, y: np.ndarray, rails: list) -> np.ndarray:
+    """y with each clipped run replaced by a quadratic through its unclipped neighbours (never inside the
+    rail)."""
+    out = y.copy()
+    for a, sign, level in rails:
+        hit = np.abs(y[:, a] - level) <= 1e-9 * max(1.0, abs(level))
+        r0, r1 = runs(hit)
+        for i0, i1 in zip(r0, r1):
+            nb = np.r_[np.arange(max(0, i0 - CONTEXT), i0), np.arange(i1, min(len(y), i1 + CONTEXT))]
+            nb = nb[~hit[nb]]
+            if len(nb) < 3:
+                continue
+            tc = t[i0:i1].mean()
+            coef = np.polyfit(t[nb] - tc, y[nb, a], 2)
+            est = np.polyval(coef, t[i0:i1] - tc)
+            out[i0:i1, a] = sign * np.maximum(sign * est, sign * level)
+    return out
+
+
+class SaturationCorrection(Correction):
+    def raw_residuals(self, fit) -> dict:
+        s = fit.session
+        out = {c: fit.residuals[c].copy() for c in fit.residuals}
+        rails = self.deltas["rails"]
+        if rails.get("gyr"):
+            y_new = reconstruct_peaks(s.t, s.gyr, rails["gyr"])
+            out = gyro_refit(fit, y_new - s.gyr)[0]
+        for a, sign, level in rails.get("acc", []):
+            out["acc"][np.abs(s.acc[:, a] - level) <= 1e-9 * max(1.0, abs(level))] = np.nan   # censored
+        return out
+
+
+class Saturation(Effect):
+    name = "saturation"
+    channel = "gyr"
+    windowed = False
+    ranges = RANGES
+
+    def inject(self, session, rng, *, window=None, strength=None):
+        """Clip one channel at ±L. strength: L as a fraction of the channel's peak |value|."""
+        frac = float(strength) if strength is not None else float(rng.uniform(*RANGES["level_frac"]))
+        names, p = zip(*RANGES["channel_p"].items())
+        c = str(rng.choice(names, p=p))
+        if c == "acc" and frac * float(np.nanmax(np.abs(session.acc))) < RANGES["acc_min_level"]:
+            c = "gyr"                                                           # no accelerometer clips at 1 g
+        y = getattr(session, c)
+        level = frac * float(np.nanmax(np.abs(y)))
+        clipped = np.clip(y, -level, level)
+        truth = {"params": {"channel": c, "level": level, "level_frac": frac,
+                            "clipped_fraction": float(np.mean(np.any(np.abs(y) > level, axis=1)))},
+                 "t_start": None, "t_end": None}
+        return replace_session(session, **{c: clipped}, name_suffix="+saturation",
+                               meta={"injected": {self.name: truth}}), truth
+
+    def fit(self, fit, train, window=None) -> Correction:
+        train = check_train(fit, train)
+        s = fit.session
+        rails = {c: find_rails(getattr(s, c), np.ones(fit.n, bool)) for c in ("gyr", "acc")}
+        n_rails = sum(len(v) for v in rails.values())
+        channel = "acc" if rails["acc"] and not rails["gyr"] else "gyr"
+        params = {"rails": {c: [{"axis": a, "sign": sg, "level": lv} for a, sg, lv in v] for c, v in rails.items()},
+                  "channel": channel}
+        corr = SaturationCorrection(self.name, params, n_params=n_rails, channel=channel, deltas={"rails": rails})
+        if n_rails:
+            changed = ["gyr", "acc", "mag"] if rails["gyr"] else ["acc"]
+            corr.deltas["noise_scale"] = noise_scale(fit, corr.raw_residuals(fit), train, changed)
+        return corr
+
+
+EFFECT = Saturation()

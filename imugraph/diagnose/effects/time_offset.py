@@ -1,0 +1,100 @@
+"""time_offset: one sensor channel is time-shifted against the others (a sampling or filter delay).
+
+Model: the channel c ∈ {mag, acc, gyr} sampled at t_j reports the value sensed at t_j − τ:
+
+    y_c(t_j) = h_c(x(t_j − τ)) + e_c ≈ h_c(x(t_j)) − τ ḣ_c(t_j) + e_c                              (T1)
+
+Fit (training samples only): for mag and acc, τ by Gauss–Newton on (T1) with ḣ_c the time derivative of
+the fitted prediction (two steps, the second at the exactly shifted signal); for gyr, removing the delay
+changes the rate by Δω = y(t + τ) − y(t) ≈ τ ẏ and every channel's residuals move linearly with τ (base
+(E1)–(E3)). The channel whose shift lowers the whitened training cost most wins (1 parameter + the
+choice). The correction undoes the shift by interpolation: y'_c(t) = y_c(t + τ).
+
+Injection ranges (RANGES): τ = 5–50 ms (e.g. a magnetometer read out on its own slower schedule, or a
+digital low-pass filter's group delay), channel mag (p = 0.5), acc (0.25) or gyr (0.25).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from imugraph.diagnose.effects.base import (Correction, Effect, check_train, gyro_refit, noise_scale,
+                                             replace_session, shift_signal)
+
+RANGES = {"tau_ms": (5.0, 50.0), "channel_p": {"mag": 0.5, "acc": 0.25, "gyr": 0.25}}
+
+
+def _cost(fit, res: dict, train: np.ndarray, channels) -> float:
+    total = 0.0
+    for c in channels:
+        z = res[c][train] / fit.sigma[c]
+        total += float(np.nansum(z**2))
+    return total
+
+
+class TimeOffsetCorrection(Correction):
+    def raw_residuals(self, fit) -> dict:
+        c, tau = self.params["channel"], self.params["tau_s"]
+        s = fit.session
+        y = getattr(s, c)
+        y_new = shift_signal(s.t, y, -tau)                                           # y'(t) = y(t + τ)
+        if c == "gyr":
+            return gyro_refit(fit, np.nan_to_num(y_new - y))[0]
+        return fit.residuals_with(**{c: y_new})
+
+
+class TimeOffset(Effect):
+    name = "time_offset"
+    channel = "mag"
+    windowed = False
+    ranges = RANGES
+
+    def inject(self, session, rng, *, window=None, strength=None):
+        """Delay one channel by τ. strength: τ in s (default random in RANGES); the channel is random."""
+        tau = float(strength) if strength is not None else 1e-3 * float(rng.uniform(*RANGES["tau_ms"]))
+        names, p = zip(*RANGES["channel_p"].items())
+        c = str(rng.choice(names, p=p))
+        y = shift_signal(session.t, getattr(session, c), tau)
+        truth = {"params": {"channel": c, "tau_s": tau}, "t_start": None, "t_end": None}
+        return replace_session(session, **{c: y}, name_suffix="+time_offset",
+                               meta={"injected": {self.name: truth}}), truth
+
+    def fit(self, fit, train, window=None) -> Correction:
+        train = check_train(fit, train)
+        s = fit.session
+        pred = fit.predicted()
+        channels = ("gyr", "acc", "mag")
+        base_cost = _cost(fit, fit.residuals, train, channels)
+        best = None
+        for c in ("mag", "acc", "gyr"):
+            tau = 0.0
+            for _ in range(2):
+                r = TimeOffsetCorrection(self.name, {"channel": c, "tau_s": tau}, 2).raw_residuals(fit)
+                if c == "gyr":
+                    y_tau = shift_signal(s.t, s.gyr, -tau)
+                    r1 = gyro_refit(fit, np.nan_to_num(np.gradient(y_tau, s.t, axis=0)))[0]
+                    J = {k: r1[k] - fit.residuals[k] for k in channels}              # ∂r/∂τ (affine refit)
+                    r_base = r
+                else:
+                    hdot = np.gradient(pred[c], s.t, axis=0)
+                    J = {c: hdot}                                                    # r(τ+δ) ≈ r + δ ḣ
+                    r_base = r
+                num = den = 0.0
+                for k, Jk in J.items():
+                    ok = train & np.all(np.isfinite(r_base[k]), axis=1) & np.all(np.isfinite(Jk), axis=1)
+                    sg = np.asarray(fit.sigma[k], float)
+                    num += float(np.sum((Jk[ok] / sg) * (r_base[k][ok] / sg)))
+                    den += float(np.sum((Jk[ok] / sg) ** 2))
+                tau = float(np.clip(tau - num / max(den, 1e-30), -0.2, 0.2))
+            corr = TimeOffsetCorrection(self.name, {"channel": c, "tau_s": tau}, 2, channel=c)
+            cost = _cost(fit, corr.raw_residuals(fit), train, channels)
+            if best is None or cost < best[0]:
+                best = (cost, corr)
+        corr = best[1]
+        corr.params["train_cost_reduction"] = float(1.0 - best[0] / max(base_cost, 1e-30))
+        res = corr.raw_residuals(fit)
+        corr.deltas["noise_scale"] = noise_scale(fit, res, train, [corr.channel])
+        return corr
+
+
+EFFECT = TimeOffset()

@@ -1,0 +1,198 @@
+"""Validation harness of the diagnosis (`imugraph bench diagnose`): inject each effect with randomised
+parameters and windows into recordings and simulations, hide the label, diagnose, and score.
+
+For every case the effect library's `inject` adds one effect (imugraph.diagnose.effects, realistic ranges
+documented per module); the session handed to the diagnoser is renamed and stripped of the injection's
+metadata, so nothing but the signals tells which effect it holds. Unmodified sessions are diagnosed as
+well (truth "none"). Scores:
+
+    top-1     = fraction of cases whose verdict equals the truth (injected cases; "none" cases apart)
+    false "none"-breakers = clean sessions whose verdict is not "none"
+    IoU       = |W_true ∩ W_est| / |W_true ∪ W_est| of the windows of windowed effects, over the cases
+                whose verdict is the injected effect (the verdict's t_start/t_end)
+    shrink    = 1 − gap_after / gap_before on held-out time, as the diagnoser reports it for the verdict
+                (and, separately, for the true effect's entry whatever the verdict)
+
+and the confusion matrix (rows: truth, columns: verdict).
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Callable, Iterable, Optional
+
+import numpy as np
+
+from imugraph.diagnose.effects import EFFECTS
+from imugraph.diagnose.effects.base import replace_session
+from imugraph.io.session import Session
+
+NONE = "none"
+
+
+def hide_label(session: Session, case_id: str) -> Session:
+    """The session under a neutral name, without the injection's metadata."""
+    s = replace_session(session)
+    meta = {k: v for k, v in s.meta.items() if k not in ("injected",)}
+    return Session(s.t, s.gyr, s.acc, s.mag, s.quat, s.movement, source=f"<harness case {case_id}>",
+                   name=f"case_{case_id}", meta=meta)
+
+
+def interval_iou(a: tuple, b: tuple) -> float:
+    """IoU of two time intervals (t_start, t_end); 0 when either is missing or empty."""
+    if a is None or b is None or None in a or None in b:
+        return 0.0
+    inter = max(0.0, min(a[1], b[1]) - max(a[0], b[0]))
+    union = max(a[1], b[1]) - min(a[0], b[0])
+    return float(inter / union) if union > 0 else 0.0
+
+
+def _default_diagnose(session: Session):
+    from imugraph.diagnose.run import diagnose
+
+    return diagnose(session)
+
+
+def _as_json(diag) -> dict:
+    """A diagnosis (object with to_json, or the diagnosis.json dict) as a dict."""
+    return diag.to_json() if hasattr(diag, "to_json") else dict(diag)
+
+
+def _entry(d: dict, name: str) -> Optional[dict]:
+    for e in d.get("effects", []):
+        if e.get("name") == name:
+            return e
+    return None
+
+
+def run_case(session: Session, truth_name: str, truth: dict, case_id: str, diagnose_fn: Callable) -> dict:
+    """Diagnose one (hidden-label) session and score it against its truth."""
+    t0 = time.perf_counter()
+    d = _as_json(diagnose_fn(hide_label(session, case_id)))
+    seconds = time.perf_counter() - t0
+    verdict = d.get("verdict", NONE)
+    won = _entry(d, verdict) if verdict != NONE else None
+    true_entry = _entry(d, truth_name) if truth_name != NONE else None
+    effect = EFFECTS.get(truth_name)
+    windowed = bool(effect is not None and effect.windowed)
+    case = {"case": case_id, "session": session.name, "truth": truth_name, "verdict": verdict,
+            "correct": verdict == truth_name, "truth_params": truth.get("params", {}),
+            "truth_window": [truth.get("t_start"), truth.get("t_end")] if windowed else None,
+            "shrink": None if won is None else won.get("shrink"),
+            "true_effect_shrink": None if true_entry is None else true_entry.get("shrink"),
+            "gap": d.get("gap"), "seconds": seconds, "iou": None,
+            "ranking": [e.get("name") for e in d.get("effects", [])][:3]}
+    if windowed and verdict == truth_name and won is not None:
+        case["estimated_window"] = [won.get("t_start"), won.get("t_end")]
+        case["iou"] = interval_iou((truth["t_start"], truth["t_end"]), (won.get("t_start"), won.get("t_end")))
+    return case
+
+
+def run_harness(sessions: Iterable, effects: Optional[Iterable[str]] = None, n_per_effect: int = 2,
+                rng: Optional[np.random.Generator] = None, *, clean: bool = True,
+                diagnose_fn: Optional[Callable] = None, progress: Optional[Callable[[str], None]] = None) -> dict:
+    """Inject, diagnose blind, score (module doc).
+
+    Args:
+        sessions: Sessions to inject into (recordings of undisturbed motion and/or simulations); the
+            cases cycle through them.
+        effects: effect names (default: the whole library).
+        n_per_effect: injected cases per effect.
+        rng: random generator of the injections (parameters, windows).
+        clean: also diagnose every session unmodified (truth "none").
+        diagnose_fn: session → diagnosis (object with `to_json` or the diagnosis.json dict); default
+            `imugraph.diagnose.run.diagnose`.
+        progress: optional callable(str) for one line per case.
+
+    Returns:
+        report dict: "cases", "labels", "confusion" (truth → verdict → count), "top1", "n_injected",
+        "clean_flagged", "n_clean", "iou" and "shrink" summaries, "seconds".
+    """
+    sessions = list(sessions)
+    if not sessions:
+        from imugraph.errors import SessionError
+        raise SessionError("<harness>", "sessions", "none", "at least one session")
+    names = list(effects) if effects is not None else list(EFFECTS)
+    rng = rng or np.random.default_rng(0)
+    fn = diagnose_fn or _default_diagnose
+    say = progress or (lambda _m: None)
+    cases = []
+    t0 = time.perf_counter()
+    k = 0
+    for name in names:
+        for _ in range(n_per_effect):
+            base = sessions[k % len(sessions)]
+            k += 1
+            injected, truth = EFFECTS[name].inject(base, rng)
+            case = run_case(injected, name, truth, f"{k:03d}", fn)
+            cases.append(case)
+            say(_case_line(case))
+    if clean:
+        for base in sessions:
+            k += 1
+            case = run_case(base, NONE, {}, f"{k:03d}", fn)
+            cases.append(case)
+            say(_case_line(case))
+    return summarise(cases, names, time.perf_counter() - t0)
+
+
+def summarise(cases: list, names: list, seconds: float = float("nan")) -> dict:
+    """Confusion matrix and scores of a list of scored cases (see `run_harness`)."""
+    labels = list(names) + [NONE]
+    for c in cases:
+        if c["verdict"] not in labels:
+            labels.append(c["verdict"])
+    confusion = {t: {p: 0 for p in labels} for t in labels}
+    for c in cases:
+        confusion[c["truth"]][c["verdict"]] += 1
+    injected = [c for c in cases if c["truth"] != NONE]
+    clean = [c for c in cases if c["truth"] == NONE]
+    ious = [c["iou"] for c in injected if c["iou"] is not None]
+    shrinks = [c["shrink"] for c in injected if c["correct"] and c["shrink"] is not None]
+    true_shrinks = [c["true_effect_shrink"] for c in injected if c["true_effect_shrink"] is not None]
+
+    def stats(v):
+        v = [x for x in v if x is not None and np.isfinite(x)]
+        return {"n": len(v), "median": float(np.median(v)) if v else None,
+                "mean": float(np.mean(v)) if v else None, "min": float(np.min(v)) if v else None}
+
+    return {"cases": cases, "labels": labels, "confusion": confusion,
+            "n_injected": len(injected),
+            "top1": float(np.mean([c["correct"] for c in injected])) if injected else None,
+            "n_clean": len(clean), "clean_flagged": int(sum(not c["correct"] for c in clean)),
+            "iou": stats(ious), "shrink": stats(shrinks), "true_effect_shrink": stats(true_shrinks),
+            "seconds": seconds}
+
+
+def _case_line(c: dict) -> str:
+    extra = f" IoU {c['iou']:.2f}" if c.get("iou") is not None else ""
+    sh = f" shrink {c['shrink']:.2f}" if c.get("shrink") is not None else ""
+    return (f"case {c['case']} {c['session']}: truth {c['truth']} → {c['verdict']}"
+            f"{' ✓' if c['correct'] else ' ✗'}{sh}{extra} ({c['seconds']:.1f} s)")
+
+
+def format_report(report: dict) -> str:
+    """Plain-text confusion matrix and summary lines."""
+    labels = report["labels"]
+    short = {lab: lab[:10] for lab in labels}
+    width = max(len(lab) for lab in labels) + 2
+    head = " " * width + " ".join(f"{short[p]:>10}" for p in labels)
+    lines = ["confusion matrix (rows: truth, columns: verdict)", head]
+    for t in labels:
+        row = report["confusion"][t]
+        if sum(row.values()) == 0:
+            continue
+        lines.append(f"{t:<{width}}" + " ".join(f"{row[p]:>10d}" for p in labels))
+    top1 = report["top1"]
+    lines.append(f"top-1: {'n/a' if top1 is None else f'{100 * top1:.0f} %'} of {report['n_injected']} injected cases")
+    lines.append(f"clean sessions flagged (verdict ≠ none): {report['clean_flagged']} of {report['n_clean']}")
+    for key, label in (("iou", "window IoU (correct windowed verdicts)"),
+                       ("shrink", "gap shrink on held-out time (correct verdicts)"),
+                       ("true_effect_shrink", "gap shrink of the true effect (all injected cases)")):
+        s = report[key]
+        if s["n"]:
+            lines.append(f"{label}: median {s['median']:.2f}, mean {s['mean']:.2f}, min {s['min']:.2f} (n = {s['n']})")
+        else:
+            lines.append(f"{label}: none")
+    lines.append(f"time: {report['seconds']:.0f} s")
+    return "\n".join(lines)

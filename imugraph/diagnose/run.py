@@ -1,0 +1,172 @@
+"""The whole diagnosis of one single-IMU session: fit, simulate, gap, localise, attribute.
+
+    1. fit the base model to the recording (`fit.fit_base`);
+    2. draw two simulations from the fit (same motion, fitted parameters and noise) and fit each of them
+       the same way (`fit.fit_simulation`): A is the reference, B an independent draw that gives the
+       statistic's noise floor (gap of B against A: "null");
+    3. gap per channel (real vs A, `gap.gap`), gap-vs-time curves (real vs A and B vs A) and locations
+       (`gap.localise`);
+    4. attribution over the effect library (`attribute.attribute`, `attribute.verdict`);
+    5. the winning effect refitted on all samples gives the residuals "after" for the report.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from imugraph.diagnose.attribute import (NONE, AttributionOptions, EffectResult, attribute, fold_masks,
+                                         verdict)
+from imugraph.diagnose.fit import Fit, base_options, fit_base, fit_simulation, simulate_from_fit
+from imugraph.diagnose.gap import CHANNELS, GapCurve, GapOptions, gap, gap_curve, localise
+from imugraph.io.session import Session
+
+
+@dataclass(frozen=True)
+class DiagnoseOptions:
+    """Settings of one diagnosis.
+
+    Attributes:
+        keyframe_hz: orientation states per second of the base fit.
+        seed: seed of the simulations' noise.
+        effects: names of the effects to try (None: the whole library).
+        window_hints: hand the located window of a channel to that channel's windowed effects.
+        gap / attribution: the statistic's and the attribution's settings.
+    """
+
+    keyframe_hz: float = 5.0
+    seed: int = 0
+    effects: tuple | None = None
+    window_hints: bool = False
+    gap: GapOptions = field(default_factory=GapOptions)
+    attribution: AttributionOptions = field(default_factory=AttributionOptions)
+
+
+@dataclass
+class Diagnosis:
+    """Result of `diagnose` (diagnosis.json via `to_json`)."""
+
+    verdict: str
+    gap: dict                 # channel → excess of the real gap over the noise floor, max(0, raw − null)
+    gap_raw: dict             # channel → (G1) real vs simulation A
+    null_gap: dict            # channel → (G1) simulation B vs simulation A
+    null_fold_gap: dict
+    locations: list
+    effects: list
+    real: Fit
+    sim: Fit
+    curve: GapCurve
+    null_curve: dict
+    residuals_after: dict | None
+    timing: dict
+
+    def to_json(self) -> dict:
+        """The DESIGN.md `diagnosis.json` contract, plus the noise floor, the channel σ and timings."""
+        return {"verdict": self.verdict, "gap": dict(self.gap), "gap_raw": dict(self.gap_raw),
+                "locations": list(self.locations),
+                "effects": [r.as_dict() for r in self.effects],
+                "null_gap": dict(self.null_gap), "null_fold_gap": dict(self.null_fold_gap),
+                "sigma": {c: np.asarray(self.real.sigma[c]).tolist() for c in CHANNELS},
+                "session": {"name": self.real.session.name, "source": self.real.session.source,
+                            "samples": self.real.n, "rate_hz": self.real.session.rate},
+                "timing_s": dict(self.timing)}
+
+
+def load_effects(names=None) -> dict:
+    """name → Effect from `imugraph.diagnose.effects.EFFECTS` (empty when the library is absent).
+
+    Raises:
+        SessionError: a requested name is not in the library.
+    """
+    try:
+        from imugraph.diagnose.effects import EFFECTS
+    except ImportError:
+        EFFECTS = {}
+    if names is None:
+        return dict(EFFECTS)
+    from imugraph.errors import SessionError
+
+    missing = [n for n in names if n not in EFFECTS]
+    if missing:
+        raise SessionError("--effects", "effects", ", ".join(missing), f"names among {sorted(EFFECTS)}")
+    return {n: EFFECTS[n] for n in names}
+
+
+def null_fold_gap(null: Fit, sim: Fit, sigma: dict, folds: list, gap_opt: GapOptions) -> dict:
+    """channel → sample-weighted mean over the folds of the null gap (noise floor at fold size)."""
+    rate = null.session.rate
+    out = {c: 0.0 for c in CHANNELS}
+    total = sum(float(f.sum()) for f in folds) or 1.0
+    for f in folds:
+        g = gap(null.residuals, sim.residuals, sigma, rate, f, gap_opt)
+        for c in CHANNELS:
+            out[c] += g[c] * float(f.sum()) / total
+    return out
+
+
+def diagnose(session: Session, options: DiagnoseOptions = DiagnoseOptions(), effects: dict | None = None,
+             progress=None) -> Diagnosis:
+    """Diagnose one single-IMU session (module doc).
+
+    Args:
+        session: the recording (not modified).
+        options: settings.
+        effects: name → Effect to try; default `load_effects(options.effects)`.
+        progress: optional callable(str) for progress lines.
+
+    Raises:
+        SessionError / CalibrationError: the session cannot be fitted.
+    """
+    say = progress or (lambda _m: None)
+    timing = {}
+    t0 = time.perf_counter()
+    say("fitting the base model")
+    real = fit_base(session, base_options(options.keyframe_hz))
+    timing["fit_real"] = time.perf_counter() - t0
+    rng = np.random.default_rng(options.seed)
+    t1 = time.perf_counter()
+    say("simulating from the fit and fitting the simulations")
+    sim = fit_simulation(simulate_from_fit(real, rng, name=f"{session.name}_simA"), real)
+    null = fit_simulation(simulate_from_fit(real, rng, name=f"{session.name}_simB"), real)
+    timing["fit_simulations"] = time.perf_counter() - t1
+    t2 = time.perf_counter()
+    gap_opt = options.gap
+    g_real = gap(real.residuals, sim.residuals, real.sigma, session.rate, None, gap_opt)
+    g_null = gap(null.residuals, sim.residuals, real.sigma, session.rate, None, gap_opt)
+    curve_real = gap_curve(real.residuals, sim.residuals, real.sigma, session.t, gap_opt)
+    curve_null = gap_curve(null.residuals, sim.residuals, real.sigma, session.t, gap_opt)
+    curve, locations = localise(session.t, curve_real, curve_null, gap_opt)
+    folds = fold_masks(session.t, options.attribution)
+    g_null_fold = null_fold_gap(null, sim, real.sigma, folds, gap_opt)
+    timing["gap"] = time.perf_counter() - t2
+    say("gap " + ", ".join(f"{c} {g_real[c]:.3f} (null {g_null[c]:.3f})" for c in CHANNELS))
+    t3 = time.perf_counter()
+    lib = load_effects(options.effects) if effects is None else effects
+    hints = None
+    if options.window_hints:
+        hints = {}
+        for loc in locations:                     # best score first: keep the first per channel
+            hints.setdefault(loc["channel"], (loc["t_start"], loc["t_end"]))
+    results = attribute(real, sim, g_null_fold, lib, options.attribution, gap_opt, hints, say)
+    v = verdict(results, g_null_fold, options.attribution)
+    timing["attribution"] = time.perf_counter() - t3
+    after = None
+    if v != NONE:
+        best = lib[v]
+        window = (hints or {}).get(best.channel) if getattr(best, "windowed", False) else None
+        after = best.fit(real, np.ones(real.n, bool), window=window).residuals(real)
+    timing["total"] = time.perf_counter() - t0
+    say(f"verdict: {v} ({timing['total']:.1f} s)")
+    excess = {c: max(0.0, g_real[c] - g_null[c]) for c in CHANNELS}
+    return Diagnosis(v, excess, g_real, g_null, g_null_fold, locations, results, real, sim, curve, curve_null,
+                     after, timing)
+
+
+def best_result(diag: Diagnosis) -> EffectResult | None:
+    """The winning effect's result (None when the verdict is "none")."""
+    for r in diag.effects:
+        if r.name == diag.verdict:
+            return r
+    return None

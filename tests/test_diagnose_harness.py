@@ -1,0 +1,53 @@
+"""The diagnosis' validation harness (imugraph.diagnose.harness): bookkeeping with a stub diagnoser, and
+a small blind run of the real diagnoser (one simulated and one BROAD case; the BROAD one skips without
+the data)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from imugraph.diagnose.bench import broad_sessions, simulated_session
+from imugraph.diagnose.harness import format_report, run_harness
+
+
+def test_harness_bookkeeping_with_stub_diagnoser():
+    sessions = [simulated_session(0, 15.0, 50.0)]
+    seen = []
+
+    def stub(session):
+        seen.append(session)
+        # a diagnoser that always answers "vibration" over [2, 6] s with shrink 0.9
+        return {"verdict": "vibration", "gap": {}, "effects": [
+            {"name": "vibration", "t_start": 2.0, "t_end": 6.0, "shrink": 0.9}]}
+
+    rep = run_harness(sessions, ["vibration", "accelerometer_bias"], 2, np.random.default_rng(0),
+                      diagnose_fn=stub)
+    assert rep["n_injected"] == 4 and rep["n_clean"] == 1
+    assert rep["confusion"]["vibration"]["vibration"] == 2
+    assert rep["confusion"]["accelerometer_bias"]["vibration"] == 2
+    assert rep["top1"] == pytest.approx(0.5) and rep["clean_flagged"] == 1
+    assert rep["iou"]["n"] == 2 and all(0.0 <= c["iou"] <= 1.0 for c in rep["cases"] if c["iou"] is not None)
+    assert rep["shrink"]["median"] == pytest.approx(0.9)
+    for s in seen:                                  # the label is hidden from the diagnoser
+        assert "vibration" not in s.name and "accelerometer" not in s.name and "injected" not in s.meta
+    text = format_report(rep)
+    assert "confusion matrix" in text and "top-1: 50 %" in text
+
+
+def test_harness_small_blind_run_on_simulation():
+    pytest.importorskip("imugraph.diagnose.run")
+    rep = run_harness([simulated_session(7, 30.0, 100.0)], ["vibration"], 1, np.random.default_rng(3),
+                      clean=False)
+    case = rep["cases"][0]
+    assert case["verdict"] == "vibration", case
+    assert case["iou"] is not None and case["iou"] > 0.7
+
+
+def test_harness_small_blind_run_on_broad(data_dir):
+    pytest.importorskip("imugraph.diagnose.run")
+    sessions = broad_sessions(["01"], 20.0, str(data_dir))
+    if not sessions:
+        pytest.skip("BROAD trial 01 is absent")
+    rep = run_harness(sessions, ["linear_acceleration"], 1, np.random.default_rng(1), clean=False)
+    assert rep["cases"][0]["verdict"] == "linear_acceleration", rep["cases"][0]
