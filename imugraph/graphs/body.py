@@ -1,0 +1,261 @@
+"""Multi-IMU body motion capture as one factor graph (Kok, Hol & Schön, IFAC 2014), batch solver.
+
+Graph (factors (B1)–(B5) in imugraph.factors.body): per sensed segment s and keyframe k the sensor pose
+X(s,k) = nTs and velocity V(s,k); one IMU bias B(s) per sensor; per joint j (between sensed segments, see
+imugraph.graphs.body_model) and keyframe k the joint centre J(j,k); per (sensor, joint) one lever arm l,
+constant in time, with a prior around the nominal placement (the sensor-to-segment position factor).
+
+    minimise  Σ_s,k ‖IMU(B1)‖² + Σ_j,k ‖J − nTs_P l_P‖² + ‖J − nTs_C l_C‖²  (hard: constrained, B2)
+              + Σ ‖l − l_nom‖²/σ_l² (B3) + bias priors + gauge + [hinges (B4)] + [magnetometers (B5)]
+
+Gauge: the root sensor's position (0) and heading at k = 0 (σ 1e-3 rad); every other sensor a weak heading
+prior (σ 1 rad) at k = 0 from the N-pose assumption; without magnetometers the relative headings are then
+made observable by the joints as the subject moves (tests/test_body_graph.py starts the non-root sensors
+20–30° off in heading and checks they are recovered).
+
+Sensor-to-segment rotation bRs: from the static N-pose (segments world-aligned, facing the body's forward
+heading ψ = heading of (J_leftHip − J_rightHip) × z): bRs = Rz(ψ)ᵀ nRs(N-pose), see body_output.
+
+Solver: with C++ factors only, gtsam's LevenbergMarquardtOptimizer (COLAMD). With hinge CustomFactors a
+Python-driven LM (GTSAM_NOTES: the C++ optimizers copy the Values into every Python callback, O(N²)); hinges
+need bRs, so they are added in a second pass after a first solve without them.
+
+Choices, measured on imugraph.sim.body sessions (17 IMUs, random placements ≤ 30°, MEMS noise and bias;
+"worst" = largest RMS error of a parent→child relative rotation, relpos = segment origins vs the pelvis;
+these comparisons ran with gyro_bias_sigma 0.02, before it became 0.002, see `BodyOptions`):
+- Joints stiff-soft, σ = 3 mm, not hard: with noiseModel.Constrained gtsam's LM made 0 iterations on a
+  4-sensor chain (every trial step costs inf: the nonlinear constraint never holds exactly after a linear
+  step). Xsens walk 25 s: σ 1 mm → worst 4.03°, relpos 0.69 cm; 3 mm → 4.01°, 0.82 cm; 10 mm → 5.02°,
+  1.08 cm; 30 mm → 7.06°, 1.28 cm (the worst joints are upper-body ones that barely move in that walk).
+- Keyframes every 6 samples (10 Hz at 60 Hz): 12 was 2× faster on the walk (9.3 s vs 17.3 s, same
+  accuracy) but failed on the fast CMU 131_01 motion (worst 15–20°).
+- integration_sigma 1e-2 (position integration noise, `BodyOptions`): 1e-4 on the walk took 30 LM
+  iterations (78 s) for the same accuracy as 1e-2 (11 iterations); ≥ 0.3 decouples position from velocity
+  and lets the world heading drift (relpos 3.5 cm).
+- COLAMD ordering: 9.3 s vs 19.0 s with METIS (walk, 25 s). LM relative tolerance 1e-3: on a 20 s walk the
+  cost plateaus after 4 iterations (125.5 → 124.8 in 35 more, accuracy unchanged).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import gtsam
+import numpy as np
+
+from imugraph.errors import SessionError
+from imugraph.factors import body as bf
+from imugraph.graphs.body_init import initial_orientations, initial_values, nominal_levers
+from imugraph.graphs.body_model import (BodyJoint, BodyOptions, body_joints, check_session,  # noqa: F401
+                                        keyframes, npose_samples, sensor_setup)
+from imugraph.graphs.body_output import BodyResult  # noqa: F401  (re-exported: the public result type)
+
+
+@dataclass
+class BodyProblem:
+    """Everything needed to emit the graph keyframe by keyframe (batch and incremental share it)."""
+    session: object
+    skel: object
+    opts: BodyOptions
+    names: list            # sensed segments, topological order, names[0] = root
+    joints: list           # BodyJoint
+    setups: dict           # name -> SensorSetup
+    levers: list           # (segment, joint index, nominal s_l)
+    kf: np.ndarray         # keyframe sample indices
+    npose_idx: np.ndarray
+    npose_method: str
+    pims: dict             # name -> list of PreintegratedImuMeasurements (len K-1)
+    init: gtsam.Values
+    bRs_fixed: dict | None = None      # for hinge factors (second pass)
+    mag_dirs: dict | None = None       # per-sensor field direction n_m(s) (use_mag)
+
+    @property
+    def kf_t(self) -> np.ndarray:
+        return np.asarray(self.session.t, float)[self.kf]
+
+    @property
+    def K(self) -> int:
+        return int(self.kf.size)
+
+
+def build_problem(session, opts: BodyOptions = BodyOptions()) -> BodyProblem:
+    """Set up the body problem: joints, noise, N-pose, preintegration, initial values."""
+    check_session(session)
+    skel = session.skeleton
+    if skel is None:
+        raise SessionError(session.source, "skeleton", "None", "a Skeleton (imugraph.body.skeleton)")
+    names = sorted(skel.sensed, key=skel.index)
+    if skel.index(names[0]) != 0:
+        raise SessionError(session.source, "skeleton.sensed", f"root '{skel.names[0]}' unsensed", "a sensed root")
+    joints = body_joints(skel) if opts.use_joints else []
+    npose_idx, method = npose_samples(session, opts)
+    setups = sensor_setup(session, skel, opts, npose_idx)
+    kf = keyframes(session.t.size, opts.keyframe_every)
+    init_mag = opts.init_heading_from_mag
+    if init_mag is None:
+        init_mag = opts.use_mag or all(np.all(np.isfinite(session.sensors[n].mag[npose_idx]), axis=1).any() for n in names)
+    nRs = initial_orientations(session, names, setups, npose_idx, np.deg2rad(opts.npose_heading_deg), init_mag)
+    levers = nominal_levers(joints, setups)
+    t = np.asarray(session.t, float)
+    init = initial_values(names, joints, levers, {n: nRs[n][kf] for n in names}, t[kf], setups)
+    pims = {}
+    for name in names:
+        s, st = session.sensors[name], setups[name]
+        prm = bf.imu_params(opts.g, st.sigma_gyr, st.sigma_acc, float(np.median(s.dt)), opts.integration_sigma)
+        bias = gtsam.imuBias.ConstantBias(np.zeros(3), st.gyro_bias0)
+        pims[name] = bf.preintegrate(s.gyr, s.acc, s.dt, kf, prm, bias)
+    return BodyProblem(session, skel, opts, names, joints, setups, levers, kf, npose_idx, method, pims, init)
+
+
+def _joint_model(pb: BodyProblem, jt: BodyJoint):
+    if jt.lumped:
+        return gtsam.noiseModel.Isotropic.Sigma(3, pb.opts.lumped_joint_sigma_m)
+    if pb.opts.joint_sigma_m is None:
+        return gtsam.noiseModel.Constrained.All(3)
+    return gtsam.noiseModel.Isotropic.Sigma(3, pb.opts.joint_sigma_m)
+
+
+def _mag_direction(pb: BodyProblem, name: str, values: gtsam.Values) -> np.ndarray:
+    """Per-sensor field direction n_m(s): N-pose mean of nRs·b_mag/|b_mag| at the initial orientations."""
+    s = pb.names.index(name)
+    mag = pb.session.sensors[name].mag
+    acc = []
+    for k in range(pb.K):
+        i = pb.kf[k]
+        if i > pb.npose_idx[-1]:
+            break
+        if np.all(np.isfinite(mag[i])):
+            acc.append(values.atPose3(bf.pose_key(s, k)).rotation().matrix() @ (mag[i] / np.linalg.norm(mag[i])))
+    d = np.mean(acc, axis=0) if acc else np.array([1.0, 0.0, 0.0])
+    return d / np.linalg.norm(d)
+
+
+def factors_at(pb: BodyProblem, k: int) -> gtsam.NonlinearFactorGraph:
+    """All factors whose newest keyframe is k (k = 0 also carries the priors on global variables)."""
+    o = pb.opts
+    g = gtsam.NonlinearFactorGraph()
+    if k == 0:
+        for s, name in enumerate(pb.names):
+            st = pb.setups[name]
+            g.add(gtsam.PriorFactorConstantBias(bf.bias_key(s), gtsam.imuBias.ConstantBias(np.zeros(3), st.gyro_bias0),
+                  gtsam.noiseModel.Diagonal.Sigmas(np.r_[np.full(3, o.acc_bias_sigma), np.full(3, o.gyro_bias_sigma)])))
+            T0 = pb.init.atPose3(bf.pose_key(s, 0))
+            if s == 0:
+                g.add(bf.yaw_information_prior(bf.pose_key(s, 0), T0, 1e-3, o.root_heading_sigma_rad, o.tilt_sigma_rad))
+            else:
+                yaw = o.heading_sigma_rad if o.heading_sigma_rad is not None else 1e3
+                g.add(bf.yaw_information_prior(bf.pose_key(s, 0), T0, 10.0, yaw, o.tilt_sigma_rad))
+            g.add(gtsam.PriorFactorVector(bf.vel_key(s, 0), np.zeros(3),
+                                          gtsam.noiseModel.Isotropic.Sigma(3, o.start_velocity_sigma)))
+        if o.lever_sigma_m is not None:
+            lever_model = gtsam.noiseModel.Isotropic.Sigma(3, o.lever_sigma_m)
+            for i, (_, _, l_nom) in enumerate(pb.levers):
+                g.add(gtsam.PriorFactorPoint3(bf.lever_key(i), l_nom, lever_model))
+        if o.use_mag:
+            pb.mag_dirs = {n: _mag_direction(pb, n, pb.init) for n in pb.names}
+    else:
+        for s, name in enumerate(pb.names):
+            g.add(gtsam.ImuFactor(bf.pose_key(s, k - 1), bf.vel_key(s, k - 1), bf.pose_key(s, k), bf.vel_key(s, k),
+                                  bf.bias_key(s), pb.pims[name][k - 1]))
+    lever_index = {(seg, j): i for i, (seg, j, _) in enumerate(pb.levers)}
+    for j, jt in enumerate(pb.joints):
+        P, C = pb.names.index(jt.parent), pb.names.index(jt.child)
+        for f in bf.joint_factors(bf.joint_key(j, k), bf.pose_key(P, k), bf.lever_key(lever_index[(jt.parent, j)]),
+                                  bf.pose_key(C, k), bf.lever_key(lever_index[(jt.child, j)]), _joint_model(pb, jt)):
+            g.add(f)
+    if o.use_mag:
+        model = gtsam.noiseModel.Isotropic.Sigma(3, o.mag_sigma)
+        for s, name in enumerate(pb.names):
+            m = pb.session.sensors[name].mag[pb.kf[k]]
+            if np.all(np.isfinite(m)) and np.linalg.norm(m) > 0:
+                g.add(bf.mag_factor(bf.pose_key(s, k), m / np.linalg.norm(m), 1.0, pb.mag_dirs[name], model))
+    if pb.bRs_fixed is not None:
+        hm = gtsam.noiseModel.Isotropic.Sigma(2, o.hinge_sigma_rad)
+        for jt in pb.joints:
+            if jt.child in o.hinges:
+                P, C = pb.names.index(jt.parent), pb.names.index(jt.child)
+                g.add(bf.hinge_factor(hm, bf.pose_key(P, k), bf.pose_key(C, k),
+                                      pb.bRs_fixed[jt.parent].T, pb.bRs_fixed[jt.child].T))
+    return g
+
+
+def full_graph(pb: BodyProblem) -> gtsam.NonlinearFactorGraph:
+    g = gtsam.NonlinearFactorGraph()
+    for k in range(pb.K):
+        g.push_back(factors_at(pb, k))
+    return g
+
+
+def python_lm(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, max_iterations: int, rel_tol: float,
+              ordering: gtsam.Ordering) -> tuple[gtsam.Values, int]:
+    """Levenberg–Marquardt driven from Python (for graphs with CustomFactors): (A + λI)δ = b per iteration."""
+    x, cost, lam = gtsam.Values(values), graph.error(values), 1e-3
+    dims = [(key, bf.key_dim(key)) for key in values.keys()]
+    it = 0
+    for it in range(1, max_iterations + 1):
+        gfg = graph.linearize(x)
+        while True:
+            damped = gtsam.GaussianFactorGraph()
+            damped.push_back(gfg)
+            for key, d in dims:
+                damped.push_back(gtsam.JacobianFactor(key, np.sqrt(lam) * np.eye(d), np.zeros(d),
+                                                      gtsam.noiseModel.Unit.Create(d)))
+            x_new = x.retract(damped.optimize(ordering))
+            new = graph.error(x_new)
+            if new <= cost or lam > 1e8:
+                break
+            lam *= 10.0
+        if new > cost:
+            break
+        done = cost - new <= rel_tol * max(cost, 1e-300)
+        x, cost, lam = x_new, new, max(lam / 10.0, 1e-9)
+        if done:
+            break
+    return x, it
+
+
+def optimize(pb: BodyProblem, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values) -> tuple[gtsam.Values, dict]:
+    """LM on the body graph: gtsam's C++ optimizer, or the Python loop when hinge CustomFactors are present."""
+    t0 = time.perf_counter()
+    if pb.bRs_fixed is not None and pb.opts.hinges:
+        ordering = (gtsam.Ordering.MetisNonlinearFactorGraph if pb.opts.ordering == "metis"
+                    else gtsam.Ordering.ColamdNonlinearFactorGraph)(graph)
+        x, iters = python_lm(graph, values, pb.opts.max_iterations, pb.opts.relative_tol, ordering)
+    else:
+        prm = gtsam.LevenbergMarquardtParams()
+        prm.setMaxIterations(pb.opts.max_iterations)
+        prm.setRelativeErrorTol(pb.opts.relative_tol)
+        prm.setOrderingType(pb.opts.ordering.upper())
+        prm.setlambdaInitial(1e-2)       # smaller λ: the near-free global translation makes the
+        prm.setlambdaLowerBound(1e-3)    # undamped system numerically indefinite (rejected trial steps)
+        opt = gtsam.LevenbergMarquardtOptimizer(graph, values, prm)
+        x = opt.optimize()
+        iters = opt.iterations()
+    return x, {"iterations": int(iters), "cost_initial": float(graph.error(values)),
+               "cost_final": float(graph.error(x)), "seconds": time.perf_counter() - t0}
+
+
+def solve_body_incremental(session, opts: BodyOptions = BodyOptions(), lag_s: float | None = None, **kwargs):
+    """iSAM2 (lag_s None) or fixed-lag smoothing on the same graph: imugraph.graphs.body_incremental."""
+    from imugraph.graphs.body_incremental import solve_body_incremental as run
+    return run(session, opts, lag_s, **kwargs)
+
+
+def solve_body_batch(session, opts: BodyOptions = BodyOptions()) -> BodyResult:
+    """Batch LM over the whole session: a `BodyResult` with all skeleton segments at every input sample."""
+    from imugraph.graphs.body_output import estimate_placements, make_result
+    t0 = time.perf_counter()
+    pb = build_problem(session, opts)
+    t_build = time.perf_counter() - t0
+    graph = full_graph(pb)
+    x, info = optimize(pb, graph, pb.init)
+    passes = [info]
+    if opts.hinges:
+        pb.bRs_fixed = {n: p[0] for n, p in estimate_placements(pb, x)[0].items()}
+        graph = full_graph(pb)
+        x, info2 = optimize(pb, graph, x)
+        passes.append(info2)
+    info = {"build_s": t_build, "passes": passes, "keyframes": pb.K, "npose": pb.npose_method,
+            "factors": int(graph.size()), "solve_s": sum(p["seconds"] for p in passes)}
+    return make_result(pb, x, info)

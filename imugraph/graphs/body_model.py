@@ -1,0 +1,189 @@
+"""Options, joints and per-sensor set-up of the body estimator (imugraph.graphs.body).
+
+Joints connect sensed segments only. A sensed child C whose nearest sensed ancestor P is not its parent
+(unsensed links between, e.g. L5, L3, T12 between Pelvis and T8; Neck between T8 and Head) gets one lumped
+joint at C's origin; its parent-side position is the chain's summed neutral-pose offsets (in the neutral
+pose every segment frame is world-aligned, so offsets add). Lumped joints are softer (the chain bends).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from imugraph.calibration.rest import MIN_REST, detect_rest, noise_from_rest
+from imugraph.errors import SessionError
+
+
+@dataclass(frozen=True)
+class BodyOptions:
+    """Settings of the body estimator (defaults chosen by measurement, see imugraph.graphs.body).
+
+    Attributes:
+        keyframe_every: one state per this many samples; IMU preintegrated between keyframes.
+        joint_sigma_m: joint (B2) noise, m; None = hard (noiseModel.Constrained).
+        lumped_joint_sigma_m: joint noise of lumped joints (unsensed links between), m.
+        lever_sigma_m: prior σ of the lever arms around the nominal placement (B3), m; None: no prior
+            (ablation: the sensor-to-segment position factors dropped).
+        use_joints: False drops the joint factors (B2) and lever arms (ablation: independent sensors).
+        gyro_noise, acc_noise: per-sample noise σ (rad/s, m/s²); None: from the N-pose rest (floored).
+        integration_sigma: preintegration's position-integration noise density (gtsam integrationCovariance
+            = σ² I): the discrete model p+ = p + v dt + ½ a dt² misses O(jerk dt³) terms on fast limbs.
+        gyro_bias_sigma, acc_bias_sigma: bias prior σ around the N-pose estimate (gyro: mean rate at rest;
+            acc: 0). 0.002 rad/s (≈ 0.1 °/s, run-to-N-pose change of a MEMS gyro): with 0.02 the biases
+            absorbed model errors (estimates 0.01 rad/s off while the N-pose mean was within 0.001) and the
+            relative headings of little-moving segments drifted — walk, no magnetometer: worst joint 4.53° →
+            0.92°; CMU 131_01: 5.71° → 2.69° (seed 7), 2.80° → 2.85° (seed 3).
+        root_heading_sigma_rad: gauge: heading prior of the root sensor at k = 0.
+        heading_sigma_rad: weak heading prior of every other sensor at k = 0 (None: none).
+        tilt_sigma_rad: tilt prior σ at k = 0 (weak: the accelerometers see tilt).
+        start_velocity_sigma: velocity prior at k = 0 (the N-pose is static), m/s.
+        npose: (t_start, t_end) of the static N-pose in s; None: detected by rest detection at the start.
+        npose_heading_deg: forward heading in the N-pose when the hips cannot tell it (no hip joints).
+        placements: nominal {segment: (bRs (3,3), b_pos (3,))}; missing: bRs = I, b_pos = mid-segment.
+        use_mag: magnetometer factors (B5) with a per-sensor field direction from the N-pose.
+        mag_sigma: σ of the normalised field direction (unitless, per axis).
+        init_heading_from_mag: initial sensor headings from the magnetometers (no magnetometer factors);
+            None: when use_mag, or when every sensor has magnetometer samples in the N-pose.
+        hinges: segments (children) whose joint is a hinge about the lateral axis (B4), e.g. ("RightLowerLeg",).
+        hinge_sigma_rad: σ of the hinge residual.
+        g: gravity, m/s².
+        max_iterations, relative_tol: LM stopping.
+        ordering: "colamd" or "metis".
+    """
+
+    keyframe_every: int = 6
+    joint_sigma_m: float | None = 0.003
+    lumped_joint_sigma_m: float = 0.02
+    lever_sigma_m: float | None = 0.07
+    use_joints: bool = True
+    gyro_noise: float | None = None
+    acc_noise: float | None = None
+    integration_sigma: float = 1e-2
+    gyro_bias_sigma: float = 0.002
+    acc_bias_sigma: float = 0.2
+    root_heading_sigma_rad: float = 1e-3
+    heading_sigma_rad: float | None = 1.0
+    tilt_sigma_rad: float = 0.5
+    start_velocity_sigma: float = 0.05
+    npose: tuple | None = None
+    npose_heading_deg: float = 0.0
+    placements: dict = field(default_factory=dict)
+    use_mag: bool = False
+    init_heading_from_mag: bool | None = None
+    mag_sigma: float = 0.05
+    hinges: tuple = ()
+    hinge_sigma_rad: float = 0.05
+    g: float = 9.81
+    max_iterations: int = 30
+    relative_tol: float = 1e-3
+    ordering: str = "colamd"
+
+
+@dataclass(frozen=True)
+class BodyJoint:
+    """A joint between two sensed segments: centre at the child's origin.
+
+    b_parent: joint centre in the parent SEGMENT frame (summed offsets), m; b_child: in the child's (0).
+    """
+    name: str
+    parent: str
+    child: str
+    b_parent: np.ndarray
+    b_child: np.ndarray
+    lumped: bool
+
+
+def body_joints(skel) -> list[BodyJoint]:
+    """Joints between sensed segments (topological order), lumping unsensed links (module docstring)."""
+    sensed = set(skel.sensed)
+    out = []
+    for i, name in enumerate(skel.names):
+        if name not in sensed or skel.parents[i] < 0:
+            continue
+        off = np.array(skel.offsets[i], float)
+        p = skel.parents[i]
+        lumped = False
+        while p >= 0 and skel.names[p] not in sensed:
+            off = off + np.asarray(skel.offsets[p], float)
+            p = skel.parents[p]
+            lumped = True
+        if p < 0:
+            raise SessionError("skeleton", f"sensed[{name}]", "no sensed ancestor", "a sensed root segment")
+        out.append(BodyJoint(f"{skel.names[p]}-{name}", skel.names[p], name, off, np.zeros(3), lumped))
+    return out
+
+
+@dataclass
+class SensorSetup:
+    """Per-sensor quantities derived from the session before building the graph."""
+    name: str
+    sigma_gyr: np.ndarray
+    sigma_acc: np.ndarray
+    gyro_bias0: np.ndarray
+    bRs_nom: np.ndarray
+    b_pos_nom: np.ndarray
+
+
+def npose_samples(session, opts: BodyOptions) -> tuple[np.ndarray, str]:
+    """Indices of the static N-pose: opts.npose window, or the common rest run at the start of all sensors."""
+    t = np.asarray(session.t, float)
+    if opts.npose is not None:
+        t0, t1 = opts.npose
+        idx = np.flatnonzero((t >= t0) & (t <= t1))
+        if idx.size == 0:
+            raise SessionError(session.source, "npose", f"{opts.npose}", f"a window inside [{t[0]}, {t[-1]}] s")
+        return idx, "given"
+    rest = np.ones(t.size, bool)
+    for s in session.sensors.values():
+        rest &= detect_rest(s)
+    # the first common rest run that starts within 0.5 s (window edges may flag the very first samples)
+    start = np.flatnonzero(rest[: max(1, int(np.searchsorted(t, t[0] + 0.5)))])
+    if start.size:
+        i0 = int(start[0])
+        i1 = i0 + (int(np.argmin(rest[i0:])) if not rest[i0:].all() else rest.size - i0)
+        if i1 - i0 >= MIN_REST:
+            return np.arange(i0, i1), "detected"
+    return np.arange(min(t.size, MIN_REST)), "assumed"
+
+
+def sensor_setup(session, skel, opts: BodyOptions, npose_idx: np.ndarray) -> dict[str, SensorSetup]:
+    """Noise levels and gyro bias from the N-pose rest, nominal placements."""
+    mask = np.zeros(session.t.size, bool)
+    mask[npose_idx] = True
+    out = {}
+    for name in skel.sensed:
+        if name not in session.sensors:
+            raise SessionError(session.source, "sensors", f"no sensor for '{name}'", "one sensor per sensed segment")
+        s = session.sensors[name]
+        noise = noise_from_rest(s, mask)
+        sg = np.full(3, opts.gyro_noise) if opts.gyro_noise is not None else np.maximum(noise["gyr"], 1e-3)
+        sa = np.full(3, opts.acc_noise) if opts.acc_noise is not None else np.maximum(noise["acc"], 1e-2)
+        i = skel.index(name)
+        bRs, b_pos = opts.placements.get(name, (np.eye(3), 0.5 * np.asarray(skel.ends[i], float)))
+        out[name] = SensorSetup(name, sg, sa, np.asarray(noise["gyro_bias"], float), np.asarray(bRs, float),
+                                np.asarray(b_pos, float))
+    return out
+
+
+def keyframes(n: int, every: int) -> np.ndarray:
+    """Keyframe sample indices: every `every`-th sample, the last sample always included."""
+    kf = np.arange(0, n, max(1, int(every)))
+    return kf if kf[-1] == n - 1 else np.append(kf, n - 1)
+
+
+def check_session(session) -> None:
+    """Common time base and sample counts (SessionError otherwise)."""
+    t = np.asarray(session.t, float)
+    if t.ndim != 1 or t.size < 3 or np.any(np.diff(t) <= 0):
+        raise SessionError(session.source, "t", f"shape {t.shape}", "(N,) strictly increasing times, N ≥ 3")
+    for name, s in session.sensors.items():
+        if s.t.shape != t.shape or np.max(np.abs(s.t - t)) > 1e-6:
+            raise SessionError(session.source, f"sensors[{name}].t", f"{s.t.shape[0]} samples",
+                               f"the session's {t.size} common sample times")
+        for ch in ("gyr", "acc"):
+            x = getattr(s, ch)
+            if x.shape != (t.size, 3) or not np.all(np.isfinite(x)):
+                raise SessionError(session.source, f"sensors[{name}].{ch}", f"shape {x.shape} or non-finite",
+                                   f"({t.size}, 3) finite values")

@@ -1,0 +1,176 @@
+"""From a solved body graph to segment orientations and positions at every input sample.
+
+1. N-pose heading ψ: the body faces (J_LeftHip − J_RightHip) × z at the N-pose (x forward, y left, z up);
+   without both hips, `npose_heading_deg`.
+2. Sensor-to-segment rotation: in the N-pose nRb = Rz(ψ), so bRs = Rz(ψ)ᵀ nRs, averaged over the N-pose
+   keyframes (chordal mean: SVD projection of the summed matrices). Sensor origin on its segment:
+   b_pos = b_joint − bRs l, averaged over the sensor's joints.
+3. Per sample between keyframes a and b: the gyro (minus the estimated bias) integrated forward from a and
+   backward from b, blended by slerp with u = (i − a)/(b − a) (continuous at both keyframes).
+4. Segments: nRb = nRs bRsᵀ; unsensed ones via imugraph.body.skeleton.fill_unsensed (fallback: the nearest
+   sensed ancestor's orientation); root origin = p_s + nRs (sRb (0 − b_pos)) with p_s Hermite-interpolated from
+   keyframe positions and velocities; the other origins by forward kinematics with the skeleton's offsets.
+5. Output frame: the graph's frame is fixed by the gauge (root sensor heading from its nominal placement),
+   which is off by the unknown placement heading; the output is turned about z by Rz(ψ₀ − ψ) so that the body
+   faces ψ₀ = `npose_heading_deg` in the N-pose (the MVN convention: facing +x), with or without magnetometers.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import gtsam
+import numpy as np
+
+from imugraph.factors import body as bf
+from imugraph.geometry import quat_conj, quat_mul, quat_slerp, quat_to_rotmat, rotmat_to_quat, rotvec_to_quat
+from imugraph.graphs.body_init import rz
+
+
+@dataclass(frozen=True)
+class BodyResult:
+    """Estimated body motion.
+
+    t (N,); names: all skeleton segments; n_quat (N, S, 4) segment → nav (w,x,y,z); n_pos (N, S, 3)
+    segment origins, m; placements {sensed segment: {"bRs": (3,3), "b_pos": (3,)}}; info: solver details
+    (timing, iterations, keyframe times, sensor biases, joint centres per keyframe, ...).
+    """
+    t: np.ndarray
+    names: tuple
+    n_quat: np.ndarray
+    n_pos: np.ndarray
+    placements: dict
+    info: dict = field(default_factory=dict)
+
+
+def project_so3(M: np.ndarray) -> np.ndarray:
+    U, _, Vt = np.linalg.svd(M)
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
+    return U @ D @ Vt
+
+
+def _joint_index(pb, child: str) -> int | None:
+    for j, jt in enumerate(pb.joints):
+        if jt.child == child:
+            return j
+    return None
+
+
+def npose_heading(pb, x: gtsam.Values, kfs: np.ndarray) -> float:
+    """ψ of the N-pose from the hip joint centres (see module docstring), else the option."""
+    jl, jr = _joint_index(pb, "LeftUpperLeg"), _joint_index(pb, "RightUpperLeg")
+    if jl is None or jr is None:
+        return float(np.deg2rad(pb.opts.npose_heading_deg))
+    d = np.mean([x.atPoint3(bf.joint_key(jl, k)) - x.atPoint3(bf.joint_key(jr, k)) for k in kfs], axis=0)
+    f = np.cross(d, [0.0, 0.0, 1.0])            # left × up = forward
+    return float(np.arctan2(f[1], f[0]))
+
+
+def estimate_placements(pb, x: gtsam.Values) -> tuple[dict, float]:
+    """({segment: (bRs, b_pos)}, ψ) from the solution (module docstring, steps 1–2)."""
+    kfs = np.array([k for k in np.flatnonzero(pb.kf <= pb.npose_idx[-1]) if x.exists(bf.pose_key(0, k))], int)
+    kfs = kfs if kfs.size else np.array([0])            # (incremental: the N-pose keyframes seen so far)
+    psi = npose_heading(pb, x, kfs)
+    out = {}
+    for s, name in enumerate(pb.names):
+        M = sum(rz(psi).T @ x.atPose3(bf.pose_key(s, k)).rotation().matrix() for k in kfs)
+        bRs = project_so3(M)
+        b = [jt.b_parent if jt.parent == name else jt.b_child for jt in pb.joints if name in (jt.parent, jt.child)]
+        ls = [x.atPoint3(bf.lever_key(i)) for i, (seg, j, _) in enumerate(pb.levers) if seg == name]
+        b_pos = np.mean([bj - bRs @ l for bj, l in zip(b, ls)], axis=0) if ls else pb.setups[name].b_pos_nom
+        out[name] = (bRs, b_pos)
+    return out, psi
+
+
+def sample_orientations(pb, x: gtsam.Values, s: int, name: str, bias_gyr: np.ndarray) -> np.ndarray:
+    """(N, 4) nRs at every sample: forward/backward gyro integration between keyframes, slerp-blended."""
+    sess = pb.session.sensors[name]
+    N = sess.t.size
+    dq = rotvec_to_quat((sess.gyr - bias_gyr) * sess.dt[:, None])           # Exp((ω_i − b) dt_i)
+    q_kf = rotmat_to_quat(np.stack([x.atPose3(bf.pose_key(s, k)).rotation().matrix() for k in range(pb.K)]))
+    out = np.empty((N, 4))
+    out[pb.kf] = q_kf
+    a, b = pb.kf[:-1], pb.kf[1:]
+    L = b - a
+    for length in np.unique(L):                        # intervals of equal length, vectorised
+        sel = np.flatnonzero(L == length)
+        a_s = a[sel]
+        fwd = [q_kf[sel]]                              # q_{a+m} = q_a ⊗ Π_{i<a+m} Exp((ω_i − b) dt_i)
+        for m in range(1, length):
+            fwd.append(quat_mul(fwd[-1], dq[a_s + m - 1]))
+        bwd = [None] * (length + 1)
+        bwd[length] = q_kf[sel + 1]                    # q_{a+m} = q_b ⊗ (Π_{a+m ≤ i < b} Exp(...))⁻¹
+        for m in range(length - 1, 0, -1):
+            bwd[m] = quat_mul(bwd[m + 1], quat_conj(dq[a_s + m]))
+        for m in range(1, length):
+            out[a_s + m] = quat_slerp(fwd[m], bwd[m], np.full(sel.size, m / length))
+    return out
+
+
+def _hermite(t: np.ndarray, kf_t: np.ndarray, p: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Cubic Hermite interpolation of keyframe positions p with velocities v at times t."""
+    i = np.clip(np.searchsorted(kf_t, t, side="right") - 1, 0, kf_t.size - 2)
+    h = kf_t[i + 1] - kf_t[i]
+    u = ((t - kf_t[i]) / h)[:, None]
+    h00, h10, h01, h11 = 2 * u**3 - 3 * u**2 + 1, u**3 - 2 * u**2 + u, -2 * u**3 + 3 * u**2, u**3 - u**2
+    return h00 * p[i] + h10 * h[:, None] * v[i] + h01 * p[i + 1] + h11 * h[:, None] * v[i + 1]
+
+
+def fill_segments(skel, n_quat_sensed: dict) -> np.ndarray:
+    """(N, S, 4) for all segments: the skeleton module's fill_unsensed, else nearest sensed ancestor."""
+    try:
+        from imugraph.body.skeleton import fill_unsensed
+        return fill_unsensed(skel, n_quat_sensed)
+    except ImportError:
+        pass
+    N = next(iter(n_quat_sensed.values())).shape[0]
+    out = np.empty((N, len(skel.names), 4))
+    for i, name in enumerate(skel.names):
+        j = i
+        while skel.names[j] not in n_quat_sensed:
+            j = skel.parents[j]
+        out[:, i] = n_quat_sensed[skel.names[j]]
+    return out
+
+
+def forward_kinematics(skel, n_quat: np.ndarray, n_root: np.ndarray) -> np.ndarray:
+    """(N, S, 3) segment origins: p_i = p_parent + nRb_parent · offset_i."""
+    R = quat_to_rotmat(n_quat)
+    p = np.empty(n_quat.shape[:2] + (3,))
+    for i, par in enumerate(skel.parents):
+        p[:, i] = n_root if par < 0 else p[:, par] + R[:, par] @ np.asarray(skel.offsets[i], float)
+    return p
+
+
+def make_result(pb, x: gtsam.Values, info: dict) -> BodyResult:
+    """BodyResult at every input sample (module docstring, steps 1–4)."""
+    place, psi = estimate_placements(pb, x)
+    t = np.asarray(pb.session.t, float)
+    q_seg, biases = {}, {}
+    for s, name in enumerate(pb.names):
+        bias = x.atConstantBias(bf.bias_key(s))
+        biases[name] = {"acc": np.asarray(bias.accelerometer()), "gyr": np.asarray(bias.gyroscope())}
+        q_s = sample_orientations(pb, x, s, name, biases[name]["gyr"])
+        q_seg[name] = quat_mul(q_s, quat_conj(rotmat_to_quat(place[name][0])))     # nRb = nRs bRsᵀ
+        if s == 0:
+            root_q = q_s
+    n_quat = fill_segments(pb.skel, q_seg)
+    nRg = rz(np.deg2rad(pb.opts.npose_heading_deg) - psi)                    # graph frame → output frame (step 5)
+    q_out = rotmat_to_quat(nRg)
+    n_quat = quat_mul(np.broadcast_to(q_out, n_quat.shape), n_quat)
+    kf_t = t[pb.kf]
+    p_kf = np.stack([x.atPose3(bf.pose_key(0, k)).translation() for k in range(pb.K)])
+    v_kf = np.stack([x.atVector(bf.vel_key(0, k)) for k in range(pb.K)])
+    p_s = _hermite(t, kf_t, p_kf, v_kf)
+    bRs, b_pos = place[pb.names[0]]
+    n_root = (p_s + quat_to_rotmat(root_q) @ (bRs.T @ (-b_pos))) @ nRg.T
+    n_pos = forward_kinematics(pb.skel, n_quat, n_root)
+    J = np.stack([[x.atPoint3(bf.joint_key(j, k)) for j in range(len(pb.joints))] for k in range(pb.K)]) \
+        if pb.joints else np.zeros((pb.K, 0, 3))
+    J = J @ nRg.T
+    info = dict(info, graph_npose_heading_deg=float(np.rad2deg(psi)), graph_to_output=nRg, kf_t=kf_t, biases=biases,
+                joint_names=[jt.name for jt in pb.joints], joint_centres=J,
+                levers={f"{seg}@{pb.joints[j].name}": x.atPoint3(bf.lever_key(i))
+                        for i, (seg, j, _) in enumerate(pb.levers)})
+    placements = {n: {"bRs": place[n][0], "b_pos": place[n][1]} for n in pb.names}
+    return BodyResult(t, tuple(pb.skel.names), n_quat, n_pos, placements, info)
