@@ -19,12 +19,14 @@ from __future__ import annotations
 import gtsam
 import numpy as np
 
-from imugraph.graphs.measurements import ChannelData, MeasurementBlock
+from imugraph.graphs.measurements import MeasurementBlock
 
 
-def _channel_info_trace(block: MeasurementBlock, ch: ChannelData, e: np.ndarray, J_rot: np.ndarray) -> np.ndarray:
-    G11, *_ = block._channel_terms(ch, e, J_rot, None)
-    return np.trace(G11, axis1=1, axis2=2)
+def _channel_info_trace(block: MeasurementBlock, name: str, nRk: np.ndarray, theta: np.ndarray):
+    """Raw residuals e (M, 3) of channel `name` and the trace of its Gauss–Newton block per keyframe (K,)."""
+    e = block.raw_residuals(name, nRk, theta)
+    G11, *_ = block.channel_blocks(name, nRk, theta, with_theta=False)
+    return e, np.trace(G11, axis1=1, axis2=2)
 
 
 def reestimate(block: MeasurementBlock, nRk: np.ndarray, theta: np.ndarray, gyro_factors: list,
@@ -33,27 +35,25 @@ def reestimate(block: MeasurementBlock, nRk: np.ndarray, theta: np.ndarray, gyro
 
     Args:
         block: the measurement block at the current noise levels; nRk (K,3,3) and theta (13,) the solution;
-        gyro_factors: the AHRSFactors of the graph; values: the solution; sigma_gyr (3,) current gyro σ.
+        gyro_factors: the AHRSFactors of the graph, or their covariances (K−1, 3, 3) (Preintegration.cov);
+        values: the solution; sigma_gyr (3,) current gyro σ.
     """
-    from imugraph.factors.accelerometer import accelerometer_model
-    from imugraph.factors.magnetometer import magnetometer_model
-
     K = block.n_keyframes
     traces, raw = {}, {}
     if block.acc is not None and block.use_acc:
-        e, J = accelerometer_model(block.acc.kRb, nRk[block.acc.kf], block.acc.values, block.g)
-        traces["acc"] = _channel_info_trace(block, block.acc, e, J)
-        raw["acc"] = e
+        raw["acc"], traces["acc"] = _channel_info_trace(block, "acc", nRk, theta)
     if block.mag is not None:
-        e, J, _ = magnetometer_model(block.mag.kRb, nRk[block.mag.kf], theta, block.mag.values)
-        traces["mag"] = _channel_info_trace(block, block.mag, e, J)
-        raw["mag"] = e
+        raw["mag"], traces["mag"] = _channel_info_trace(block, "mag", nRk, theta)
     # gyro: each AHRS factor informs both its keyframes
+    if isinstance(gyro_factors, np.ndarray):
+        cov = gyro_factors
+    else:
+        cov = np.array([f.preintegratedMeasurements().preintMeasCov() for f in gyro_factors]).reshape(-1, 3, 3)
     g_tr = np.zeros(K)
-    for i, f in enumerate(gyro_factors):
-        info = np.linalg.inv(f.preintegratedMeasurements().preintMeasCov())
-        g_tr[i] += np.trace(info)
-        g_tr[i + 1] += np.trace(info)
+    if len(cov):
+        tr = np.trace(np.linalg.inv(cov), axis1=1, axis2=2)
+        g_tr[:len(tr)] += tr
+        g_tr[1:len(tr) + 1] += tr
     total = g_tr + sum(traces.values())
     total = np.where(total > 0, total, 1.0)
     out = {}

@@ -34,6 +34,24 @@ def accelerometer_model(kRb: np.ndarray, nRk: np.ndarray, b_acc: np.ndarray, g: 
     return e, J_rot
 
 
+def accelerometer_residual(kRb: np.ndarray, kf: np.ndarray, nRk: np.ndarray, b_acc: np.ndarray,
+                           g: float) -> np.ndarray:
+    """Residuals e_j = g ΔR_jᵀ R_kᵀ e_z − a_j (M, 3), keyframe rotations nRk (K, 3, 3) indexed by kf (M,)."""
+    w = nRk[kf, 2, :]                                  # w_k = R_kᵀ e_z per sample
+    return g * (kRb[:, 0, :] * w[:, :1] + kRb[:, 1, :] * w[:, 1:2] + kRb[:, 2, :] * w[:, 2:]) - b_acc
+
+
+def accelerometer_rows(kRb: np.ndarray, kf: np.ndarray, nRk: np.ndarray, b_acc: np.ndarray,
+                       g: float) -> tuple[np.ndarray, np.ndarray]:
+    """X (M, 3, 4) with columns [g ΔR_jᵀ | e_j] and W (K, 3, 3) = [w_k]×: ∂e_j/∂ξ = X[j, :, :3] · W[kf_j]."""
+    w = nRk[:, 2, :]                                   # w_k = R_kᵀ e_z
+    m = len(kf)
+    X = np.empty((m, 3, 4))
+    X[:, :, :3] = g * kRb.transpose(0, 2, 1)
+    X[:, :, 3] = accelerometer_residual(kRb, kf, nRk, b_acc, g)
+    return X, skew(w)
+
+
 def accelerometer_factor(key_rot: int, kRb: np.ndarray, b_acc: np.ndarray, sigma: np.ndarray,
                          g: float, robust: float | None = None) -> gtsam.CustomFactor:
     """A CustomFactor on R_k for K accelerometer samples of one keyframe (3K rows).

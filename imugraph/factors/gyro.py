@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import gtsam
 import numpy as np
 
-from imugraph.geometry import expmap, skew
+from imugraph.geometry import skew
 
 
 def right_jacobian(theta: np.ndarray) -> np.ndarray:
@@ -35,6 +35,42 @@ def right_jacobian(theta: np.ndarray) -> np.ndarray:
     a = np.where(small, 0.5 - t**2 / 24.0, (1.0 - np.cos(ts)) / ts**2)
     b = np.where(small, 1.0 / 6.0 - t**2 / 120.0, (ts - np.sin(ts)) / ts**3)
     return np.eye(3) - a * K + b * (K @ K)
+
+
+def exp_and_right_jacobian(theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Exp(θ) and J_r(θ) for (…, 3) rotation vectors, with [θ]×² = θθᵀ − |θ|² I written out:
+
+        Exp(θ) = cos|θ| I + (sin|θ|/|θ|) [θ]× + ((1 − cos|θ|)/|θ|²) θθᵀ                   (Rodrigues)
+        J_r(θ) = I − ((1 − cos|θ|)/|θ|²) [θ]× + ((|θ| − sin|θ|)/|θ|³) (θθᵀ − |θ|² I)
+    (the same series as geometry.expmap and right_jacobian near 0; elementwise, no 3×3 products).
+    """
+    theta = np.asarray(theta, float)
+    shape = theta.shape[:-1]
+    th = theta.reshape(-1, 3)
+    t2 = np.einsum("mi,mi->m", th, th)
+    t = np.sqrt(t2)
+    small_e, small_j = t < 1e-8, t < 1e-6
+    ts = np.where(small_e, 1.0, t)
+    sin, cos = np.sin(ts), np.cos(ts)
+    a_e = np.where(small_e, 1.0 - t2 / 6.0, sin / ts)
+    b_e = np.where(small_e, 0.5 - t2 / 24.0, (1.0 - cos) / ts**2)
+    a_j = np.where(small_j, 0.5 - t2 / 24.0, (1.0 - cos) / ts**2)
+    b_j = np.where(small_j, 1.0 / 6.0 - t2 / 120.0, (ts - sin) / ts**3)
+    outer = (th[:, :, None] * th[:, None, :]).reshape(-1, 9)
+    R = b_e[:, None] * outer
+    J = b_j[:, None] * outer
+    R[:, _DIAG] += (1.0 - b_e * t2)[:, None]
+    J[:, _DIAG] += (1.0 - b_j * t2)[:, None]
+    w = th[:, _SKEW_SRC]                      # [θ]× entries (0,1), (1,2), (2,0) = −θz, −θx, −θy
+    R[:, _SKEW_NEG] -= a_e[:, None] * w; R[:, _SKEW_POS] += a_e[:, None] * w
+    J[:, _SKEW_NEG] += a_j[:, None] * w; J[:, _SKEW_POS] -= a_j[:, None] * w
+    return R.reshape(shape + (3, 3)), J.reshape(shape + (3, 3))
+
+
+_DIAG = [0, 4, 8]                  # flat indices of a 3×3 matrix: diagonal,
+_SKEW_NEG = [1, 5, 6]              # (0,1) (1,2) (2,0),
+_SKEW_POS = [3, 7, 2]              # (1,0) (2,1) (0,2),
+_SKEW_SRC = [2, 0, 1]              # and the θ component each holds
 
 
 def keyframe_layout(n: int, stride: int) -> tuple[np.ndarray, np.ndarray]:
@@ -87,20 +123,36 @@ def preintegrate(b_gyr: np.ndarray, dt: np.ndarray, kf_samples: np.ndarray, samp
     rate2 = np.sum((b_gyr - bias_rows) ** 2, axis=1, keepdims=True)
     var_step = ((np.asarray(sigma_gyr, float) ** 2)[None, :] + rate_error**2 * rate2) * (dt**2)[:, None]
     lengths = np.diff(np.append(kf_samples, n))               # samples attached to each keyframe
-    kRb = np.empty((n, 3, 3))
-    R = np.broadcast_to(np.eye(3), (k, 3, 3)).copy()
-    dRdb = np.zeros((k, 3, 3))
-    cov = np.zeros((k, 3, 3))
-    for p in range(int(lengths.max())):
-        active = np.nonzero(lengths > p)[0]
-        idx = kf_samples[active] + p
-        kRb[idx] = R[active]
-        th = theta[idx]
-        inc = expmap(th)
-        incT = np.transpose(inc, (0, 2, 1))
-        dRdb[active] = incT @ dRdb[active] - right_jacobian(th) * dt[idx][:, None, None]
-        cov[active] = incT @ cov[active] @ inc + var_step[idx][:, :, None] * np.eye(3)
-        R[active] = R[active] @ inc
+    L = int(lengths.max())
+    # every keyframe interval laid out over L positions; positions past its end get the identity step
+    # (Exp(0) = I, no bias-Jacobian or covariance increment), so the recursion runs on whole arrays
+    pos = np.arange(L)
+    valid = pos[:, None] < lengths[None, :]                   # (L, K): position p of keyframe k exists
+    idx = np.where(valid, pos[:, None] + kf_samples[None, :], n)
+    th_pad = np.concatenate([theta, np.zeros((1, 3))])[idx]  # θ = 0 past the end: Exp(0) = I, J_r = I
+    dt_pad = np.append(dt, 0.0)[idx]                          # ... with Δt = 0: no bias-Jacobian step
+    inc, jdt = exp_and_right_jacobian(th_pad)                 # (L, K, 3, 3) Exp(θ_j), J_r(θ_j)
+    incT = np.transpose(inc, (0, 1, 3, 2))
+    jdt *= dt_pad[:, :, None, None]
+    var_pad = np.concatenate([var_step, np.zeros((1, 3))])[idx][:, :, :, None] * np.eye(3)
+    R_at = np.empty((k, L, 3, 3))                             # ΔR_{k,j} before the step at position p
+    cov_db = np.zeros((k, 3, 6))                              # [Σ_ΔR | ∂ΔR/∂b]: left products with Exp(θ)ᵀ
+    left_R = np.zeros((k, 6, 3))                              # [Exp(θ)ᵀ Σ_ΔR ; ΔR]: right products with Exp(θ)
+    left_R[:, 3:] = np.eye(3)
+    for p in range(L):
+        R_at[:, p] = left_R[:, 3:]
+        cov_db = incT[p] @ cov_db
+        left_R[:, :3] = cov_db[:, :, :3]
+        left_R = left_R @ inc[p]
+        cov_db[:, :, :3] = left_R[:, :3] + var_pad[p]
+        cov_db[:, :, 3:] -= jdt[p]
+    R = left_R[:, 3:]
+    dRdb, cov = cov_db[:, :, 3:], cov_db[:, :, :3]
+    if np.all(lengths[:-1] == L):                             # regular layout: samples in (k, p) order
+        kRb = R_at.reshape(-1, 3, 3)[:n]
+    else:
+        kRb = np.empty((n, 3, 3))
+        kRb[idx.T[valid.T]] = R_at[valid.T]
     # Interval k integrated the increments of samples s_k .. s_{k+1}−1: exactly keyframe k → k+1.
     kf_dt = np.add.reduceat(dt, kf_samples)[:-1]
     return Preintegration(kf_samples, sample_kf, kRb, R[:-1], dRdb[:-1], cov[:-1], kf_dt,

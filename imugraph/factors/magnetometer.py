@@ -56,6 +56,52 @@ def magnetometer_model(kRb: np.ndarray, nRk: np.ndarray, theta: np.ndarray, b_ma
     return e, J_rot, J_theta
 
 
+def _rotate_back(kRb: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """ΔR_jᵀ x_j for (M, 3, 3) and (M, 3): three broadcast products (faster than a batched matmul)."""
+    return kRb[:, 0, :] * x[:, :1] + kRb[:, 1, :] * x[:, 1:2] + kRb[:, 2, :] * x[:, 2:]
+
+
+def magnetometer_residual(kRb: np.ndarray, kf: np.ndarray, nRk: np.ndarray, theta: np.ndarray,
+                          b_mag: np.ndarray) -> np.ndarray:
+    """Residuals e_j = D ΔR_jᵀ R_kᵀ n_mag(δ) + o − y_j (M, 3) only, keyframe rotations given per keyframe.
+
+    Args:
+        kRb: (M, 3, 3) ΔR_j; kf: (M,) keyframe of each sample; nRk: (K, 3, 3) keyframe orientations;
+        theta: (13,) calibration; b_mag: (M, 3) measured field.
+    """
+    D, o, dip = unpack_theta(theta)
+    v = np.einsum("kji,j->ki", nRk, n_mag(dip))                 # v_k = R_kᵀ n   (K, 3)
+    u = _rotate_back(kRb, v[kf])                                # u_j = ΔR_jᵀ v_k
+    return u @ D.T + o - b_mag
+
+
+def magnetometer_rows(kRb: np.ndarray, kf: np.ndarray, nRk: np.ndarray, theta: np.ndarray,
+                      b_mag: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Unwhitened linearisation of M samples in a form whose per-keyframe Gram is cheap to accumulate.
+
+    Returns X (M, 3, 3 + 13 + 1) with columns [D ΔR_jᵀ | ∂e_j/∂θ | e_j] and V (K, 3, 3) = [v_k]×,
+    v_k = R_kᵀ n_mag: the rotation Jacobian of sample j is X[j, :, :3] · V[kf_j] (eq. above, ∂e/∂ξ =
+    D ΔR_jᵀ [v_k]×), factored so that the 3×3 product is applied once per keyframe, not per sample.
+
+    Args as `magnetometer_residual`.
+    """
+    D, o, dip = unpack_theta(theta)
+    v = np.einsum("kji,j->ki", nRk, n_mag(dip))                 # v_k = R_kᵀ n
+    dv = np.einsum("kji,j->ki", nRk, np.array([-np.sin(dip), 0.0, -np.cos(dip)]))   # R_kᵀ n'(δ)
+    m = len(kf)
+    u = _rotate_back(kRb, v[kf])                                # u_j = ΔR_jᵀ v_k
+    z = _rotate_back(kRb, dv[kf])                               # z_j = ΔR_jᵀ R_kᵀ n'(δ)
+    X = np.empty((m, 3, 3 + THETA_DIM + 1))
+    X[:, :, :3] = (kRb.reshape(-1, 3) @ D.T).reshape(m, 3, 3).transpose(0, 2, 1)   # D ΔR_jᵀ
+    X[:, :, 3:3 + SLICE_O.stop] = 0.0
+    for i in range(3):
+        X[:, i, 3 + 3 * i:6 + 3 * i] = u                        # ∂e/∂d = I₃ ⊗ u_jᵀ
+        X[:, i, 3 + SLICE_O.start + i] = 1.0                    # ∂e/∂o = I₃
+    X[:, :, 3 + INDEX_DIP] = z @ D.T                            # ∂e/∂δ = D ΔR_jᵀ R_kᵀ n'(δ)
+    X[:, :, -1] = u @ D.T + o - b_mag                           # e_j
+    return X, skew(v)
+
+
 def magnetometer_factor(key_rot: int, key_theta: int, kRb: np.ndarray, b_mag: np.ndarray,
                         sigma: np.ndarray) -> gtsam.CustomFactor:
     """A CustomFactor on (R_k, θ) for K magnetometer samples of one keyframe (batched: 3K rows).
@@ -79,4 +125,5 @@ def magnetometer_factor(key_rot: int, key_theta: int, kRb: np.ndarray, b_mag: np
     return gtsam.CustomFactor(model, [key_rot, key_theta], error)
 
 
-__all__ = ["magnetometer_model", "magnetometer_factor", "n_mag", "SLICE_D"]
+__all__ = ["magnetometer_model", "magnetometer_residual", "magnetometer_rows", "magnetometer_factor", "n_mag",
+           "SLICE_D"]

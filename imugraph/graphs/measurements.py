@@ -10,6 +10,11 @@ hands GTSAM one `HessianFactor` per keyframe on (R_k, θ):
 (whitened residuals r_j and Jacobians J; GTSAM's HessianFactor error is ½(f − 2xᵀg + xᵀGx)).
 This is the same linearisation GTSAM would compute from one CustomFactor per keyframe, at a fraction
 of the cost: no Python callback per factor (see GTSAM_NOTES.md: callbacks dominate batch cost).
+
+All six are blocks of one Gram matrix per keyframe, Σ_j A_jᵀA_j of the weighted rows
+A_j = w_j^½ Σ^−½ [J'_R,j | J_θ,j | e_j], accumulated as one batched matrix product over the samples of
+each keyframe. The rotation Jacobian factors as J_R,j = J'_R,j [v_k]× with a per-keyframe right factor
+(∂e/∂ξ = D ΔR_jᵀ [R_kᵀ n]×, g ΔR_jᵀ [R_kᵀ e_z]×), which is applied to the keyframe sums, not to every sample.
 """
 
 from __future__ import annotations
@@ -20,10 +25,13 @@ import gtsam
 import numpy as np
 
 from imugraph import keys
-from imugraph.factors.accelerometer import accelerometer_model
-from imugraph.factors.magnetometer import magnetometer_model
+from imugraph.factors.accelerometer import accelerometer_residual, accelerometer_rows
+from imugraph.factors.magnetometer import magnetometer_residual, magnetometer_rows
 from imugraph.factors.robust import QUADRATIC, Kernel
 from imugraph.factors.theta import THETA_DIM
+from imugraph.graphs.solver import state_keys
+
+CHUNK = 4096        # samples linearised at a time (whole keyframes): their rows stay in cache
 
 
 @dataclass
@@ -56,12 +64,17 @@ class MeasurementBlock:
         (in_cost_only: skip a channel that is reported but not in the cost)."""
         out = {}
         if self.acc is not None and (self.use_acc or not in_cost_only):
-            e, _ = accelerometer_model(self.acc.kRb, nRk[self.acc.kf], self.acc.values, self.g)
-            out["acc"] = e / self.acc.sigma
+            out["acc"] = self.raw_residuals("acc", nRk, theta) / self.acc.sigma
         if self.mag is not None:
-            e, _, _ = magnetometer_model(self.mag.kRb, nRk[self.mag.kf], theta, self.mag.values)
-            out["mag"] = e / self.mag.sigma
+            out["mag"] = self.raw_residuals("mag", nRk, theta) / self.mag.sigma
         return out
+
+    def raw_residuals(self, name: str, nRk: np.ndarray, theta: np.ndarray) -> np.ndarray:
+        """Residuals h − y (M, 3) of channel `name`, in its own unit (not whitened)."""
+        ch = getattr(self, name)
+        if name == "acc":
+            return accelerometer_residual(ch.kRb, ch.kf, nRk, ch.values, self.g)
+        return magnetometer_residual(ch.kRb, ch.kf, nRk, theta, ch.values)
 
     def cost(self, nRk: np.ndarray, theta: np.ndarray) -> float:
         """Σ ρ(|r_j|) over both channels (GTSAM's ½|r|² for the quadratic kernel)."""
@@ -75,28 +88,70 @@ class MeasurementBlock:
         return total
 
     # ---- linearisation ---------------------------------------------------------------------------
-    def _channel_terms(self, ch: ChannelData, e, J_rot, J_theta):
-        r = e / ch.sigma
-        s = np.linalg.norm(r, axis=1)
-        w = ch.kernel.weight(s)
-        if ch.weight_floor is not None:
-            w = w * ch.weight_floor
-        sw = np.sqrt(w)[:, None, None]
-        A = J_rot * (sw / ch.sigma[None, :, None])            # weighted, whitened Jacobian rows
-        rw = r * sw[:, :, 0]
-        At = np.transpose(A, (0, 2, 1))
+    def channel_rows(self, name: str, nRk: np.ndarray, theta: np.ndarray, with_theta: bool = True,
+                     rows: slice = slice(None), k0: int = 0):
+        """Unwhitened rows X (M, 3, C) = [J'_R | J_θ (if with_theta) | e] of channel `name` and the
+        per-keyframe right factor V (K, 3, 3) of its rotation Jacobian (J_R,j = J'_R,j · V[kf_j]).
+
+        rows: a slice of the channel's samples; k0: their keyframe indices are taken relative to k0
+        (nRk then holds keyframes k0, k0+1, …)."""
+        ch = getattr(self, name)
+        kf = ch.kf[rows] - k0
+        if name == "acc":
+            return accelerometer_rows(ch.kRb[rows], kf, nRk, ch.values[rows], self.g)
+        X, V = magnetometer_rows(ch.kRb[rows], kf, nRk, theta, ch.values[rows])
+        return (X if with_theta else X[:, :, [0, 1, 2, -1]]), V
+
+    def channel_gram(self, name: str, nRk: np.ndarray, theta: np.ndarray, with_theta: bool = True):
+        """Per-keyframe Gram G (K, C, C) of the robust-weighted, whitened rows A_j = w_j^½ Σ^−½ [J'_R | J_θ | e]_j
+        and the right factor V (K, 3, 3) (see `channel_rows`).
+
+        Computed over runs of whole keyframes of about CHUNK samples, so that the rows stay in cache."""
+        ch = getattr(self, name)
         K = self.n_keyframes
-        G11 = _sum_by(ch.kf, At @ A, K)
-        g1 = _sum_by(ch.kf, -(At @ rw[:, :, None])[:, :, 0], K)
-        f = _sum_by(ch.kf, np.sum(rw * rw, axis=1), K)
-        if J_theta is None:
+        bounds = np.searchsorted(ch.kf, np.arange(K + 1)) if _is_sorted(ch.kf) else None
+        if bounds is None or len(ch.kf) <= CHUNK:
+            X, V = self.channel_rows(name, nRk, theta, with_theta)
+            return _gram_by(ch.kf, self._whiten(ch, X), K), V
+        G, V = None, None
+        k = 0
+        while k < K:
+            k1 = int(np.searchsorted(bounds, bounds[k] + CHUNK, side="right")) - 1
+            k1 = min(max(k1, k + 1), K)
+            rows = slice(int(bounds[k]), int(bounds[k1]))
+            X, Vc = self.channel_rows(name, nRk[k:k1], theta, with_theta, rows, k)
+            Gc = _gram_by(ch.kf[rows] - k, self._whiten(ch, X, rows), k1 - k)
+            if G is None:
+                G, V = np.zeros((K,) + Gc.shape[1:]), np.zeros((K, 3, 3))
+            G[k:k1], V[k:k1] = Gc, Vc
+            k = k1
+        return G, V
+
+    @staticmethod
+    def _whiten(ch: ChannelData, X: np.ndarray, rows: slice = slice(None)) -> np.ndarray:
+        """X scaled in place to w_j^½ Σ^−½ X_j (robust weight from the whitened residual in the last column)."""
+        w = ch.kernel.weight(np.linalg.norm(X[:, :, -1] / ch.sigma, axis=1))
+        if ch.weight_floor is not None:
+            w = w * ch.weight_floor[rows]
+        X *= (np.sqrt(w)[:, None] / ch.sigma[None, :])[:, :, None]
+        return X
+
+    @staticmethod
+    def _blocks(G: np.ndarray, V: np.ndarray):
+        """Normal-equation blocks of one channel from its Gram (see `channel_gram`):
+            G11 = Vᵀ [Σ J'ᵀJ'] V,  G12 = Vᵀ Σ J'ᵀJ_θ,  G22 = Σ J_θᵀJ_θ,  g = −[Vᵀ Σ J'ᵀr; Σ J_θᵀr],  f = Σ rᵀr
+        Returns G11, G12, G22, g1, g2, f (the θ terms None when G has no θ columns)."""
+        Vt = np.transpose(V, (0, 2, 1))
+        G11 = Vt @ G[:, :3, :3] @ V
+        g1 = -(Vt @ G[:, :3, -1:])[:, :, 0]
+        f = G[:, -1, -1].copy()
+        if G.shape[2] == 4:
             return G11, None, None, g1, None, f
-        T = J_theta * (sw / ch.sigma[None, :, None])
-        Tt = np.transpose(T, (0, 2, 1))
-        G12 = _sum_by(ch.kf, At @ T, K)
-        G22 = _sum_by(ch.kf, Tt @ T, K)
-        g2 = _sum_by(ch.kf, -(Tt @ rw[:, :, None])[:, :, 0], K)
-        return G11, G12, G22, g1, g2, f
+        return G11, Vt @ G[:, :3, 3:-1], G[:, 3:-1, 3:-1], g1, -G[:, 3:-1, -1], f
+
+    def channel_blocks(self, name: str, nRk: np.ndarray, theta: np.ndarray, with_theta: bool = True):
+        """G11, G12, G22, g1, g2, f of one channel (θ terms None without θ)."""
+        return self._blocks(*self.channel_gram(name, nRk, theta, with_theta))
 
     def hessian_blocks(self, nRk: np.ndarray, theta: np.ndarray):
         """Per-keyframe blocks (G11 (K,3,3), G12 (K,3,13), G22 (K,13,13), g1 (K,3), g2 (K,13), f (K,))."""
@@ -104,12 +159,10 @@ class MeasurementBlock:
         G11 = np.zeros((K, 3, 3)); g1 = np.zeros((K, 3)); f = np.zeros(K)
         G12 = np.zeros((K, 3, THETA_DIM)); G22 = np.zeros((K, THETA_DIM, THETA_DIM)); g2 = np.zeros((K, THETA_DIM))
         if self.acc is not None and self.use_acc:
-            e, J = accelerometer_model(self.acc.kRb, nRk[self.acc.kf], self.acc.values, self.g)
-            a11, _, _, a1, _, af = self._channel_terms(self.acc, e, J, None)
+            a11, _, _, a1, _, af = self.channel_blocks("acc", nRk, theta, with_theta=False)
             G11 += a11; g1 += a1; f += af
         if self.mag is not None:
-            e, J_rot, J_theta = magnetometer_model(self.mag.kRb, nRk[self.mag.kf], theta, self.mag.values)
-            m11, m12, m22, m1, m2, mf = self._channel_terms(self.mag, e, J_rot, J_theta if self.use_theta else None)
+            m11, m12, m22, m1, m2, mf = self.channel_blocks("mag", nRk, theta, with_theta=self.use_theta)
             G11 += m11; g1 += m1; f += mf
             if self.use_theta:
                 G12 += m12; G22 += m22; g2 += m2
@@ -120,28 +173,51 @@ class MeasurementBlock:
         G11, G12, G22, g1, g2, f = self.hessian_blocks(nRk, theta)
         gfg = gtsam.GaussianFactorGraph()
         two = self.use_theta and self.mag is not None
+        rot = state_keys(keys.rot, self.n_keyframes)
         for k in range(self.n_keyframes):
             if two:
-                gfg.push_back(gtsam.HessianFactor(keys.rot(k), keys.CALIB, G11[k], G12[k], g1[k],
-                                                  G22[k], g2[k], f[k]))
+                gfg.push_back(gtsam.HessianFactor(rot[k], keys.CALIB, G11[k], G12[k], g1[k], G22[k], g2[k], f[k]))
             else:
-                gfg.push_back(gtsam.HessianFactor(keys.rot(k), G11[k], g1[k], f[k]))
+                gfg.push_back(gtsam.HessianFactor(rot[k], G11[k], g1[k], f[k]))
         return gfg
 
 
-def _sum_by(index: np.ndarray, x: np.ndarray, n: int) -> np.ndarray:
-    """Sum rows of x (M, …) into n bins by index (M,) (index need not be sorted)."""
-    out = np.zeros((n,) + x.shape[1:])
-    np.add.at(out, index, x) if not _is_sorted(index) else _reduce_sorted(out, index, x)
-    return out
+def _gram_by(index: np.ndarray, X: np.ndarray, n: int) -> np.ndarray:
+    """Per-bin Gram matrices Σ_{j: index_j = b} X_jᵀ X_j of rows X (M, r, C) → (n, C, C).
+
+    The samples of each bin are laid out as one (L·r, C) matrix (L = largest bin, zero-padded when the
+    bins differ), so the sum of outer products is one batched matrix product instead of M small products
+    and a reduction. Keyframe layouts are regular (every bin but the last holds L samples): then X is
+    used in place.
+    """
+    m, r, c = X.shape
+    out = np.zeros((n, c, c))
+    if m == 0:
+        return out
+    counts = np.bincount(index, minlength=n)
+    L = int(counts.max())
+    if n * L > 4 * m + 4096:          # very uneven bins: the padded buffer would be mostly zeros
+        np.add.at(out, index, np.transpose(X, (0, 2, 1)) @ X)
+        return out
+    if not _is_sorted(index):
+        order = np.argsort(index, kind="stable")
+        index, X = index[order], X[order]
+    full = int(np.argmax(counts != L)) if np.any(counts != L) else n     # leading bins holding L samples
+    if full and index[full * L - 1] == full - 1:
+        B = X[:full * L].reshape(full, L * r, c)
+        np.matmul(np.transpose(B, (0, 2, 1)), B, out=out[:full])
+        if full == n:
+            return out
+        index, X = index[full * L:], X[full * L:]
+        sub = _gram_by(index - full, X, n - full)
+        out[full:] = sub
+        return out
+    pos = np.arange(len(index)) - (np.cumsum(counts) - counts)[index]
+    buf = np.zeros((n, L, r, c))
+    buf[index, pos] = X
+    B = buf.reshape(n, L * r, c)
+    return np.matmul(np.transpose(B, (0, 2, 1)), B, out=out)
 
 
 def _is_sorted(index: np.ndarray) -> bool:
     return bool(np.all(index[1:] >= index[:-1])) if len(index) > 1 else True
-
-
-def _reduce_sorted(out: np.ndarray, index: np.ndarray, x: np.ndarray) -> None:
-    if len(index) == 0:
-        return
-    starts = np.flatnonzero(np.r_[True, index[1:] != index[:-1]])
-    out[index[starts]] = np.add.reduceat(x, starts, axis=0)

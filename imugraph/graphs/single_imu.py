@@ -18,7 +18,7 @@ from imugraph.factors.gyro import Preintegration, ahrs_factors
 from imugraph.factors.robust import QUADRATIC, Kernel
 from imugraph.factors.theta import THETA_DIM
 from imugraph.graphs.measurements import ChannelData, MeasurementBlock
-from imugraph.graphs.solver import chain_ordering
+from imugraph.graphs.solver import chain_ordering, keyframe_rotations  # noqa: F401  (re-exported)
 from imugraph.graphs.velocity_block import VelocityBlock
 
 
@@ -42,7 +42,7 @@ class BlockAdapter:
     theta_fixed: np.ndarray | None = None
 
     def _state(self, values: gtsam.Values):
-        nRk = np.stack([values.atRot3(keys.rot(k)).matrix() for k in range(self.block.n_keyframes)])
+        nRk = keyframe_rotations(values, self.block.n_keyframes)
         theta = self.theta_fixed if self.theta_fixed is not None else values.atVector(keys.CALIB)
         return nRk, theta
 
@@ -59,6 +59,9 @@ def channel(pre: Preintegration, values: np.ndarray, sigma, kernel: Kernel = QUA
     ok = np.all(np.isfinite(values), axis=1)
     if not ok.any():
         return None
+    if ok.all():                      # every row: share the arrays instead of copying them
+        return ChannelData(kf=pre.sample_kf, kRb=pre.kRb, values=values, sigma=np.asarray(sigma, float),
+                           kernel=kernel, weight_floor=weight_floor)
     return ChannelData(kf=pre.sample_kf[ok], kRb=pre.kRb[ok], values=values[ok],
                        sigma=np.asarray(sigma, float), kernel=kernel,
                        weight_floor=None if weight_floor is None else weight_floor[ok])
@@ -101,7 +104,8 @@ def build_problem(pre: Preintegration, b_acc: np.ndarray, b_mag: np.ndarray, noi
                   acc_kernel: Kernel = QUADRATIC, mag_kernel: Kernel = QUADRATIC,
                   estimate_theta: bool = True, mag_weights=None,
                   bias_segment: np.ndarray | None = None, bias_rw_sigma: float = 0.0,
-                  velocity: VelocityModel | None = None, dt: np.ndarray | None = None) -> Problem:
+                  velocity: VelocityModel | None = None, dt: np.ndarray | None = None,
+                  values0: gtsam.Values | None = None) -> Problem:
     """Assemble the graph for a keyframe layout.
 
     Args:
@@ -114,6 +118,9 @@ def build_problem(pre: Preintegration, b_acc: np.ndarray, b_mag: np.ndarray, noi
         (BetweenFactorVector with σ = bias_rw_sigma·√Δt_segment).
         velocity: model linear acceleration with keyframe velocities (needs dt (N,), the sample steps);
         the per-sample gravity factor then leaves the cost (its residuals are still reported).
+        values0: initial Values already holding every state of this layout (R, B, V and θ keys, e.g. the
+        previous solution of the same problem): used as they are instead of inserting nRk0, bias0, v0,
+        theta0 (which still centre the priors).
     """
     K = len(pre.kf_samples)
     graph = gtsam.NonlinearFactorGraph()
@@ -122,15 +129,17 @@ def build_problem(pre: Preintegration, b_acc: np.ndarray, b_mag: np.ndarray, noi
     n_seg = int(seg.max()) + 1 if len(seg) else 1
     for f in ahrs_factors(pre, keys.rot, lambda i: keys.bias(seg[i]), noise.gyr):
         graph.add(f)
-    values = gtsam.Values()
-    for k in range(K):
+    fill = values0 is None
+    values = gtsam.Values() if fill else values0
+    for k in range(K if fill else 0):
         values.insert(keys.rot(k), gtsam.Rot3(nRk0[k]))
     prior = gtsam.noiseModel.Isotropic.Sigma(3, bias_prior_sigma)
     seg_dt = (pre.dt.sum() / n_seg) if len(pre.dt) else 1.0
     rw = gtsam.noiseModel.Isotropic.Sigma(3, max(bias_rw_sigma, 1e-9) * np.sqrt(seg_dt))
     for i in range(n_seg):
         b_i = bias0[min(i, len(bias0) - 1)]
-        values.insert(keys.bias(i), b_i)
+        if fill:
+            values.insert(keys.bias(i), b_i)
         graph.add(gtsam.PriorFactorVector(keys.bias(i), b_i, prior))
         if i > 0:
             graph.add(gtsam.BetweenFactorVector(keys.bias(i - 1), keys.bias(i), np.zeros(3), rw))
@@ -148,7 +157,7 @@ def build_problem(pre: Preintegration, b_acc: np.ndarray, b_mag: np.ndarray, noi
         vblock = VelocityBlock(dv, sig_dv, pre.dt, g, velocity.sigma_v, velocity.tau_v, velocity.kernel,
                                B, velocity.acc_bias_sigma0, velocity.acc_bias_rw, rest_kf, velocity.sigma_rest)
         v0 = np.zeros((K, vblock.state_dim)) if velocity.v0 is None else velocity.v0
-        for k in range(K):
+        for k in range(K if fill else 0):
             values.insert(keys.vel(k), np.asarray(v0[k], float))
     order = []
     for k in range(K):
@@ -162,7 +171,8 @@ def build_problem(pre: Preintegration, b_acc: np.ndarray, b_mag: np.ndarray, noi
     global_keys: list = []
     use_theta = estimate_theta and theta0 is not None
     if use_theta:
-        values.insert(keys.CALIB, np.asarray(theta0, float))
+        if fill:
+            values.insert(keys.CALIB, np.asarray(theta0, float))
         sig = theta_prior_sigma if theta_prior_sigma is not None else np.full(THETA_DIM, 10.0)
         graph.add(gtsam.PriorFactorVector(keys.CALIB, np.asarray(theta0, float),
                                           gtsam.noiseModel.Diagonal.Sigmas(np.asarray(sig, float))))
@@ -176,7 +186,3 @@ def build_problem(pre: Preintegration, b_acc: np.ndarray, b_mag: np.ndarray, noi
     ordering = chain_ordering(order, global_keys)
     blocks = [adapter] + ([vblock] if vblock is not None else [])
     return Problem(graph, blocks, values, ordering, block, order + global_keys, vblock)
-
-
-def keyframe_rotations(values: gtsam.Values, K: int) -> np.ndarray:
-    return np.stack([values.atRot3(keys.rot(k)).matrix() for k in range(K)])

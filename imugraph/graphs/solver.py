@@ -11,10 +11,13 @@ return their own linearisation (`imugraph.graphs.measurements.MeasurementBlock`)
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import lru_cache
 from typing import Callable, Protocol
 
 import gtsam
 import numpy as np
+
+from imugraph import keys
 
 
 class LinearBlock(Protocol):
@@ -42,15 +45,78 @@ class SolveInfo:
     history: list = field(default_factory=list)
 
 
+_DAMPING_CACHE: dict = {}     # λ → (key_dims, graph): LM restarts from the same λ in every ML round
+
+
 def _damping(key_dims: list[tuple[int, int]], lam: float) -> gtsam.GaussianFactorGraph:
-    """√λ I on every variable: the Levenberg–Marquardt damping as unary factors."""
+    """√λ I on every variable: the Levenberg–Marquardt damping as unary factors (reused for a repeated
+    λ and variable set; GTSAM's elimination reads its input factors without changing them)."""
+    key_dims = tuple(key_dims)
+    hit = _DAMPING_CACHE.get(lam)
+    if hit is not None and hit[0] == key_dims:
+        return hit[1]
     damp = gtsam.GaussianFactorGraph()
     s = float(np.sqrt(lam))
     blocks = {d: (s * np.eye(d), np.zeros(d), gtsam.noiseModel.Unit.Create(d)) for d in {d for _, d in key_dims}}
     for key, dim in key_dims:
         A, b, model = blocks[dim]
         damp.push_back(gtsam.JacobianFactor(key, A, b, model))
+    if len(_DAMPING_CACHE) > 32:
+        _DAMPING_CACHE.clear()
+    _DAMPING_CACHE[lam] = (key_dims, damp)
     return damp
+
+
+class _StateCache:
+    """Numpy arrays extracted from the Values the solver is evaluating (rotations, velocities), computed
+    once per Values and shared by the blocks. Active only inside `optimize`, whose Values are never
+    modified after creation (each step makes a new one by retract), so an identity check is sufficient."""
+
+    def __init__(self):
+        self.depth = 0
+        self.values = None
+        self.items: dict = {}
+
+    def get(self, values: gtsam.Values, tag, compute: Callable[[gtsam.Values], object]):
+        if self.depth == 0:
+            return compute(values)
+        if self.values is not values:
+            self.values, self.items = values, {}
+        if tag not in self.items:
+            self.items[tag] = compute(values)
+        return self.items[tag]
+
+    def reset(self):
+        self.values, self.items = None, {}
+
+
+STATE_CACHE = _StateCache()
+
+
+def cached_state(values: gtsam.Values, tag, compute: Callable[[gtsam.Values], object]):
+    """compute(values), memoised per Values while `optimize` runs (callers must not modify the result)."""
+    return STATE_CACHE.get(values, tag, compute)
+
+
+def keyframe_rotations(values: gtsam.Values, K: int) -> np.ndarray:
+    """(K, 3, 3) keyframe orientations nRk = R(0..K−1) from values (once per Values inside `optimize`)."""
+    return cached_state(values, ("rot", K), lambda v: _rotations(v, K))
+
+
+def keyframe_vectors(values: gtsam.Values, key_of: Callable[[int], int], K: int) -> np.ndarray:
+    """(K, d) vector values key_of(0..K−1), e.g. keyframe velocities (once per Values inside `optimize`)."""
+    return cached_state(values, ("vec", key_of, K),
+                        lambda v: np.array([v.atVector(key) for key in state_keys(key_of, K)]).reshape(K, -1))
+
+
+def _rotations(values: gtsam.Values, K: int) -> np.ndarray:
+    return np.array([values.atRot3(key).matrix() for key in state_keys(keys.rot, K)]).reshape(K, 3, 3)
+
+
+@lru_cache(maxsize=16)
+def state_keys(key_of: Callable[[int], int], K: int) -> tuple:
+    """The keys key_of(0..K−1) as a tuple (memoised: building gtsam symbols costs ~1 µs each)."""
+    return tuple(key_of(k) for k in range(K))
 
 
 def _key_dim(values: gtsam.Values, key: int) -> int:
@@ -75,7 +141,16 @@ def optimize(graph: gtsam.NonlinearFactorGraph, blocks: list, values: gtsam.Valu
     Returns:
         (optimised values, SolveInfo).
     """
-    p = params or SolverParams()
+    STATE_CACHE.depth += 1
+    try:
+        return _optimize(graph, blocks, values, ordering, params or SolverParams(), on_iteration)
+    finally:
+        STATE_CACHE.depth -= 1
+        STATE_CACHE.reset()
+
+
+def _optimize(graph, blocks, values, ordering, p: SolverParams, on_iteration):
+    """The LM / GN loop of `optimize` (see there)."""
     x = gtsam.Values(values)
     cost = total_cost(graph, blocks, x)
     info = SolveInfo(cost_initial=cost, history=[cost])

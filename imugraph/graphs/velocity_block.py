@@ -20,7 +20,7 @@ import numpy as np
 from imugraph import keys
 from imugraph.factors.robust import QUADRATIC, Kernel
 from imugraph.factors.velocity import gauss_markov, velocity_model
-
+from imugraph.graphs.solver import keyframe_rotations, keyframe_vectors, state_keys
 
 
 @dataclass
@@ -54,9 +54,7 @@ class VelocityBlock:
 
     def _state(self, values: gtsam.Values):
         K = self.n_keyframes
-        nRk = np.stack([values.atRot3(keys.rot(k)).matrix() for k in range(K)])
-        s = np.stack([values.atVector(keys.vel(k)) for k in range(K)])
-        return nRk, s
+        return keyframe_rotations(values, K), keyframe_vectors(values, keys.vel, K)
 
     def terms(self, nRk: np.ndarray, s: np.ndarray):
         """Whitened increment residuals r (K−1, 3), J_R, robust weights, GM and bias-walk residuals."""
@@ -93,33 +91,34 @@ class VelocityBlock:
         nRk, s = self._state(values)
         r, J_R, w, phi, sigma_w, gm, walk = self.terms(nRk, s)
         d = self.state_dim
+        n = len(r)
         rows = 6 if walk is None else 9
-        sw = np.sqrt(w) / self.sigma_dv                       # (K−1,) row scale of the increment rows
+        sw = (np.sqrt(w) / self.sigma_dv)[:, None, None]      # (K−1,) row scale of the increment rows
         eye = np.eye(3)
         gfg = gtsam.GaussianFactorGraph()
         ps = self._prior_sigma()
         gfg.push_back(gtsam.JacobianFactor(keys.vel(0), np.diag(1.0 / ps), -s[0] / ps,
                                            gtsam.noiseModel.Unit.Create(d)))
-        unit = gtsam.noiseModel.Unit.Create(rows)
+        # the stacked blocks of every interval at once (rows as in the module docstring)
+        A_R = np.zeros((n, rows, 3)); A0 = np.zeros((n, rows, d)); A1 = np.zeros((n, rows, d))
+        rhs = np.zeros((n, rows))
+        A_R[:, :3] = J_R * sw
+        A0[:, :3, :3] = -eye * sw; A1[:, :3, :3] = eye * sw
+        A0[:, 3:6, :3] = -(phi / sigma_w)[:, None, None] * eye; A1[:, 3:6, :3] = eye / sigma_w[:, None, None]
+        rhs[:, :3] = -r * np.sqrt(w)[:, None]
+        rhs[:, 3:6] = -gm
         if walk is not None:
-            RB = np.einsum("kij,kjl->kil", nRk[:-1], self.B)
-            srw = self._sigma_rw()
-        for k in range(len(r)):
-            A_R = np.zeros((rows, 3)); A0 = np.zeros((rows, d)); A1 = np.zeros((rows, d))
-            A_R[:3] = J_R[k] * sw[k]
-            A0[:3, :3] = -eye * sw[k]; A1[:3, :3] = eye * sw[k]
-            A0[3:6, :3] = -phi[k] / sigma_w[k] * eye; A1[3:6, :3] = eye / sigma_w[k]
-            b = [r[k] * np.sqrt(w[k]), gm[k]]
-            if walk is not None:
-                A0[:3, 3:] = RB[k] * sw[k]
-                A0[6:9, 3:] = -eye / srw[k]; A1[6:9, 3:] = eye / srw[k]
-                b.append(walk[k])
-            gfg.push_back(gtsam.JacobianFactor(keys.rot(k), A_R, keys.vel(k), A0, keys.vel(k + 1), A1,
-                                               -np.concatenate(b), unit))
+            srw = self._sigma_rw()[:, None, None]
+            A0[:, :3, 3:] = np.einsum("kij,kjl->kil", nRk[:-1], self.B) * sw
+            A0[:, 6:9, 3:] = -eye / srw; A1[:, 6:9, 3:] = eye / srw
+            rhs[:, 6:9] = -walk
+        unit = gtsam.noiseModel.Unit.Create(rows)
+        vk, rk = state_keys(keys.vel, n + 1), state_keys(keys.rot, n + 1)
+        for k in range(n):
+            gfg.push_back(gtsam.JacobianFactor(rk[k], A_R[k], vk[k], A0[k], vk[k + 1], A1[k], rhs[k], unit))
         if self.rest is not None:
             A = np.zeros((3, d)); A[:, :3] = eye / self.sigma_rest
             unit3 = gtsam.noiseModel.Unit.Create(3)
             for k in np.flatnonzero(self.rest):
                 gfg.push_back(gtsam.JacobianFactor(keys.vel(int(k)), A, -s[k, :3] / self.sigma_rest, unit3))
         return gfg
-
