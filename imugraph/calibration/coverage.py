@@ -88,7 +88,7 @@ def _point_spread(y: np.ndarray) -> np.ndarray:
 
 
 def _up_directions(session: Session, nRb: np.ndarray | None, gyro_bias: np.ndarray | None,
-                   angle_deg: np.ndarray) -> np.ndarray:
+                   angle_deg: np.ndarray, b_up: np.ndarray | None = None) -> np.ndarray:
     """Body "up" u_b at the picked samples: bRn·e_z from nRb, else `gravity_up` (gyro + acc)."""
     if nRb is not None:
         nRb = np.asarray(nRb, float)
@@ -96,7 +96,7 @@ def _up_directions(session: Session, nRb: np.ndarray | None, gyro_bias: np.ndarr
             nRb = quat_to_rotmat(nRb)
         up = nRb[:, 2, :]                               # bRn e_z = row 2 of nRb
     else:
-        up = gravity_up(session.gyr, session.acc, session.dt, gyro_bias)
+        up = gravity_up(session.gyr, session.acc, session.dt, gyro_bias) if b_up is None else b_up
     return _unit(up[pick_by_rotation(angle_deg, np.all(np.isfinite(up), axis=1))])
 
 
@@ -156,7 +156,7 @@ def _problems(cov: dict) -> list[str]:
 
 
 def rotation_coverage(session: Session, nRb: np.ndarray | None = None,
-                      gyro_bias: np.ndarray | None = None) -> dict:
+                      gyro_bias: np.ndarray | None = None, b_up: np.ndarray | None = None) -> dict:
     """Describe the rotation a recording holds and decide whether the calibration is identifiable.
 
     Args:
@@ -171,7 +171,7 @@ def rotation_coverage(session: Session, nRb: np.ndarray | None = None,
         axis_share, dominant_axis (3,), identifiable (bool), problems (list of sentences).
     """
     cov, angle_deg = integrated_rotation(session, gyro_bias)
-    acc_ev, acc_oct = _direction_spread(_up_directions(session, nRb, gyro_bias, angle_deg))
+    acc_ev, acc_oct = _direction_spread(_up_directions(session, nRb, gyro_bias, angle_deg, b_up))
     mag = np.asarray(session.mag, float)
     valid = np.all(np.isfinite(mag), axis=1)
     mag_ev = _point_spread(mag[pick_by_rotation(angle_deg, valid)]) if valid.any() else np.zeros(3)
@@ -183,7 +183,7 @@ def rotation_coverage(session: Session, nRb: np.ndarray | None = None,
 
 
 def check_coverage(session: Session, nRb: np.ndarray | None = None,
-                   gyro_bias: np.ndarray | None = None) -> dict:
+                   gyro_bias: np.ndarray | None = None, b_up: np.ndarray | None = None) -> dict:
     """`rotation_coverage`, raising when the calibration is not identifiable.
 
     Returns:
@@ -192,7 +192,7 @@ def check_coverage(session: Session, nRb: np.ndarray | None = None,
     Raises:
         CalibrationError: naming the file, the field 'mag' and every problem found.
     """
-    cov = rotation_coverage(session, nRb, gyro_bias)
+    cov = rotation_coverage(session, nRb, gyro_bias, b_up)
     if not cov["identifiable"]:
         raise CalibrationError(f"{session.source}: field 'mag': found too little rotation to calibrate: "
                                + "; ".join(cov["problems"])

@@ -46,10 +46,15 @@ class Window:
 
 
 def _moving_median(x: np.ndarray, n: int) -> np.ndarray:
+    """Centred moving median over n samples, edges padded with the end values (np.median of each
+    window; for even n the mean of the two middle values), computed by scipy's rank filters."""
     if n <= 1 or len(x) < n:
         return x
-    pad = np.pad(x, (n // 2, n - 1 - n // 2), mode="edge")
-    return np.median(np.lib.stride_tricks.sliding_window_view(pad, n), axis=1)
+    from scipy.ndimage import median_filter, rank_filter
+
+    if n % 2:
+        return median_filter(x, size=n, mode="nearest")
+    return (rank_filter(x, n // 2 - 1, size=n, mode="nearest") + rank_filter(x, n // 2, size=n, mode="nearest")) / 2
 
 
 def detect_windows(t: np.ndarray, m_cal: np.ndarray) -> list[Window]:
