@@ -13,7 +13,7 @@ while the samples scored were never used to fit it. Per effect, over the folds (
     gap_before = max(0, before_c_E − null_c_E),  gap_after = max(0, after_c_E − null_c_E)
     shrink = 1 − gap_after / gap_before                                                            (A1)
     penalised  = 1 − (gap_after + p · null_c_E · ln(1 + n_params)) / gap_before
-                   − Σ_{c ≠ c_E} max(0, after_c − before_c) / max(before_c − null_c, null_c)        (A2)
+                   − Σ_{c ≠ c_E} max(0, after_c − before_c − null_c) / max(before_c − null_c, null_c)   (A2)
 
 null_c is the gap of an independent simulation against the reference simulation at fold size (the
 statistic's own sampling noise, its expected value when the data come from the model): gaps are reported
@@ -46,13 +46,17 @@ class AttributionOptions:
         param_penalty: p in (A2), multiples of the null gap per ln(1 + n_params).
         margin: minimum penalised shrink (A2) of the best effect for a verdict other than "none".
         min_gap_ratio: the winning channel's gap must exceed this multiple of its null gap.
+        refit_top: number of best screened effects given the full refit (0: screening only).
+        refit_rounds: rounds of the alternation (imugraph.diagnose.refit).
     """
 
     n_folds: int = 5
     block_s: float = 2.0
-    param_penalty: float = 0.5
+    param_penalty: float = 0.25
     margin: float = 0.25
-    min_gap_ratio: float = 5.0
+    min_gap_ratio: float = 2.0
+    refit_top: int = 3
+    refit_rounds: int = 2
 
 
 def fold_masks(t: np.ndarray, opt: AttributionOptions) -> list:
@@ -78,12 +82,24 @@ class EffectResult:
     per_channel_after: dict | None = None
     raw_before: float = float("nan")
     error: str | None = None
+    size: dict | None = None
+    stage: str = "screen"
+    screen: dict | None = None
+    significant: bool = False
+
+    @property
+    def relevant(self) -> bool:
+        """The fitted effect's size reaches its physical threshold (docs/diagnose.md §3)."""
+        s = self.size or {}
+        return bool(s.get("value", np.nan) >= s.get("threshold", np.inf))     # NaN (no size) → False
 
     def as_dict(self) -> dict:
         return {"name": self.name, "channel": self.channel, "t_start": self.t_start, "t_end": self.t_end,
                 "gap_before": self.gap_before, "gap_after": self.gap_after, "shrink": self.shrink,
                 "penalised_shrink": self.penalised, "n_params": self.n_params,
                 "params": self.params or {}, "gap_after_per_channel": self.per_channel_after or {},
+                "size": self.size or {}, "relevant": self.relevant, "significant": self.significant,
+                "stage": self.stage, **({"screen": self.screen} if self.screen else {}),
                 **({"error": self.error} if self.error else {})}
 
 
@@ -100,45 +116,91 @@ def fold_gaps(real, sim, folds: list, gap_opt: GapOptions = GapOptions()) -> lis
 
 
 def evaluate_effect(effect, real, sim, null_gap: dict, folds: list, opt: AttributionOptions,
-                    gap_opt: GapOptions = GapOptions(), window=None, base: list | None = None) -> EffectResult:
-    """Cross-validated gap before/after one effect ((A1), (A2)); the effect's parameters and window are
-    those of a final refit on all samples. base: `fold_gaps` (computed when not given)."""
+                    gap_opt: GapOptions = GapOptions(), window=None, base: list | None = None,
+                    ext=None) -> EffectResult:
+    """Cross-validated gap before/after one effect ((A1), (A2)); the effect's parameters, window, channel
+    (`Correction.channel`: time_offset and saturation choose theirs) and size are those of a final fit on
+    all samples. base: `fold_gaps` (computed when not given). ext: the refitted extended model's θ* on
+    the original measurements (imugraph.diagnose.refit); the effect is then fitted on it and the "after"
+    residuals are rescaled by `refit.rescale`; None: the first-order fit on the base fit (screening)."""
+    from imugraph.diagnose.refit import rescale
+
     rate = real.session.rate
     base = fold_gaps(real, sim, folds, gap_opt) if base is None else base
+    fitted = real if ext is None else ext
+    full = effect.fit(fitted, np.ones(real.n, bool), window=window)
     before = {c: [] for c in CHANNELS}
     after = {c: [] for c in CHANNELS}
     weights = []
-    n_params = 0
     for test, b in zip(folds, base):
         if b is None:
             continue
-        corr = effect.fit(real, ~test, window=window)
-        n_params = int(corr.n_params)
-        r_after = corr.residuals(real)
+        corr = effect.fit(fitted, ~test, window=window)
+        r_after = corr.residuals(real) if ext is None else rescale(corr.raw_residuals(ext), real, ~test)
         a = gap({c: r_after.get(c, real.residuals[c]) for c in CHANNELS}, sim.residuals, real.sigma, rate,
                 test, gap_opt)
         for c in CHANNELS:
             before[c].append(b[c])
             after[c].append(a[c])
         weights.append(test.sum())
-    ch = effect.channel
+    ch = getattr(full, "channel", "") or effect.channel
+    n_params = int(getattr(full, "n_params", 0))
     bef = {c: _weighted(before[c], weights) for c in CHANNELS}
     aft = {c: _weighted(after[c], weights) for c in CHANNELS}
     floor = {c: float(null_gap.get(c, 0.0)) for c in CHANNELS}
     g0, g1 = max(0.0, bef[ch] - floor[ch]), max(0.0, aft[ch] - floor[ch])
     shrink = 1.0 - g1 / g0 if g0 > 0 else 0.0                                                    # (A1)
     cost = opt.param_penalty * floor[ch] * np.log1p(max(n_params, 0))
-    worse = sum(max(0.0, aft[c] - bef[c]) / max(bef[c] - floor[c], floor[c], 1e-12)
-                for c in CHANNELS if c != ch)
+    worse = sum(max(0.0, aft[c] - bef[c] - floor[c]) / max(bef[c] - floor[c], floor[c], 1e-12)
+                for c in CHANNELS if c != ch)                  # a change within the noise floor is not worse
     penalised = (1.0 - (g1 + cost) / g0 if g0 > 0 else 0.0) - worse                              # (A2)
-    full = effect.fit(real, np.ones(real.n, bool), window=window)
-    return EffectResult(effect.name, ch, g0, g1, float(shrink), float(penalised), int(full.n_params),
-                        full.t_start, full.t_end, dict(full.params), aft, bef[ch])
+    size = effect.size(full, fitted) if hasattr(effect, "size") else {"value": np.inf, "threshold": 0.0}
+    return EffectResult(effect.name, ch, g0, g1, float(shrink), float(penalised), n_params,
+                        full.t_start, full.t_end, dict(full.params), aft, bef[ch], size=size,
+                        stage="screen" if ext is None else "refit")
+
+
+def _failed(name, effect, exc) -> EffectResult:
+    return EffectResult(name, getattr(effect, "channel", "?"), np.nan, np.nan, np.nan, -np.inf, 0,
+                        error=f"{type(exc).__name__}: {exc} ({traceback.extract_tb(exc.__traceback__)[-1].name})")
+
+
+def _line(res: EffectResult) -> str:
+    s = res.size or {}
+    return (f"effect {res.name} [{res.stage}]: gap {res.gap_before:.3f} → {res.gap_after:.3f}, shrink "
+            f"{res.shrink:.2f}, penalised {res.penalised:.2f}, size {s.get('value', np.nan):.4g}/"
+            f"{s.get('threshold', np.nan):.4g} {s.get('unit', '')}" + (f" [{res.error}]" if res.error else ""))
+
+
+def candidates(results: list, null_gap: dict, n_top: int, effects: dict | None = None,
+               opt: "AttributionOptions" = None) -> list:
+    """Names of the effects to refit:
+
+    * the `n_top` best screened effects that improved the held-out gap ((A2) > 0) and found something
+      (size ≠ 0: a window, a rail, ...);
+    * for every channel whose raw held-out gap is significant (≥ `min_gap_ratio` · null), the two best
+      screened effects of that home channel (`Effect.channel`) whose screened size reaches half their
+      relevance threshold — a distorted base fit hides an effect from the screening (negative (A2)) and
+      makes its first-order size an underestimate, so the screening cannot be the judge there.
+    """
+    opt = opt or AttributionOptions()
+    ok = [r for r in results if np.isfinite(r.penalised) and (r.size or {}).get("value", 1.0) != 0.0]
+    names = [r.name for r in ok if r.penalised > 0][:n_top]
+    for ch in CHANNELS:
+        raw = next((r.raw_before for r in ok if r.channel == ch and np.isfinite(r.raw_before)), np.nan)
+        if not raw >= opt.min_gap_ratio * null_gap.get(ch, 0.0):
+            continue
+        home = [r.name for r in ok if getattr((effects or {}).get(r.name), "channel", r.channel) == ch
+                and (r.size or {}).get("value", np.inf) >= 0.5 * (r.size or {}).get("threshold", 0.0)][:2]
+        names += [n for n in home if n not in names]
+    return names
 
 
 def attribute(real, sim, null_gap: dict, effects: dict, opt: AttributionOptions = AttributionOptions(),
-              gap_opt: GapOptions = GapOptions(), windows: dict | None = None, progress=None) -> list:
-    """Evaluate every effect; returns EffectResults best first (failed effects last, with `error`).
+              gap_opt: GapOptions = GapOptions(), windows: dict | None = None, progress=None,
+              gap_excess: dict | None = None) -> list:
+    """Screen every effect, refit the candidates; returns EffectResults best first (failed effects last,
+    with `error`), `significant` set (`significant`).
 
     Args:
         real, sim: the real fit and the fit of a simulation from it (`fit.fit_simulation`).
@@ -147,33 +209,62 @@ def attribute(real, sim, null_gap: dict, effects: dict, opt: AttributionOptions 
         windows: optional channel → (t_start, t_end) located by the gap curve, handed to windowed effects
             as a hint (they may refine it); None: each effect finds its own window.
         progress: optional callable(str) for progress lines.
+        gap_excess: unused (kept for callers; the candidates come from the held-out gaps, `candidates`).
     """
+    from imugraph.diagnose.refit import refit_effect
+
+    say = progress or (lambda _m: None)
     folds = fold_masks(real.session.t, opt)
     base = fold_gaps(real, sim, folds, gap_opt)
-    results = []
-    for name, effect in effects.items():
+    results = {}
+    for name, effect in effects.items():                                   # stage 1: screening
         window = (windows or {}).get(effect.channel) if getattr(effect, "windowed", False) else None
         try:
             res = evaluate_effect(effect, real, sim, null_gap, folds, opt, gap_opt, window, base)
         except Exception as exc:   # one broken effect must not stop the diagnosis: reported, ranked last
-            res = EffectResult(name, getattr(effect, "channel", "?"), np.nan, np.nan, np.nan, -np.inf, 0,
-                               error=f"{type(exc).__name__}: {exc} "
-                                     f"({traceback.extract_tb(exc.__traceback__)[-1].name})")
-        if progress:
-            progress(f"effect {name}: gap {res.gap_before:.3f} → {res.gap_after:.3f}, shrink {res.shrink:.2f}, penalised {res.penalised:.2f}"
-                     + (f" [{res.error}]" if res.error else ""))
-        results.append(res)
-    results.sort(key=lambda r: -r.penalised if np.isfinite(r.penalised) else np.inf)
-    return results
+            res = _failed(name, effect, exc)
+        say(_line(res))
+        results[name] = res
+    ranked = _rank(list(results.values()))
+    if opt.refit_top > 0 and opt.refit_rounds > 0:                         # stage 2: full refit
+        for name in candidates(ranked, null_gap, opt.refit_top, effects, opt):
+            effect = effects[name]
+            window = (windows or {}).get(effect.channel) if getattr(effect, "windowed", False) else None
+            try:
+                ext, info = refit_effect(effect, real, opt.refit_rounds, window)
+                if not info["changed"]:
+                    continue                                               # nothing to refit: screening stands
+                res = evaluate_effect(effect, real, sim, null_gap, folds, opt, gap_opt, info["window"], base,
+                                      ext=ext)
+                res.screen = {"shrink": results[name].shrink, "penalised_shrink": results[name].penalised,
+                              "size": results[name].size}
+            except Exception as exc:   # keep the screening result, say why the refit failed
+                res = results[name]
+                res.error = f"refit failed: {_failed(name, effect, exc).error}"
+            say(_line(res))
+            results[name] = res
+    ranked = _rank(list(results.values()))
+    for r in ranked:
+        r.significant = significant(r, null_gap, opt)
+    return ranked
+
+
+def _rank(results: list) -> list:
+    return sorted(results, key=lambda r: -r.penalised if np.isfinite(r.penalised) else np.inf)
+
+
+def significant(res: EffectResult, null_gap: dict, opt: AttributionOptions = AttributionOptions()) -> bool:
+    """Significance: the penalised held-out shrink (A2) clears `margin` on a channel whose raw gap is
+    well above the noise floor (`min_gap_ratio` · null)."""
+    if not np.isfinite(res.penalised):
+        return False
+    return bool(res.penalised >= opt.margin and res.raw_before >= opt.min_gap_ratio * null_gap.get(res.channel, 0.0))
 
 
 def verdict(results: list, null_gap: dict, opt: AttributionOptions = AttributionOptions()) -> str:
-    """The best effect's name when it beats the base model by the margin on a channel whose gap is above
-    the noise floor, else "none"."""
-    if not results or not np.isfinite(results[0].penalised):
-        return NONE
-    best = results[0]
-    floor = opt.min_gap_ratio * null_gap.get(best.channel, 0.0)
-    if best.penalised >= opt.margin and best.raw_before >= floor:
-        return best.name
+    """The best-ranked effect that is both significant (`significant`) and relevant (its fitted size
+    reaches the effect's physical threshold, `EffectResult.relevant`); "none" when there is none."""
+    for r in results:
+        if significant(r, null_gap, opt) and r.relevant:
+            return r.name
     return NONE

@@ -2,12 +2,13 @@
 
 Base model (the simplest honest one; DESIGN.md conventions, Kok & Schön 2016):
 
-    b_gyr,j = ω_j + δ_ω,s(j) + e_ω        gyro: rate + bias per 5 s segment (random walk) + white noise  (B1)
+    b_gyr,j = ω_j + δ_ω + e_ω             gyro: rate + ONE constant bias + white noise                   (B1)
     b_acc,j = bRn,j · (0, 0, g) + e_a        accelerometer: gravity only, NO linear acceleration           (B2)
     b_mag,j = D · bRn,j · n_mag + o + e_m    magnetometer: no disturbance windows, no delay                 (B3)
 
 fitted with `imugraph.calibration.ml.calibrate` (linear_acceleration="noise", disturbance_windows=False,
-compensate_mag_delay=False): per-sample nRb, D, o, dip, gyro bias segments, noise σ per channel.
+compensate_mag_delay=False, bias_segment_s=0: one bias segment — a drifting bias is the gyro_bias_drift
+effect, not the base model): per-sample nRb, D, o, dip, gyro bias, noise σ per channel.
 
 Residuals (raw units, y − h(x̂), NaN where a channel has no sample):
 
@@ -105,7 +106,7 @@ def base_options(keyframe_hz: float = 5.0):
     from imugraph.calibration.ml import Options
 
     return Options(linear_acceleration="noise", disturbance_windows=False, compensate_mag_delay=False,
-                   keyframe_hz=keyframe_hz)
+                   keyframe_hz=keyframe_hz, bias_segment_s=0.0)
 
 
 def body_rate(nRb: np.ndarray, dt: np.ndarray) -> np.ndarray:
@@ -115,7 +116,7 @@ def body_rate(nRb: np.ndarray, dt: np.ndarray) -> np.ndarray:
     return np.vstack([w, w[-1:]]) if len(w) else np.zeros((len(nRb), 3))
 
 
-def fit_base(session: Session, options=None, initial=None) -> Fit:
+def fit_base(session: Session, options=None, initial=None, extended: dict | None = None) -> Fit:
     """Fit the base model (B1)–(B3) to a session (calibration, bias segments, noise, trajectory).
 
     Args:
@@ -125,6 +126,9 @@ def fit_base(session: Session, options=None, initial=None) -> Fit:
         initial: start of the ML loop (attributes D, o, dip_rad, gyro_bias, noise, rest, coverage);
             default `imugraph.calibration.initial.initial_calibration` (regularised when D, o are not
             identifiable). `fit_simulation` starts a simulation's fit from the real fit.
+        extended: Options fields set AFTER the base model's (e.g. {"disturbance_windows": True}): the fit
+            of an extended model that imugraph.calibration.ml has jointly (imugraph.diagnose.refit); the
+            residuals (R1)–(R3) stay those of the base model's terms at the extended model's estimate.
 
     Raises:
         SessionError: the session is too short or has no magnetometer samples.
@@ -134,7 +138,10 @@ def fit_base(session: Session, options=None, initial=None) -> Fit:
     from imugraph.factors.gyro import keyframe_layout
 
     opt = options or base_options()
-    opt = replace(opt, linear_acceleration="noise", disturbance_windows=False, compensate_mag_delay=False)
+    opt = replace(opt, linear_acceleration="noise", disturbance_windows=False, compensate_mag_delay=False,
+                  bias_segment_s=0.0)
+    if extended:
+        opt = replace(opt, **extended)
     if session.n < 4 * stride_for(session, opt.keyframe_hz):
         raise SessionError(session.source, "t", f"{session.n} samples",
                            f"at least {4 * stride_for(session, opt.keyframe_hz)} samples to diagnose")

@@ -149,19 +149,31 @@ def diagnose(session: Session, options: DiagnoseOptions = DiagnoseOptions(), eff
         hints = {}
         for loc in locations:                     # best score first: keep the first per channel
             hints.setdefault(loc["channel"], (loc["t_start"], loc["t_end"]))
-    results = attribute(real, sim, g_null_fold, lib, options.attribution, gap_opt, hints, say)
+    excess = {c: (g_real[c] - g_null[c]) / max(g_null[c], 1e-12) for c in CHANNELS}
+    results = attribute(real, sim, g_null_fold, lib, options.attribution, gap_opt, hints, say, excess)
     v = verdict(results, g_null_fold, options.attribution)
     timing["attribution"] = time.perf_counter() - t3
     after = None
     if v != NONE:
-        best = lib[v]
-        window = (hints or {}).get(best.channel) if getattr(best, "windowed", False) else None
-        after = best.fit(real, np.ones(real.n, bool), window=window).residuals(real)
+        after = _after(lib[v], real, next(r for r in results if r.name == v), hints, options)
     timing["total"] = time.perf_counter() - t0
     say(f"verdict: {v} ({timing['total']:.1f} s)")
     excess = {c: max(0.0, g_real[c] - g_null[c]) for c in CHANNELS}
     return Diagnosis(v, excess, g_real, g_null, g_null_fold, locations, results, real, sim, curve, curve_null,
                      after, timing)
+
+
+def _after(effect, real: Fit, res: EffectResult, hints, options) -> dict:
+    """Residuals of the winning effect's extended model at every sample (the report's "after"): the
+    refitted model (imugraph.diagnose.refit) when the effect was refitted, else the first-order fit."""
+    from imugraph.diagnose.refit import refit_effect, rescale
+
+    window = (hints or {}).get(effect.channel) if getattr(effect, "windowed", False) else None
+    all_ = np.ones(real.n, bool)
+    if res.stage == "refit":
+        ext, info = refit_effect(effect, real, options.attribution.refit_rounds, window)
+        return rescale(effect.fit(ext, all_, window=info["window"]).raw_residuals(ext), real, all_)
+    return effect.fit(real, all_, window=window).residuals(real)
 
 
 def best_result(diag: Diagnosis) -> EffectResult | None:

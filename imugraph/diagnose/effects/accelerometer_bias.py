@@ -6,7 +6,9 @@ Fit (training samples only): with the trajectory fixed, the residual is linear i
 the gravity magnitude (the base fit's g, a median of |acc|, absorbs the bias' component along gravity):
 acc_j ≈ δ_a + δg R̂_jᵀ ẑ — 4-parameter least squares. Correction: acc'_j = acc_j − δ_a − δg R̂_jᵀ ẑ.
 
-Injection ranges (RANGES): |δ_a| = 0.05–0.3 m/s² in a random direction (uncalibrated MEMS accelerometers:
+Relevance (`size`): |δ_a| ≥ 0.05 m/s².
+
+Injection ranges (RANGES): |δ_a| = 0.1–0.5 m/s² in a random direction (uncalibrated MEMS accelerometers:
 tens of mg after soldering and with temperature).
 """
 
@@ -16,7 +18,8 @@ import numpy as np
 
 from imugraph.diagnose.effects.base import Correction, Effect, check_train, noise_scale, replace_session
 
-RANGES = {"bias_ms2": (0.05, 0.3)}
+RANGES = {"bias_ms2": (0.1, 0.5)}
+RELEVANT_MS2 = 0.05          # relevance: |δ_a| ≥ 0.05 m/s² (5 mg, ≥ 0.3° of tilt)
 
 
 class AccBiasCorrection(Correction):
@@ -57,6 +60,12 @@ class AccelerometerBias(Effect):
                                  n_params=4, channel=self.channel)
         corr.deltas["noise_scale"] = noise_scale(fit, corr.raw_residuals(fit), train, ["acc"])
         return corr
+
+
+    def size(self, corr, fit) -> dict:
+        """|δ_a|, m/s² (relevance ≥ 0.05 m/s² ≈ 5 mg: a tilt error ≥ 0.3°)."""
+        return {"value": float(np.linalg.norm(corr.params["bias_ms2"])), "threshold": RELEVANT_MS2,
+                "unit": "m/s²"}
 
 
 EFFECT = AccelerometerBias()

@@ -26,7 +26,9 @@ gap (imugraph.diagnose.gap) compares them with:
 3. The extended model re-estimates the noise level of the channels it changes (as the ML loop of the
    calibration does): σ'_c from the training samples (Huber-weighted RMS, k = 2); corrected residuals
    are returned as r' · σ_c / σ'_c so that whitening by the base σ_c (what the gap does) gives the
-   extended model's standardised residuals.
+   extended model's standardised residuals. Not the gyro: its σ is measured at rest and never
+   re-estimated (base and extended model alike), so its residuals keep their size — the gap then sees
+   how much of the gyro residual a correction removes, not only its shape.
 """
 
 from __future__ import annotations
@@ -73,6 +75,23 @@ class Correction:
         """Residuals before the noise re-estimation (rule 3). Subclasses override."""
         return {c: fit.residuals[c].copy() for c in CHANNELS}
 
+    def corrected(self, fit) -> dict:
+        """channel → measurements of `fit.session` with this effect removed (for the full refit,
+        imugraph.diagnose.refit): the gyro changed by the correction's Δω when it has one (gyro effects),
+        acc and mag by the change of their raw residual, y' = y + (r'_c − r_c) (R2)–(R3); NaN where the
+        correction leaves no value (a censored sample keeps its measurement)."""
+        s = fit.session
+        out = {}
+        if "d_omega" in self.deltas:
+            out["gyr"] = s.gyr + np.nan_to_num(np.asarray(self.deltas["d_omega"], float))
+        raw = self.raw_residuals(fit)
+        for c in ("acc", "mag"):
+            d = raw[c] - fit.residuals[c]
+            if np.any(np.abs(np.nan_to_num(d)) > 0):
+                y = getattr(s, c)
+                out[c] = np.where(np.isfinite(d), y + np.nan_to_num(d), y)
+        return out
+
 
 class Effect:
     """One physical effect the base model leaves out (see module doc).
@@ -94,6 +113,11 @@ class Effect:
     def fit(self, fit, train: np.ndarray, window=None) -> Correction:
         """Extend the base `fit` with this effect, estimated from the samples where `train` is True."""
         raise NotImplementedError
+
+    def size(self, corr: Correction, fit) -> dict:
+        """Relevance (docs/diagnose.md §3): the fitted effect's physical size {"value", "threshold",
+        "unit"}; the effect can be the verdict only when value ≥ threshold. Subclasses override."""
+        return {"value": float("inf"), "threshold": 0.0, "unit": ""}
 
     def __repr__(self) -> str:
         return f"<effect {self.name} ({self.channel}{', windowed' if self.windowed else ''})>"
@@ -173,6 +197,8 @@ def noise_scale(fit, res: dict, train: np.ndarray, channels) -> dict:
     """Rule 3: σ_c / σ'_c for the changed channels, σ'_c re-estimated on the training samples."""
     out = {}
     for c in channels:
+        if c == "gyr":
+            continue
         base = huber_rms(fit.residuals[c][train], fit.sigma[c])
         new = huber_rms(res[c][train], fit.sigma[c])
         out[c] = base / new

@@ -8,7 +8,10 @@ model's bias is b̄ + β(t), so the gyro changes by Δω_j = b_s(j) − b̄ − 
 residuals move linearly with the coefficients c_p (base (E1)–(E3)): linear least squares over the training
 samples of all channels, whitened by σ. β is smooth and global, so the held-out blocks are interpolated.
 
-Injection ranges (RANGES): total change |β(t₁) − β(t₀)| or peak-to-peak 0.1–1 °/s over the session in a
+The base model has ONE constant bias (imugraph.diagnose.fit), so a drift is left to this effect.
+Relevance (`size`): peak-to-peak of β ≥ 0.1 °/s.
+
+Injection ranges (RANGES): total change |β(t₁) − β(t₀)| or peak-to-peak 0.2–1 °/s over the session in a
 random direction; shape "warm-up" (1 − e^{−(t−t₀)/τ}, τ = 0.2–1 × duration), "linear" ramp, or "wander"
 (two slow sinusoids, periods 0.5–2 × duration).
 """
@@ -20,7 +23,8 @@ import numpy as np
 from imugraph.diagnose.effects.base import (Correction, Effect, check_train, gyro_refit, noise_scale,
                                              replace_session)
 
-RANGES = {"drift_deg_s": (0.1, 1.0), "shapes": ("warm-up", "linear", "wander")}
+RANGES = {"drift_deg_s": (0.2, 1.0), "shapes": ("warm-up", "linear", "wander")}
+RELEVANT_DEG_S = 0.1         # relevance: a drift of ≥ 0.1 °/s integrates to ≥ 6° of heading per minute
 DEGREE = 3
 
 
@@ -95,6 +99,11 @@ class GyroBiasDrift(Effect):
         res = corr.raw_residuals(fit)
         corr.deltas["noise_scale"] = noise_scale(fit, res, train, ["gyr", "acc", "mag"])
         return corr
+
+
+    def size(self, corr, fit) -> dict:
+        """Peak-to-peak of β(t) over the session, largest axis, °/s (relevance ≥ 0.1 °/s: 6° per minute)."""
+        return {"value": float(corr.params["peak_to_peak_deg_s"]), "threshold": RELEVANT_DEG_S, "unit": "°/s"}
 
 
 EFFECT = GyroBiasDrift()

@@ -9,6 +9,8 @@ So each entry m_ab of M has a residual direction G_ab = refit(−E_ab (y − b))
 least squares Σ_train ‖(r + Σ m_ab G_ab) / σ‖² over all three channels (9 parameters). The correction then
 uses the exact inverse (I+M)⁻¹.
 
+Relevance (`size`): ‖M‖₂ ≥ 0.3 %.
+
 Injection ranges (RANGES): scale-factor error 0.5–3 % per axis (random sign), each axis misaligned by
 0.5–2° toward a random perpendicular direction (MEMS gyros: ±1–3 % scale, ≤ 1–2° non-orthogonality).
 """
@@ -21,6 +23,7 @@ from imugraph.diagnose.effects.base import (Correction, Effect, check_train, gyr
                                              replace_session)
 
 RANGES = {"scale": (0.005, 0.03), "misalignment_deg": (0.5, 2.0)}
+RELEVANT_SCALE = 0.003       # relevance: ‖M‖₂ ≥ 0.3 % (≈ 1° orientation error per full turn)
 
 
 def random_scale_matrix(rng: np.random.Generator) -> np.ndarray:
@@ -86,6 +89,12 @@ class GyroScale(Effect):
         res = corr.raw_residuals(fit)
         corr.deltas["noise_scale"] = noise_scale(fit, res, train, ["gyr", "acc", "mag"])
         return corr
+
+
+    def size(self, corr, fit) -> dict:
+        """‖M‖₂ (largest scale/misalignment error; relevance ≥ 0.3 %: 1° of heading per turn)."""
+        M = np.asarray(corr.params["M"], float)
+        return {"value": float(np.linalg.norm(M, 2)), "threshold": RELEVANT_SCALE, "unit": "‖M‖₂"}
 
 
 EFFECT = GyroScale()

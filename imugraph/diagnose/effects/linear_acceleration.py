@@ -14,7 +14,10 @@ Residuals (base rule 2): the nav-frame residual passed through the extended mode
 |H(f)| = √(σ_f² / (σ_f² + S_a(f))) (zero phase), rotated back to the body frame: white at σ_f when (L1)
 holds. The filter is fixed by the training samples; it fits nothing to the held-out ones.
 
-Injection ranges (RANGES): RMS |n_a| 0.5–5 m/s² (slow to fast hand-held translation; BROAD's fast
+Relevance (`size`): RMS of the Wiener estimate of n_a over the samples in motion ≥ 0.3 g.
+
+Injection ranges (RANGES): RMS |n_a| 3.5–8 m/s² (above the relevance threshold of 0.3 g ≈ 2.9 m/s²: the
+harness injects effects that matter; fast hand-held translation; BROAD's fast
 translation trial 16 reaches a median |R·acc − g| ≈ 13.6 m/s² in motion), band 0.2–2 Hz (Gaussian
 spectrum of width 0.3–1.5 Hz), over the whole session; nav-frame signal put in the body frame with the
 truth orientation (or the integrated gyro where it is unknown).
@@ -28,7 +31,7 @@ from imugraph.diagnose.effects.base import (Correction, Effect, check_train, inj
                                              noise_scale, psd_filter, replace_session, train_psd)
 from imugraph.io.validate import runs
 
-RANGES = {"rms_ms2": (0.5, 5.0), "bandwidth_hz": (0.3, 1.5)}
+RANGES = {"rms_ms2": (3.5, 8.0), "bandwidth_hz": (0.3, 1.5)}
 FC_GRID_HZ = np.geomspace(0.05, 8.0, 24)
 
 
@@ -37,7 +40,31 @@ def lowpass_shape(f_hz: np.ndarray, fc: float) -> np.ndarray:
     return 1.0 / (1.0 + (np.asarray(f_hz) / fc) ** 4)
 
 
+RELEVANT_G = 0.3     # relevance: RMS |n_a| during motion ≥ 0.3 g (a gravity-only tilt then errs by > ~15°)
+
+
+def motion_mask(fit) -> np.ndarray:
+    """(N,) samples in motion: not in the rest mask of the fit's initial calibration (all when unknown)."""
+    rest = fit.info.get("rest")
+    if rest is None or np.shape(rest) != (fit.n,):
+        return np.ones(fit.n, bool)
+    m = ~np.asarray(rest, bool)
+    return m if m.sum() >= 10 else np.ones(fit.n, bool)
+
+
 class LinearAccelerationCorrection(Correction):
+    def signal(self, fit) -> np.ndarray:
+        """(N, 3) nav-frame linear acceleration, the Wiener estimate from the residual:
+        n_a = F⁻¹[(S_a / (S_a + σ_f²)) · F(â)] = â − F⁻¹[|H|² F(â)]  (L1)."""
+        a_n = np.einsum("nij,nj->ni", fit.nRb, fit.residuals["acc"])
+        gain = self.deltas["gain"](len(a_n), fit.session.rate)
+        return a_n - psd_filter(a_n, gain**2)
+
+    def corrected(self, fit) -> dict:
+        """acc with the estimated linear acceleration removed: y − R̂ᵀ n_a."""
+        a_n = np.nan_to_num(self.signal(fit))
+        return {"acc": fit.session.acc - np.einsum("nji,nj->ni", fit.nRb, a_n)}
+
     def raw_residuals(self, fit) -> dict:
         out = {c: fit.residuals[c].copy() for c in fit.residuals}
         a_n = np.einsum("nij,nj->ni", fit.nRb, fit.residuals["acc"])               # â = R̂ r_acc
@@ -111,6 +138,14 @@ class LinearAcceleration(Effect):
         res = corr.raw_residuals(fit)
         corr.deltas["noise_scale"] = noise_scale(fit, res, train, ["acc"])
         return corr
+
+
+    def size(self, corr, fit) -> dict:
+        """RMS |n_a| over the samples in motion, m/s² (threshold RELEVANT_G · g)."""
+        a = corr.signal(fit)[motion_mask(fit)]
+        a = a[np.all(np.isfinite(a), axis=1)]
+        rms = float(np.sqrt(np.mean(np.sum(a**2, axis=1)))) if len(a) else 0.0
+        return {"value": rms, "threshold": RELEVANT_G * fit.g, "unit": "m/s² RMS in motion"}
 
 
 EFFECT = LinearAcceleration()

@@ -15,7 +15,10 @@ all samples — moving mean of |r/σ|², flagged where well above its quiet leve
 each edge refined to the step in the residual's mean (base.refine_edge). Only the window edges use the
 held-out samples (localisation); the fields are estimated on training samples only.
 
-Injection ranges (RANGES): field 5–60 µT-equivalent (scaled by the session's field magnitude / 50 µT),
+Refit (imugraph.diagnose.refit): `corrected` leaves the windows' field samples out, so the refitted D, o,
+dip and heading come from undisturbed samples. Relevance (`size`): the window's extra field ≥ 10 % of |m|.
+
+Injection ranges (RANGES): field 10–60 µT-equivalent (≥ 20 % of a 50 µT field: above relevance) (scaled by the session's field magnitude / 50 µT),
 uniformly random direction; window 15–40 % of the session; raised-cosine ramps 0.2–1.0 s (a magnet brought
 by hand); mode "attached" (body frame, p = 1 by default) or "nearby" (nav frame, p = 1 − p_attached, needs
 the orientation truth `quat`; off by default: a strong nav-frame field turns the fitted heading, which a
@@ -31,12 +34,26 @@ from imugraph.diagnose.effects.base import (Correction, Effect, check_train, det
                                              replace_session, window_mask)
 from imugraph.geometry import quat_to_rotmat
 
-RANGES = {"field_uT": (5.0, 60.0), "window_frac": (0.15, 0.4), "ramp_s": (0.2, 1.0), "p_attached": 1.0}
+RANGES = {"field_uT": (10.0, 60.0), "window_frac": (0.15, 0.4), "ramp_s": (0.2, 1.0), "p_attached": 1.0}
 MAX_WINDOWS = 3
+PAD_S = 1.0                  # windows widened by this for the refit (the ramps of a magnet brought by hand)
+RELEVANT_FRACTION = 0.10     # relevance: extra field ≥ 10 % of |m| (a ≥ ~6° heading error when across it)
 
 
 class MagneticCorrection(Correction):
     """(M1) evaluated at every sample."""
+
+    def corrected(self, fit) -> dict:
+        """For the full refit: the magnetometer samples of the windows (widened by PAD_S) left out (NaN),
+        so that the base refit's D, o, dip and heading come from undisturbed samples only — the limit of
+        (M1) with a free field per sample in the window, which also covers a field that is not constant."""
+        t = fit.session.t
+        wins = [(w["t_start"] - PAD_S, w["t_end"] + PAD_S) for w in self.params.get("windows", [])]
+        if not wins:
+            return {}
+        mag = fit.session.mag.copy()
+        mag[window_mask(t, wins)] = np.nan
+        return {"mag": mag}
 
     def raw_residuals(self, fit) -> dict:
         out = {c: fit.residuals[c].copy() for c in fit.residuals}
@@ -49,6 +66,7 @@ class MagneticDisturbance(Effect):
     channel = "mag"
     windowed = True
     ranges = RANGES
+    joint_options = {"disturbance_windows": True}   # imugraph.calibration.disturbance: the same model (M1)
 
     def inject(self, session, rng, *, window=None, strength=None):
         """Add (M1)'s field over a window. strength: field in µT-equivalent (default: random in range)."""
@@ -102,6 +120,7 @@ class MagneticDisturbance(Effect):
         ridge = 1e-6 * np.eye(n_col)                                          # Δo vs Δn without rotation
         theta = np.linalg.solve(A.T @ A + ridge * max(1.0, np.trace(A.T @ A) / n_col), A.T @ y)
         delta = np.einsum("nij,j->ni", J, theta)
+        d_window = np.einsum("nij,j->ni", J[:, :, 12:], theta[12:])                  # Δo_w + D bRn Δn_w
         res = {c: fit.residuals[c].copy() for c in fit.residuals}
         res["mag"] = r - delta
         corr = MagneticCorrection(
@@ -112,9 +131,22 @@ class MagneticDisturbance(Effect):
                                     for i, (a, b) in enumerate(windows)]},
             n_params=n_col + 2 * len(windows),
             t_start=windows[0][0] if windows else None, t_end=windows[0][1] if windows else None,
-            channel=self.channel, deltas={"mag": delta})
+            channel=self.channel, deltas={"mag": delta, "window": d_window})
         corr.deltas["noise_scale"] = noise_scale(fit, res, train, ["mag"])
         return corr
+
+    def size(self, corr, fit) -> dict:
+        """Largest window's extra field (median |Δo_w + D bRn Δn_w| over it) / median |D bRn n_mag|."""
+        bRn = np.transpose(fit.nRb, (0, 2, 1))
+        earth = float(np.median(np.linalg.norm((bRn @ fit.calibration.n_mag) @ np.asarray(fit.calibration.D).T,
+                                               axis=1)))
+        dw = np.linalg.norm(corr.deltas.get("window", np.zeros((fit.n, 3))), axis=1)
+        best = 0.0
+        for w in corr.params.get("windows", []):
+            m = (fit.session.t >= w["t_start"]) & (fit.session.t <= w["t_end"])
+            if m.any():
+                best = max(best, float(np.median(dw[m])))
+        return {"value": best / max(earth, 1e-12), "threshold": RELEVANT_FRACTION, "unit": "fraction of |m|"}
 
     @staticmethod
     def find_windows(fit) -> list:

@@ -11,6 +11,8 @@ acc rows are dropped (NaN: censored, (C1)); gyro peaks are reconstructed from a 
 `CONTEXT` unclipped samples on either side (never inside the rail), and the change Δω enters the first-
 order refit (base (E1)–(E3)). One parameter (the level) per rail.
 
+Relevance (`size`): ≥ 5 samples on a rail.
+
 Injection ranges (RANGES): the channel (gyr or acc, p = 0.5 each) clips on all axes at ±L, L = 70–90 %
 of the largest |value| the channel reaches in the session; the rail value is held exactly. The
 accelerometer is only clipped when that level is ≥ 2 g (`acc_min_level`: no accelerometer's range is near
@@ -28,6 +30,7 @@ from imugraph.io.validate import runs
 RANGES = {"level_frac": (0.7, 0.9), "channel_p": {"gyr": 0.5, "acc": 0.5}, "acc_min_level": 2.0 * 9.81}
 CONTEXT = 6
 MIN_RUN, MIN_COUNT = 2, 3
+MIN_CLIPPED = 5              # relevance: ≥ 5 samples on a rail (fewer is a chance repeat of a maximum)
 
 
 def find_rails(y: np.ndarray, mask: np.ndarray) -> list:
@@ -110,10 +113,23 @@ class Saturation(Effect):
         params = {"rails": {c: [{"axis": a, "sign": sg, "level": lv} for a, sg, lv in v] for c, v in rails.items()},
                   "channel": channel}
         corr = SaturationCorrection(self.name, params, n_params=n_rails, channel=channel, deltas={"rails": rails})
+        if rails["gyr"]:
+            corr.deltas["d_omega"] = reconstruct_peaks(s.t, s.gyr, rails["gyr"]) - s.gyr
         if n_rails:
             changed = ["gyr", "acc", "mag"] if rails["gyr"] else ["acc"]
             corr.deltas["noise_scale"] = noise_scale(fit, corr.raw_residuals(fit), train, changed)
         return corr
+
+
+    def size(self, corr, fit) -> dict:
+        """Number of samples on a rail (relevance ≥ MIN_CLIPPED)."""
+        s = fit.session
+        n = 0
+        for c, rails in corr.deltas.get("rails", {}).items():
+            y = getattr(s, c)
+            for a, _sign, level in rails:
+                n += int(np.sum(np.abs(y[:, a] - level) <= 1e-9 * max(1.0, abs(level))))
+        return {"value": float(n), "threshold": float(MIN_CLIPPED), "unit": "clipped samples"}
 
 
 EFFECT = Saturation()

@@ -8,7 +8,10 @@ Fit (training samples only): for mag and acc, τ by Gauss–Newton on (T1) with 
 the fitted prediction (two steps, the second at the exactly shifted signal); for gyr, removing the delay
 changes the rate by Δω = y(t + τ) − y(t) ≈ τ ẏ and every channel's residuals move linearly with τ (base
 (E1)–(E3)). The channel whose shift lowers the whitened training cost most wins (1 parameter + the
-choice). The correction undoes the shift by interpolation: y'_c(t) = y_c(t + τ).
+choice; the channels' costs are summed relative to the base fit's, each channel counting alike). The
+correction undoes the shift by interpolation: y'_c(t) = y_c(t + τ).
+
+Relevance (`size`): |τ| ≥ one sample period.
 
 Injection ranges (RANGES): τ = 5–50 ms (e.g. a magnetometer read out on its own slower schedule, or a
 digital low-pass filter's group delay), channel mag (p = 0.5), acc (0.25) or gyr (0.25).
@@ -30,6 +33,13 @@ def _cost(fit, res: dict, train: np.ndarray, channels) -> float:
         z = res[c][train] / fit.sigma[c]
         total += float(np.nansum(z**2))
     return total
+
+
+def _relative_cost(fit, res: dict, train: np.ndarray, channels) -> float:
+    """Σ_c cost_c(res) / cost_c(base): each channel's whitened cost relative to the base fit's, so that the
+    gyro (whose keyframe residual has a tiny σ) does not outweigh a magnetometer that a shift explains."""
+    return sum(_cost(fit, res, train, [c]) / max(_cost(fit, fit.residuals, train, [c]), 1e-30)
+               for c in channels)
 
 
 class TimeOffsetCorrection(Correction):
@@ -87,14 +97,23 @@ class TimeOffset(Effect):
                     den += float(np.sum((Jk[ok] / sg) ** 2))
                 tau = float(np.clip(tau - num / max(den, 1e-30), -0.2, 0.2))
             corr = TimeOffsetCorrection(self.name, {"channel": c, "tau_s": tau}, 2, channel=c)
-            cost = _cost(fit, corr.raw_residuals(fit), train, channels)
+            cost = _relative_cost(fit, corr.raw_residuals(fit), train, channels)
             if best is None or cost < best[0]:
                 best = (cost, corr)
         corr = best[1]
-        corr.params["train_cost_reduction"] = float(1.0 - best[0] / max(base_cost, 1e-30))
+        if corr.channel == "gyr":
+            corr.deltas["d_omega"] = np.nan_to_num(shift_signal(s.t, s.gyr, -corr.params["tau_s"]) - s.gyr)
+        corr.params["train_cost_reduction"] = float(1.0 - _cost(fit, corr.raw_residuals(fit), train, channels)
+                                                    / max(base_cost, 1e-30))
         res = corr.raw_residuals(fit)
         corr.deltas["noise_scale"] = noise_scale(fit, res, train, [corr.channel])
         return corr
+
+
+    def size(self, corr, fit) -> dict:
+        """|τ| in samples (relevance: ≥ 1 sample period; a shorter delay is below the time resolution)."""
+        return {"value": abs(float(corr.params["tau_s"])) * fit.session.rate, "threshold": 1.0,
+                "unit": "samples"}
 
 
 EFFECT = TimeOffset()

@@ -14,7 +14,9 @@ bin of margin), S_v = max(S_in − S_out, 0) in the band.
 Residuals (base rule 2): inside the windows, the accelerometer residual passed through the extended
 model's whitening filter |H(f)| = √(S_out / (S_out + S_v)) (zero phase); unchanged outside.
 
-Injection ranges (RANGES): f₀ = 20–80 Hz (at most 0.4 × the sampling rate), amplitude 0.5–3 m/s², random
+Relevance (`size`): band RMS ≥ 0.3 m/s².
+
+Injection ranges (RANGES): f₀ = 20–80 Hz (at most 0.4 × the sampling rate), amplitude 0.6–3 m/s², random
 direction, slow frequency wander ±2 %, window 15–40 % of the session, raised-cosine ramps 0.1–0.5 s.
 """
 
@@ -27,8 +29,9 @@ from imugraph.diagnose.effects.base import (Correction, Effect, check_train, det
                                              train_psd, window_mask)
 from imugraph.io.validate import runs
 
-RANGES = {"freq_hz": (20.0, 80.0), "amp_ms2": (0.5, 3.0), "window_frac": (0.15, 0.4), "ramp_s": (0.1, 0.5)}
+RANGES = {"freq_hz": (20.0, 80.0), "amp_ms2": (0.6, 3.0), "window_frac": (0.15, 0.4), "ramp_s": (0.1, 0.5)}
 MAX_WINDOWS = 3
+RELEVANT_RMS = 0.3           # relevance: band RMS ≥ 0.3 m/s² (≈ 10× a MEMS accelerometer's white noise)
 
 
 class VibrationCorrection(Correction):
@@ -115,6 +118,13 @@ class Vibration(Effect):
         z2 = np.sum((hp / fit.sigma["acc"]) ** 2, axis=1) / 3.0
         found = detect_windows(s.t, z2, smooth_s=0.5, factor=4.0, min_s=2.0, merge_s=1.0)[:MAX_WINDOWS]
         return [(float(s.t[a]), float(s.t[b - 1])) for a, b in found]
+
+
+    def size(self, corr, fit) -> dict:
+        """RMS of the band-limited excess acceleration in the windows, m/s² (relevance ≥ 0.3 m/s²)."""
+        amp = np.asarray(corr.params.get("amp_ms2", [0.0, 0.0, 0.0]), float)
+        return {"value": float(np.linalg.norm(amp) / np.sqrt(2.0)), "threshold": RELEVANT_RMS,
+                "unit": "m/s² RMS"}
 
 
 EFFECT = Vibration()

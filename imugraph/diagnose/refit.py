@@ -1,0 +1,76 @@
+"""Full refit of the base model extended with one effect (the attribution's second stage).
+
+A residual-level correction (an effect's `fit` on the base fit, trajectory fixed) recovers only part of
+an effect that bent the base fit: a magnet pulls the fitted D, o, σ_mag and heading toward it, a gyro
+scale error turns the fitted trajectory, an accelerometer bias tilts it. The extended model is refitted
+by alternation (block coordinate descent on the joint ML problem):
+
+    round r = 1, 2:   φ_r  = E.fit(θ_{r−1} on y, all samples)            (effect from scratch, original y)
+                      y_r  = E⁻¹(y; φ_r)                                  (Correction.corrected: effect removed)
+                      F_r  = fit_base(y_r), started from F_{r−1}: θ_r     (trajectory, D, o, dip, bias, σ)   (F1)
+
+Where imugraph.calibration.ml has the effect as a joint model (`Effect.joint_options`, e.g.
+magnetic_disturbance ↔ windowed hard-iron offsets, `disturbance_windows=True`), θ* is that joint fit
+instead of the alternation. F_0 = the base fit of the recording. The extended model's base parameters θ* are those of F_2. The
+cross-validation then evaluates the effect from scratch on the ORIGINAL measurements against θ*
+(`on_session`): per fold, φ_k = E.fit(θ*, training blocks), residuals y − h(θ*, φ_k) on the held-out
+blocks. θ* is fitted on all samples, as the base model's θ is for the "before" residuals; only the
+effect's parameters are cross-validated. (θ* saw the held-out samples through the correction of (F1),
+whose parameters φ_r are few and global or per window: a weak leak, stated in docs/diagnose.md.)
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+
+from imugraph.diagnose.effects.base import huber_rms, replace_session
+from imugraph.diagnose.fit import Fit, _raw_residuals, fit_simulation
+
+
+def on_session(fit: Fit, session) -> Fit:
+    """The fitted parameters and trajectory of `fit` with residuals (R1)–(R3) of another session on the
+    same time base (the original measurements of a fit of corrected ones)."""
+    out = replace(fit, session=session, residuals={})
+    out.residuals = _raw_residuals(out)
+    return out
+
+
+def refit_effect(effect, real: Fit, rounds: int = 2, window=None) -> tuple[Fit, dict]:
+    """Alternation (F1) for one effect. Returns (θ* on the original measurements, info) where info holds
+    the rounds' parameters, the window handed on between rounds and "changed" (False when the effect
+    corrected nothing, e.g. no rail found: θ* is then the base fit)."""
+    joint = getattr(effect, "joint_options", None)
+    if joint:                                   # the calibration has the extended model: fit it jointly
+        from imugraph.diagnose.fit import base_options, fit_base
+
+        ext = fit_base(real.session, base_options(real.info.get("keyframe_hz", 5.0)), extended=dict(joint))
+        return ext, {"rounds": [], "window": window, "changed": True, "joint": dict(joint)}
+    cur = real
+    info = {"rounds": []}
+    train = np.ones(real.n, bool)
+    for _ in range(rounds):
+        view = real if cur is real else on_session(cur, real.session)
+        corr = effect.fit(view, train, window=window)
+        new = corr.corrected(view) if hasattr(corr, "corrected") else {}
+        info["rounds"].append({"params": corr.params, "t_start": corr.t_start, "t_end": corr.t_end})
+        if not new:
+            break
+        cur = fit_simulation(replace_session(real.session, **new), cur)
+    info["window"] = window
+    info["changed"] = cur is not real
+    return on_session(cur, real.session), info
+
+
+def rescale(after: dict, real: Fit, train: np.ndarray) -> dict:
+    """Noise re-estimation of the extended model (effects/base.py rule 3) for refit residuals: acc and
+    mag are scaled by σ_c / σ'_c, σ_c the Huber RMS of the base residuals and σ'_c that of the
+    extended model's, both on the training samples, so that whitening by the base σ (what the gap does)
+    gives the extended model's standardised residuals."""
+    out = {"gyr": after["gyr"]}                 # the gyro σ is measured at rest, never re-estimated
+    for c in ("acc", "mag"):
+        s0 = huber_rms(real.residuals[c][train], real.sigma[c])
+        s1 = huber_rms(after[c][train], real.sigma[c])
+        out[c] = after[c] * (s0 / s1)
+    return out
