@@ -14,9 +14,11 @@ per-update latency p50/p99 (ms; one update per keyframe), and the orientation er
 (causal) and smoothed outputs. The filtered rows of the bootstrap window are a replay with the bootstrap
 calibration (see docs/stream.md). Wall times; the machine may be shared: compare ratios in one run.
 
-    .venv/bin/python benchmarks/stream_speed.py [TRIALS] [--lag 2] [--bootstrap-s 30]
+    .venv/bin/python benchmarks/stream_speed.py [TRIALS] [--lag 2 | --no-lag] [--no-batch] [--bootstrap-s 30]
 
-TRIALS: comma-separated BROAD trial numbers (default 01). Writes bench_out/stream_speed.json.
+TRIALS: comma-separated BROAD trial numbers, or "all" (the 17 trials; default 01). --no-lag / --no-batch skip
+the fixed-lag run / the batch smoother (time). Prints the per-trial table, then the means of the filtered
+error of every streamed method beside online VQF's over the same trials. Writes bench_out/stream_speed.json.
 """
 
 from __future__ import annotations
@@ -40,7 +42,7 @@ def _err(q, s):
     return orientation_error(q, s.quat, s.movement, s.rate).rms_deg
 
 
-def run_trial(path: Path, lag: float, bootstrap_s: float) -> list[dict]:
+def run_trial(path: Path, lag: float | None, bootstrap_s: float, batch: bool = True) -> list[dict]:
     from imugraph.evaluate import orientation_error
     from imugraph.graphs.cpp_smoother import smooth_fixed
     from imugraph.graphs.stream import StreamOptions
@@ -51,18 +53,20 @@ def run_trial(path: Path, lag: float, bootstrap_s: float) -> list[dict]:
     start = time.perf_counter()
     cal, n_boot = bootstrap_calibration(s, bootstrap_s)
     boot = time.perf_counter() - start
-    q_batch, t_batch = timed(smooth_fixed, s, cal)
+    q_batch, t_batch = timed(smooth_fixed, s, cal) if batch else (None, None)
     rows = []
-    for label, lag_s in (("stream iSAM2", None), (f"stream lag {lag:g} s", lag)):
+    runs = [("stream iSAM2", None)] + ([(f"stream lag {lag:g} s", lag)] if lag is not None else [])
+    for label, lag_s in runs:
         r = stream_session(s, cal, StreamOptions(lag_s=lag_s))
         tm = r.timing
         rows.append({"trial": name, "method": label, "rt_factor": tm["realtime_factor"], "p50_ms": tm["p50_ms"],
                      "p99_ms": tm["p99_ms"], "filtered_deg": _err(r.filtered, s), "smoothed_deg": _err(r.smoothed, s),
                      "vs_batch_deg": orientation_error(r.smoothed, q_batch, None, s.rate, heading=False,
-                                                       max_shift=0.0).rms_deg,
+                                                       max_shift=0.0).rms_deg if batch else None,
                      "seconds": tm["seconds"], "bootstrap_s": boot, "failed": r.counts["failed_updates"]})
-    rows.append({"trial": name, "method": "batch smooth", "smoothed_deg": _err(q_batch, s), "seconds": t_batch,
-                 "rt_factor": s.n / s.rate / t_batch})
+    if batch:
+        rows.append({"trial": name, "method": "batch smooth", "smoothed_deg": _err(q_batch, s), "seconds": t_batch,
+                     "rt_factor": s.n / s.rate / t_batch})
     q_vqf, t_vqf = timed(vqf_online, s)
     rows.append({"trial": name, "method": "online VQF", "filtered_deg": _err(q_vqf, s), "seconds": t_vqf,
                  "rt_factor": s.n / s.rate / t_vqf})
@@ -71,23 +75,47 @@ def run_trial(path: Path, lag: float, bootstrap_s: float) -> list[dict]:
     return rows
 
 
+def _means(rows: list[dict]) -> list[dict]:
+    """Per method: mean filtered and smoothed error, mean real-time factor, worst p99 over the trials."""
+    out = []
+    for m in dict.fromkeys(r["method"] for r in rows):
+        sel = [r for r in rows if r["method"] == m]
+        def mean(key):
+            v = [r[key] for r in sel if r.get(key) is not None]
+            return float(np.mean(v)) if v else None
+        p99 = [r["p99_ms"] for r in sel if r.get("p99_ms") is not None]
+        out.append({"method": m, "trials": len(sel), "filtered_deg": mean("filtered_deg"),
+                    "smoothed_deg": mean("smoothed_deg"), "rt_factor": mean("rt_factor"),
+                    "p99_ms": max(p99) if p99 else None})
+    return out
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("trials", nargs="?", default="01")
     ap.add_argument("--lag", type=float, default=2.0)
+    ap.add_argument("--no-lag", action="store_true")
+    ap.add_argument("--no-batch", action="store_true")
     ap.add_argument("--bootstrap-s", type=float, default=30.0)
     a = ap.parse_args(argv)
-    wanted = {int(x) for x in a.trials.split(",")}
-    paths = [p for p in broad_trials() if trial_number(p) in wanted]
+    every = a.trials == "all"
+    wanted = set() if every else {int(x) for x in a.trials.split(",")}
+    paths = [p for p in broad_trials() if every or trial_number(p) in wanted]
     if not paths:
         print(f"no BROAD trial {a.trials} in the data folder", file=sys.stderr)
         return 2
-    rows = [r for p in paths for r in run_trial(p, a.lag, a.bootstrap_s)]
+    lag = None if a.no_lag else a.lag
+    rows = []
+    for p in paths:
+        rows += run_trial(p, lag, a.bootstrap_s, not a.no_batch)
+        print(f"trial {trial_number(p):02d} done", file=sys.stderr, flush=True)
     cols = ["trial", "method", "rt_factor", "p50_ms", "p99_ms", "filtered_deg", "smoothed_deg", "vs_batch_deg",
-            "seconds", "bootstrap_s"]
+            "seconds", "bootstrap_s", "failed"]
     print_table(rows, cols)
+    means = _means(rows)
+    print_table(means, ["method", "trials", "filtered_deg", "smoothed_deg", "rt_factor", "p99_ms"])
     print(f"peak memory {peak_memory_mb():.0f} MB")
-    write_json("stream_speed.json", {"rows": rows, "lag_s": a.lag, "bootstrap_s": a.bootstrap_s,
+    write_json("stream_speed.json", {"rows": rows, "means": means, "lag_s": lag, "bootstrap_s": a.bootstrap_s,
                                 "command": " ".join(sys.argv)})
     return 0
 

@@ -40,9 +40,34 @@ def test_isam2_smoothed_is_the_batch_solution(case):
     assert gap < 0.1 and gap < 0.25 * batch_err
     assert r.smoothed.shape == (session.n, 4) and r.filtered.shape == (session.n, 4)
     assert r.timing["updates"] == int(np.ceil((session.n - 1) / 10))      # one update per keyframe interval
+    assert r.counts["failed_updates"] == 0          # every iSAM2 update solved (none fell back to prediction)
     # filtered: causal, so worse than smoothed, but bounded (the magnetometer holds heading, gravity tilt)
     f_err = _err(r.filtered, session.quat)
     assert batch_err <= f_err < max(3.0 * batch_err, 0.5)
+
+
+def test_isam2_newest_keyframe_is_the_filtering_optimum(case):
+    """The filtered output rests on iSAM2's estimate of the newest keyframe: mid-stream it must equal the
+    optimum of all factors received so far (Levenberg–Marquardt to convergence on iSAM2's own factors),
+    not a stale or failed update. (Before the weak pose prior every update threw IndeterminantLinearSystem
+    and the filtered output was gyro dead reckoning.)"""
+    import gtsam
+
+    from imugraph.graphs.cpp_velocity import pose_key
+
+    session, cal, _, _ = case
+    sm = StreamSmoother(cal, RATE, StreamOptions(), g0=float(np.median(np.linalg.norm(session.acc, axis=1))))
+    for i in range(session.n // 2):
+        sm.push(session.t[i], session.gyr[i], session.acc[i], session.mag[i])
+    assert sm.stats.failed_updates == 0
+    est = sm._solver.calculateEstimate()
+    params = gtsam.LevenbergMarquardtParams()
+    params.setRelativeErrorTol(1e-10)
+    opt = gtsam.LevenbergMarquardtOptimizer(sm._solver.getFactorsUnsafe(), est, params).optimize()
+    k = sm._k
+    gap = np.rad2deg(np.linalg.norm(gtsam.Rot3.Logmap(est.atPose3(pose_key(k)).rotation()
+                                                      .between(opt.atPose3(pose_key(k)).rotation()))))
+    assert gap < 0.1
 
 
 def test_fixed_lag_close_to_batch(case):
@@ -135,3 +160,21 @@ def _err_rate(q, ref, rate):
 @pytest.mark.parametrize("args", [["--lag", "-1"], ["--bootstrap-s", "x"]])
 def test_cli_bad_options_exit_2(tmp_path, args, capsys):
     assert main(["stream", str(tmp_path / "missing.npz"), *args]) == 2
+
+
+def test_real_broad_updates_all_solve():
+    """BROAD 01, first 10 s at 286 Hz with a sphere calibration (the trial is close to calibrated, |m| ≈ 44 µT,
+    dip ≈ 69°): no iSAM2 update may fail (on this trial every update once threw IndeterminantLinearSystem,
+    and the filtered output silently became gyro dead reckoning). Skips without the shared data."""
+    from benchmarks.common import broad_trials, load_broad_trial, trial_number
+    from imugraph.calibration.result import Calibration
+
+    paths = [p for p in broad_trials() if trial_number(p) == 1]
+    if not paths:
+        pytest.skip("BROAD data not present")
+    s = load_broad_trial(paths[0]).slice(0, 2860)
+    cal = Calibration(D=44.0 * np.eye(3), o=np.zeros(3), dip_deg=69.0,
+                      noise={"gyr": np.full(3, 0.0018), "acc": np.full(3, 0.05), "mag": np.full(3, 0.9)})
+    r = stream_session(s, cal, StreamOptions())
+    assert r.counts["failed_updates"] == 0
+    assert np.all(np.isfinite(r.filtered)) and np.all(np.isfinite(r.smoothed))

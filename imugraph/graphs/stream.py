@@ -47,6 +47,26 @@ from imugraph.graphs.stream_options import StreamOptions, StreamStats
 __all__ = ["StreamOptions", "StreamSmoother", "StreamStats"]
 
 
+# σ of the weak pose prior added with every new keyframe (rad and m: information 1e-6 against ~1e9 of the
+# gyro rows). Without it gtsam's Cholesky throws IndeterminantLinearSystem at EVERY iSAM2 update of this
+# graph (measured on BROAD 01: 1964 of 1964 updates failed, the filtered output was then gyro dead
+# reckoning, 7.4° RMS); any one weakly constrained direction of the new pose suffices, QR works too but
+# is 3× slower. The batch path never saw it: Levenberg–Marquardt's damping regularises the same system.
+SIGMA_WEAK_POSE = 1e3
+
+
+def _thresholds(rot_threshold: float) -> "gtsam.ISAM2ThresholdMap":
+    """Per-type relinearisation thresholds: rotations (and gyro bias, rad/s ÷ 10) at `rot_threshold`;
+    positions never by themselves (they carry no information, see cpp_velocity, and drift freely); velocities
+    at 0.05 m/s. One threshold for all re-linearised ~all variables at every update (positions move)."""
+    m = gtsam.ISAM2ThresholdMap()
+    m.insert(("x", np.r_[np.full(3, rot_threshold), np.full(3, 1e3)]))
+    m.insert(("v", np.full(3, 0.05)))
+    m.insert(("b", np.r_[np.full(3, 1e-3), np.full(3, rot_threshold / 10)]))
+    m.insert(("g", np.full(3, 0.01)))
+    return m
+
+
 def _quat(R: gtsam.Rot3) -> np.ndarray:
     """w, x, y, z of a Rot3 (w ≥ 0)."""
     q = R.toQuaternion()
@@ -83,14 +103,18 @@ class StreamSmoother:
         self._g = float(options.g if options.g is not None else g0)
         self._pim_params = gtsam.PreintegrationParams.MakeSharedU(self._g)
         params = gtsam.ISAM2Params()
-        params.setRelinearizeThreshold(options.relinearize_threshold)
+        params.setRelinearizeThreshold(_thresholds(options.relinearize_threshold))
         params.relinearizeSkip = 1
+        # check only the variables the update touches (and their ancestors) for relinearisation: the full
+        # check computes the whole delta, O(K) per update (measured: 10 ms at 100 keyframes → 0.4 ms)
+        params.enablePartialRelinearizationCheck = True
         if options.lag_s is None:
             self._solver = gtsam.ISAM2(params)
         else:
             # BatchFixedLagSmoother: gtsam's IncrementalFixedLagSmoother fails to marginalise a key that sits
             # inside a clique (borglab/gtsam #1638, #1680; seen here on BROAD 01: "key 'x0' has no clique")
             self._solver = gtsam.BatchFixedLagSmoother(float(options.lag_s))
+        self._weak_pose = gtsam.noiseModel.Isotropic.Sigma(6, SIGMA_WEAK_POSE)
         self._buf: list = []                 # open interval: rows (t, gyr(3), acc(3), mag(3) or NaN)
         self._k = 0                          # index of the open interval's keyframe
         self._t0 = None                      # time of keyframe 0
@@ -236,6 +260,8 @@ class StreamSmoother:
         R_next = nRk @ pre.delta_R[0]
         values.insert(pose_key(k + 1), gtsam.Pose3(gtsam.Rot3(R_next), self._p + self._v * pre.dt[0] + 0.5 * c * pre.dt[0]))
         values.insert(keys.vel(k + 1), self._v + c)
+        if self.opt.lag_s is None:
+            graph.add(gtsam.PriorFactorPose3(pose_key(k + 1), values.atPose3(pose_key(k + 1)), self._weak_pose))
         for key in (pose_key(k + 1), keys.vel(k + 1), imu_bias_key(seg)) + ((G_KEY,) if self._estimate_g else ()):
             stamps[key] = t_next - self._t0
         self._update(graph, values, stamps, k + 1, seg, R_next)
