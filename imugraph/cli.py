@@ -6,6 +6,7 @@
     imugraph batch SESSIONS... --out DIR [--scheduler ADDRESS] [--workers N] [--keyframe-hz 5]
     imugraph demo [--out DIR] [--seed 0] [--duration 120] [--rate 100]
     imugraph simulate --out FILE.npz [--seed 0] [--duration 120] [--rate 100]
+    imugraph mocap SESSION [--out DIR] [--lag S] [--mag] [--hinges knees,elbows]
     imugraph diagnose SESSION [--out DIR] [--effects NAMES] [--seed 0]
     imugraph bench diagnose [--trials 01,02,...] [--sims 2] [--n 2] [--duration 60] [--out DIR]
 
@@ -39,6 +40,7 @@ COMMANDS = {
     "simulate": ("simulate", "run_simulate"),
     "diagnose": ("diagnose", "run_diagnose"),
     "bench": ("bench", "run_bench"),
+    "mocap": ("mocap", "run_mocap"),
 }
 
 
@@ -84,7 +86,8 @@ def build_parser() -> argparse.ArgumentParser:
     """The argument parser of every subcommand."""
     parser = argparse.ArgumentParser(
         prog="imugraph", description="IMU sensor fusion with factor graphs: magnetometer calibration with "
-        "inertial sensors (Kok & Schön) and orientation smoothing.")
+        "inertial sensors (Kok & Schön), orientation smoothing (batch, incremental, many sessions), body motion "
+        "capture from several IMUs, and sim-to-real gap diagnosis.")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     session_help = "session file (.npz, .mat, .hdf5, .csv, .txt) or x-IMU3 folder"
     default_out = "output folder (default: imugraph_out/<session stem>)"
@@ -145,6 +148,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", metavar="FILE.npz", required=True, help="session file to write")
     p.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
     _simulation(p)
+
+    p = sub.add_parser("mocap", help="body motion from several IMUs on one body (joints, sensor-to-segment)",
+                       description="Writes mocap.npz, joint_angles.csv, motion.bvh, joint_angles.png, "
+                       "stick_figures.png, mocap_info.json (with --lag also mocap_filtered.npz, timing.json).")
+    from imugraph.commands.mocap import add_arguments as mocap_arguments
+    mocap_arguments(p)
 
     p = sub.add_parser("diagnose", help="where the sim-to-real gap lies and which unmodelled effect explains it",
                        description="Writes diagnosis.json, diagnosis.md, gap_over_time.png, residuals.png.")

@@ -1,0 +1,121 @@
+"""Issue 4a: body mocap accuracy on 17-IMU sessions simulated from real motions, without and with magnetometers.
+
+For each motion (CMU 131_01, 131_02 and the gaittoolbox Xsens MVN BVH; see benchmarks/body_bench.py for the
+N-pose, the random sensor placements and the sensor errors) and each seed, the batch estimator
+`imugraph.graphs.body.solve_body_batch` runs with BodyOptions(use_mag=False) and (use_mag=True); scores:
+joint-angle RMSE per joint (imugraph.body.evaluate eq. E1: per joint the RMS over flexion, abduction and
+rotation; the per-column values are in the JSON) and the relative segment position error (eq. E2: segment
+origins relative to the pelvis, best constant heading removed), over the BVH motion only.
+Targets: ≤ 2° per joint, ≤ 2 cm.
+
+    .venv/bin/python benchmarks/body_sim_accuracy.py [--motions cmu131_01,cmu131_02,xsens] [--seeds 0]
+        [--duration S] [--lower] [--mag both|off|on] [--lag S] [--tie] [--bias-walk SIGMA]
+
+--duration limits the BVH time used (after the Xsens export's T-pose frame); --lower simulates the 7-sensor
+lower body only (quick runs); --tie makes the truth's unsensed segments (spine links, neck, toes) follow
+the estimator's ties instead of the BVH (isolates the estimator from that model error); --lag S also runs
+the fixed-lag smoother (imugraph.graphs.body_incremental).
+Writes bench_out/body_sim_accuracy.json.
+"""
+
+from __future__ import annotations
+
+import os
+
+for _var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
+    os.environ[_var] = "1"
+
+import argparse  # noqa: E402
+import sys  # noqa: E402
+import time  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from benchmarks.body_bench import MOTIONS, NOISE, motion_path, simulated_session, summary_row  # noqa: E402
+from benchmarks.common import peak_memory_mb, print_table  # noqa: E402
+from benchmarks.output import write_json  # noqa: E402
+
+
+def _solve(session, use_mag: bool, lag: float | None):
+    from imugraph.graphs.body import solve_body_batch
+    from imugraph.graphs.body_model import BodyOptions
+
+    if lag is None:
+        return solve_body_batch(session, BodyOptions(use_mag=use_mag))
+    from imugraph.graphs.body_incremental import solve_body_incremental
+    return solve_body_incremental(session, BodyOptions(use_mag=use_mag), lag_s=lag)
+
+
+def run_case(name: str, seed: int, duration: float | None, lower: bool, mags: list[bool],
+             lags: list, tie: bool = False, bias_walk: float = 0.0) -> list[dict]:
+    """Simulate one motion once, solve it with and/or without magnetometers, score; one record per solve."""
+    from imugraph.body.evaluate import score_against_truth
+
+    skel, session, mask = simulated_session(name, seed, duration, lower, tie=tie, bias_walk=bias_walk)
+    out = []
+    for use_mag, lag in ((m, g) for m in mags for g in lags):
+        label = f"{name} s{seed} {'mag' if use_mag else 'no-mag'}" + ("" if lag is None else f" lag {lag:g}")
+        t0 = time.perf_counter()
+        try:
+            result = _solve(session, use_mag, lag)
+        except Exception as exc:              # record a solver failure, go on with the other cases
+            print(f"  {label}: failed ({type(exc).__name__}: {str(exc)[:160]})")
+            continue
+        secs = time.perf_counter() - t0
+        scores = score_against_truth(result, session.truth, skel, mask)
+        out.append({"label": label, "motion": name, "seed": seed, "use_mag": use_mag, "lag_s": lag,
+                    "realtime_factor": result.info.get("realtime_factor"), "samples": int(session.n),
+                    "duration_s": float(session.t[-1]), "sensors": len(session.sensors), "seconds": secs,
+                    "iterations": [p.get("iterations") for p in result.info.get("passes", [])],
+                    "npose": result.info.get("npose"), "scores": scores, "row": summary_row(label, scores, secs)})
+        print(f"  {label}: {session.n} samples, {len(session.sensors)} IMUs, {secs:.1f} s, joint max "
+              f"{out[-1]['row']['joint_max_deg']:.2f}° ({out[-1]['row']['worst_joint']}), position RMS "
+              f"{out[-1]['row']['pos_rms_cm']:.2f} cm", flush=True)
+    return out
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--motions", default=",".join(MOTIONS))
+    ap.add_argument("--seeds", default="0", help="comma-separated seeds (placements, biases, noise)")
+    ap.add_argument("--duration", type=float, default=None, help="BVH seconds to use (default: all)")
+    ap.add_argument("--lower", action="store_true", help="7-sensor lower body instead of 17 sensors")
+    ap.add_argument("--mag", choices=("both", "off", "on"), default="both")
+    ap.add_argument("--tie", action="store_true", help="truth's unsensed segments follow the estimator's ties")
+    ap.add_argument("--bias-walk", type=float, default=0.0, metavar="SIGMA",
+                    help="gyro bias random walk, rad/s/√s (default 0: constant biases)")
+    ap.add_argument("--lag", type=float, default=None, help="also run the fixed-lag smoother with this lag, s")
+    ap.add_argument("--out", default="body_sim_accuracy.json", help="file name in bench_out/")
+    a = ap.parse_args(argv)
+    mags = {"both": [False, True], "off": [False], "on": [True]}[a.mag]
+    records = []
+    for name in a.motions.split(","):
+        if not motion_path(name).exists():
+            print(f"  {name}: {motion_path(name)} absent, skipped")
+            continue
+        for seed in (int(s) for s in a.seeds.split(",")):
+            records += run_case(name, seed, a.duration, a.lower, mags, [None] + ([a.lag] if a.lag else []), a.tie,
+                                a.bias_walk)
+    if not records:
+        print("no motion data found")
+        return 1
+    print()
+    print_table([r["row"] for r in records], ["case", "joint_max_deg", "worst_joint", "joint_mean_deg",
+                                              "pos_rms_cm", "pos_worst_cm", "worst_segment", "solve_s"])
+    joints = sorted({j for r in records for j in r["scores"]["joints"]})
+    print()
+    print_table([[r["label"]] + [r["scores"]["joints"][j]["all"] if j in r["scores"]["joints"] else "" for j in joints]
+                 for r in records], ["joint RMSE (°)"] + joints)
+    payload = {"issue": "4a", "noise": NOISE, "rate_hz": 60.0, "lower_body": a.lower, "duration": a.duration,
+               "tie_unsensed": a.tie, "gyro_bias_walk": a.bias_walk,
+               "targets": {"joint_rmse_deg": 2.0, "position_cm": 2.0}, "peak_memory_mb": peak_memory_mb(),
+               "command": "benchmarks/body_sim_accuracy.py " + " ".join(sys.argv[1:] if argv is None else argv),
+               "records": [{k: v for k, v in r.items() if k != "row"} for r in records]}
+    print(f"\nwrote {write_json(a.out, payload)}; peak memory {peak_memory_mb():.0f} MB")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,184 @@
+"""Issue 4b: the real lower-body walk (gaittoolbox S02-Trial-Walk-1): ours vs Xsens MVN, both scored against Vicon.
+
+Inputs (data directory, nothing copied): gaittoolbox/rawimu (7 Xsens MTw, 100 Hz, 2503 samples, read by
+imugraph.io.gaittoolbox.read_gaittoolbox onto lower_body(1.75): nominal proportions, the subject's are not
+known), gaittoolbox/xsens/S02-Trial-Walk-1.bvh (Xsens MVN's own output for the same trial: frame k = IMU sample
+k, 2503 frames; frame 0 is MVN's T-pose reference, outside the Vicon window), gaittoolbox/vicon/… .csv (Vicon
+segment quaternions for IMU samples 1120–2074, 1-based, from data-list.csv).
+
+Ours: `imugraph.graphs.body.solve_body_batch(session, BodyOptions(use_mag=…))` on the whole recording (the
+subject stands still for ≈ 10 s first: the N-pose), hip, knee and ankle angles by imugraph.body.angles.
+
+Scoring (imugraph.body.evaluate.compare_with_vicon), the same for both systems, each at its best integer
+time shift within ±5 samples; three offset handlings, each stated in the table:
+    offset    Vicon feet turned to MVN axes (nominal, VICON_AXES), then per joint and axis the mean difference
+              over the window removed (RMSE of what is left);
+    segment   per segment a constant alignment C_s (and a world heading W from the pelvis x axes) fitted on
+              the whole Vicon window: R_est ≈ W·R_vicon·C_s;
+    held-out  the same alignment fitted on the first 5 s of the window only (it includes the turn), scored on
+              the remaining 4.55 s.
+Per joint: RMSE of flexion/abduction/rotation and "all" (RMS of the three). Target: ours below Xsens MVN on
+knee and hip.
+
+    .venv/bin/python benchmarks/gaittoolbox_walk.py [--mag] [--hinges knees] [--lag S] [--ablation] [--figure]
+
+--lag S also runs the fixed-lag smoother (imugraph.graphs.body_incremental) and scores it the same way;
+--ablation also runs ours without the joint factors and without the lever-arm priors (issue 4c on real data).
+
+Writes bench_out/gaittoolbox_walk.json (and with --figure bench_out/gaittoolbox_walk.png: flexion of hips,
+knees and ankles, ours, MVN and Vicon, each with the "offset" handling's constant removed).
+"""
+
+from __future__ import annotations
+
+import os
+
+for _var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
+    os.environ[_var] = "1"
+
+import argparse  # noqa: E402
+import sys  # noqa: E402
+import time  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import numpy as np  # noqa: E402
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from benchmarks.common import peak_memory_mb, print_table  # noqa: E402
+from benchmarks.output import OUT_DIR, write_json  # noqa: E402
+from imugraph.config import data_dir  # noqa: E402
+
+HANDLINGS = {"offset": dict(method="offset"), "segment": dict(method="segment"),
+             "held-out": dict(method="segment", align_s=5.0)}
+JOINTS = ("RightHip", "LeftHip", "RightKnee", "LeftKnee", "RightAnkle", "LeftAnkle")
+
+
+def ours(root: Path, use_mag: bool, hinges: tuple, lag: float | None = None, variant: str = "full"):
+    """({segment: (N, 4)}, info) of our batch (or, with lag, fixed-lag) estimate on the rawimu recording;
+    variant: an ablation of benchmarks/body_bench.ablation_options ('full', 'no_joints', 'no_levers')."""
+    from benchmarks.body_bench import ablation_options
+    from imugraph.graphs.body import solve_body_batch
+    from imugraph.io.gaittoolbox import read_gaittoolbox
+
+    session = read_gaittoolbox(root / "rawimu")
+    opts, _ = ablation_options(variant, use_mag=use_mag, hinges=hinges)
+    t0 = time.perf_counter()
+    if lag is None:
+        res = solve_body_batch(session, opts)
+    else:
+        from imugraph.graphs.body_incremental import solve_body_incremental
+        res = solve_body_incremental(session, opts, lag_s=lag)
+    secs = time.perf_counter() - t0
+    info = {"seconds": secs, "samples": int(session.n), "npose": res.info.get("npose"),
+            "realtime_factor": res.info.get("realtime_factor"),
+            "iterations": [p.get("iterations") for p in res.info.get("passes", [])]}
+    return {n: res.n_quat[:, i] for i, n in enumerate(res.names)}, info
+
+
+def xsens_mvn(root: Path) -> dict:
+    """{segment: (F, 4)} of Xsens MVN's BVH (all frames, frame k = IMU sample k)."""
+    from imugraph.body.bvh_map import segment_motion
+
+    skel, _, _, q, _ = segment_motion(root / "xsens" / "S02-Trial-Walk-1.bvh")
+    return {n: q[:, i] for i, n in enumerate(skel.names)}
+
+
+def figure(path: Path, vicon: dict, systems: dict, shifts: dict) -> None:
+    """Flexion over the Vicon window, each curve with its own mean offset to Vicon removed."""
+    from matplotlib.figure import Figure
+
+    from imugraph.body.angles import joint_angles
+    from imugraph.body.evaluate import vicon_joint_angles
+    from imugraph.body.skeleton import lower_body
+    from imugraph.io.figures import save_figure_atomic
+
+    skel = lower_body()
+    idx = np.asarray(vicon["imu_index"])
+    ref = vicon_joint_angles(vicon)
+    fig = Figure(figsize=(11, 7))
+    axes = fig.subplots(3, 2, sharex=True).ravel()
+    for ax, j in zip(axes, JOINTS):
+        ax.plot(vicon["t"], ref[j][:, 0], "k", lw=1.5, label="Vicon")
+        for (name, q), colour in zip(systems.items(), ("tab:red", "tab:blue")):
+            a = joint_angles(skel, np.stack([q[n][idx + shifts[name]] for n in skel.names], 1))[j][:, 0]
+            ax.plot(vicon["t"], a - np.mean(a - ref[j][:, 0]), color=colour, lw=1.0, label=name)
+        ax.set_ylabel(f"{j} flexion (°)", fontsize=8)
+        ax.grid(alpha=0.3)
+    axes[0].legend(fontsize=8)
+    axes[-1].set_xlabel("t (s, IMU time)")
+    fig.suptitle("S02-Trial-Walk-1: flexion, mean offset to Vicon removed")
+    fig.tight_layout()
+    save_figure_atomic(fig, path)
+
+
+def main(argv=None) -> int:
+    from imugraph.body.evaluate import compare_with_vicon
+    from imugraph.io.gaittoolbox import read_gaittoolbox_vicon
+
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--mag", action="store_true", help="our estimator with magnetometers")
+    ap.add_argument("--hinges", default="", help="comma-separated hinge child segments, or 'knees'")
+    ap.add_argument("--lag", type=float, default=None, help="also score the fixed-lag estimate with this lag, s")
+    ap.add_argument("--ablation", action="store_true", help="also our estimate without joints / lever priors")
+    ap.add_argument("--figure", action="store_true")
+    ap.add_argument("--out", default="gaittoolbox_walk.json", help="file name in bench_out/")
+    a = ap.parse_args(argv)
+    root = data_dir() / "gaittoolbox"
+    if not (root / "rawimu").is_dir():
+        print(f"{root} absent")
+        return 1
+    hinges = ("RightLowerLeg", "LeftLowerLeg") if a.hinges == "knees" else tuple(h for h in a.hinges.split(",") if h)
+    vicon = read_gaittoolbox_vicon(root / "vicon" / "S02-Trial-Walk-1.csv")
+    q_ours, info = ours(root, a.mag, hinges)
+    print(f"ours: {info['samples']} samples solved in {info['seconds']:.1f} s (npose {info['npose']}, "
+          f"LM iterations {info['iterations']})")
+    systems = {"ours": q_ours, "Xsens MVN": xsens_mvn(root)}
+    for variant in (("no_joints", "no_levers") if a.ablation else ()):
+        systems[f"ours {variant}"], info[variant] = ours(root, a.mag, hinges, None, variant)
+        print(f"ours {variant}: {info[variant]['seconds']:.1f} s")
+    if a.lag is not None:
+        try:
+            q_lag, info["fixed_lag"] = ours(root, a.mag, hinges, a.lag)
+            systems[f"ours lag {a.lag:g} s"] = q_lag
+            print(f"ours, fixed lag {a.lag:g} s: {info['fixed_lag']['seconds']:.1f} s")
+        except Exception as exc:              # report the failure of the incremental solver, score the rest
+            info["fixed_lag"] = {"error": f"{type(exc).__name__}: {exc}"}
+            print(f"ours, fixed lag {a.lag:g} s: failed ({info['fixed_lag']['error'][:160]})")
+    results = {h: {name: compare_with_vicon(vicon, q, **kw) for name, q in systems.items()}
+               for h, kw in HANDLINGS.items()}
+    rows = []
+    lag_name = next((n for n in systems if n.startswith("ours lag")), None)
+    for h, res in results.items():
+        for j in JOINTS:
+            o, m = res["ours"]["joints"][j], res["Xsens MVN"]["joints"][j]
+            extra = [res[lag_name]["joints"][j]["all"]] if lag_name else []
+            rows.append([h, j, o["flexion"], m["flexion"], o["all"], m["all"]] + extra +
+                        ["ours" if o["all"] < m["all"] else "MVN"])
+        extra = [res[lag_name]["mean_all_deg"]] if lag_name else []
+        rows.append([h, "mean", np.mean([res["ours"]["joints"][j]["flexion"] for j in JOINTS]),
+                     np.mean([res["Xsens MVN"]["joints"][j]["flexion"] for j in JOINTS]),
+                     res["ours"]["mean_all_deg"], res["Xsens MVN"]["mean_all_deg"]] + extra +
+                    [f"shift {res['ours']['shift_samples']}/{res['Xsens MVN']['shift_samples']}"])
+    print_table(rows, ["handling", "joint", "flex ours", "flex MVN", "all ours", "all MVN"] +
+                (["all lag"] if lag_name else []) + ["lower (all)"])
+    others = [n for n in systems if n not in ("ours", "Xsens MVN")]
+    if others:
+        print()
+        print_table([[h, j] + [results[h][n]["joints"][j]["all"] for n in ["ours", "Xsens MVN"] + others]
+                     for h in results for j in JOINTS + ("mean",) if j != "mean"] +
+                    [[h, "mean"] + [results[h][n]["mean_all_deg"] for n in ["ours", "Xsens MVN"] + others]
+                     for h in results], ["handling", "joint (all, °)", "ours", "Xsens MVN"] + others)
+    if a.figure:
+        shown = {n: q for n, q in systems.items() if n in ("ours", "Xsens MVN")}
+        shifts = {n: results["offset"][n]["shift_samples"] for n in shown}
+        figure(OUT_DIR / "gaittoolbox_walk.png", vicon, shown, shifts)
+    payload = {"issue": "4b", "use_mag": a.mag, "hinges": list(hinges), "ours": info, "handlings": HANDLINGS,
+               "results": results, "peak_memory_mb": peak_memory_mb(),
+               "command": "benchmarks/gaittoolbox_walk.py " + " ".join(sys.argv[1:] if argv is None else argv)}
+    print(f"\nwrote {write_json(a.out, payload)}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,195 @@
+"""`imugraph mocap SESSION`: body motion from several IMUs on one body (the factor graph of imugraph.graphs.body).
+
+SESSION: a body-session folder (session.json), a gaittoolbox Xsens MTw ``rawimu`` folder, or an .mvnx file
+(`imugraph.io.body_session.read_body_session`); a relative path that does not exist is looked up in the data
+directory (--data-dir, $IMUGRAPH_DATA, ../shared/data).
+
+Writes in --out DIR (default imugraph_out/<session name>):
+    mocap.npz          t (T), segments (S names), quat (T×S×4, segment→world, w,x,y,z), pos (T×S×3, m) — DESIGN.md
+    joint_angles.csv   t,<Joint>_flexion,<Joint>_abduction,<Joint>_rotation,… (degrees, imugraph.body.angles)
+    motion.bvh         the skeleton and motion as BVH (rest pose = neutral N-pose, metres)
+    joint_angles.png   joint angles over time (dashed: the session's truth when it has one)
+    stick_figures.png  skeleton snapshots, sagittal and frontal
+    mocap_info.json    solver (batch / fixed-lag), options, timing, estimated sensor placements, and the
+                       scores against the truth when the session is simulated
+  with --lag also:
+    mocap_filtered.npz the estimate available right after each keyframe's update (causal), same keys as mocap.npz
+    timing.json        updates, seconds, p50_ms, p99_ms, max_ms, realtime_factor, bootstrap
+
+Options: --lag S runs the fixed-lag incremental solver keeping S seconds instead of batch LM; --mag uses the
+magnetometers (default off: indoor fields near the body are rarely homogeneous); --hinges LIST treats joints
+as hinges (comma-separated: knees, elbows, or joint names RightKnee, LeftElbow, … or child segment names).
+"""
+
+from __future__ import annotations
+
+import argparse
+import io
+import json
+from pathlib import Path
+
+import numpy as np
+
+from imugraph.commands import common
+from imugraph.errors import SessionError
+
+HINGE_GROUPS = {"knees": ("RightKnee", "LeftKnee"), "elbows": ("RightElbow", "LeftElbow")}
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    """The mocap subcommand's arguments (cli.py calls this; the lead wires it)."""
+    p.add_argument("session", metavar="SESSION",
+                   help="body session: folder with session.json, gaittoolbox rawimu folder, or .mvnx file")
+    p.add_argument("--out", metavar="DIR", default=None, help="output folder (default: imugraph_out/<session name>)")
+    p.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
+    p.add_argument("--data-dir", metavar="DIR", default=None,
+                   help="where to look for SESSION when it does not exist as given "
+                        "(default: $IMUGRAPH_DATA, else ../shared/data)")
+    p.add_argument("--lag", type=float, default=None, metavar="S",
+                   help="fixed-lag incremental smoother keeping S seconds (default: batch over the whole session)")
+    p.add_argument("--mag", action=argparse.BooleanOptionalAction, default=False,
+                   help="use the magnetometers (per-sensor field direction from the N-pose; default: --no-mag)")
+    p.add_argument("--hinges", metavar="LIST", default="",
+                   help="joints constrained to hinges about the lateral axis: knees, elbows, or joint names "
+                        "(RightKnee, LeftElbow, ...), comma-separated")
+
+
+def hinge_segments(spec: str, skel) -> tuple:
+    """Child segment names of the hinge joints in `spec` (module docstring).
+
+    Raises:
+        SessionError: an unknown name, or a joint whose segments are not both sensed in the skeleton.
+    """
+    from imugraph.body.angles import JOINTS
+
+    out = []
+    for item in (s.strip() for s in (spec or "").split(",")):
+        if not item:
+            continue
+        names = HINGE_GROUPS.get(item.lower(), (item,))
+        for name in names:
+            if name in JOINTS:
+                child = JOINTS[name][1]
+            elif name in skel.names:
+                child = name
+            else:
+                raise SessionError("--hinges", item, "an unknown joint", "knees, elbows, a joint name "
+                                   f"({', '.join(j for j in JOINTS if 'Knee' in j or 'Elbow' in j)}) or a segment")
+            if child not in skel.sensed or skel.parents[skel.index(child)] < 0:
+                if item.lower() in HINGE_GROUPS:
+                    continue                       # e.g. elbows on a lower-body skeleton: nothing to constrain
+                raise SessionError("--hinges", item, f"segment {child} not sensed in this skeleton",
+                                   f"a joint between sensed segments of {list(skel.sensed)}")
+            if child not in out:
+                out.append(child)
+    return tuple(out)
+
+
+def write_mocap_npz(path: Path, t: np.ndarray, names, quat: np.ndarray, pos: np.ndarray) -> Path:
+    """mocap.npz (DESIGN.md): t (T), segments (S), quat (T, S, 4), pos (T, S, 3); atomic."""
+    from imugraph.io.writers import atomic_write_bytes
+
+    buf = io.BytesIO()
+    np.savez(buf, t=np.asarray(t, float), segments=np.array(list(names), dtype=str),
+             quat=np.asarray(quat, float), pos=np.asarray(pos, float))
+    return atomic_write_bytes(path, buf.getvalue())
+
+
+def _solve(session, opts, lag, progress):
+    """Batch LM, or the fixed-lag smoother (imugraph.graphs.body_incremental) when --lag is given."""
+    if lag is None:
+        from imugraph.graphs.body import solve_body_batch
+        progress.say(f"batch solve: {len(session.sensors)} sensors, {session.n} samples")
+        return solve_body_batch(session, opts), "batch"
+    if not lag > 0:
+        raise SessionError("--lag", "S", str(lag), "a lag > 0 s")
+    try:
+        from imugraph.graphs.body_incremental import solve_body_incremental
+    except ImportError:
+        raise SessionError("--lag", "solver", "no incremental body solver in this build",
+                           "imugraph.graphs.body_incremental (omit --lag for the batch solver)") from None
+    progress.say(f"fixed-lag solve (lag {lag:g} s): {len(session.sensors)} sensors, {session.n} samples")
+    return solve_body_incremental(session, opts, lag_s=lag), f"fixed_lag {lag:g} s"
+
+
+def timing_summary(info: dict, duration_s: float) -> dict:
+    """timing.json of an incremental run: updates, seconds, p50_ms, p99_ms, max_ms, realtime_factor (the
+    solver's own figure when it reports one: streamed duration over update time, a batch bootstrap excluded),
+    and the bootstrap's details."""
+    u = np.asarray(info.get("update_s", []), float)
+    if u.size == 0:
+        return {"updates": 0, "bootstrap": info.get("bootstrap")}
+    rtf = info.get("realtime_factor")
+    return {"updates": int(u.size), "seconds": float(u.sum()), "p50_ms": float(1e3 * np.percentile(u, 50)),
+            "p99_ms": float(1e3 * np.percentile(u, 99)), "max_ms": float(1e3 * u.max()),
+            "realtime_factor": float(rtf) if rtf is not None else float(duration_s / max(u.sum(), 1e-12)),
+            "failed_updates": int(info.get("failed_updates", 0)), "bootstrap": info.get("bootstrap")}
+
+
+def run_mocap(args: argparse.Namespace) -> int:
+    """mocap SESSION [--out DIR] [--lag S] [--mag|--no-mag] [--hinges LIST] [--data-dir DIR] [--quiet]."""
+    from imugraph.body.angles import joint_angles, write_joint_angles_csv
+    from imugraph.graphs.body_model import BodyOptions
+    from imugraph.io.body_figures import plot_joint_angles, plot_stick_figures
+    from imugraph.io.body_session import read_body_session
+    from imugraph.io.bvh import write_bvh
+    from imugraph.io.writers import atomic_write_text, json_ready
+
+    progress = common.Progress(args.quiet)
+    path = common.resolve_session_path(args.session, args.data_dir)
+    progress.say(f"reading {path}")
+    session = read_body_session(path)
+    skel = session.skeleton
+    if skel is None:
+        raise SessionError(str(path), "skeleton", "none", "a body session with a skeleton")
+    progress.say(f"{len(session.sensors)} sensors on {len(skel.names)} segments, {session.n} samples, "
+                 f"{session.t[-1] - session.t[0]:.1f} s at {session.rate:.1f} Hz")
+    hinges = hinge_segments(args.hinges, skel)
+    opts = BodyOptions(use_mag=bool(args.mag), hinges=hinges)
+    out = common.out_dir_for(args.out, session.name)
+    with progress.library_output():
+        result, solver = _solve(session, opts, args.lag, progress)
+    written = [write_mocap_npz(out / "mocap.npz", result.t, result.names, result.n_quat, result.n_pos)]
+    angles = joint_angles(skel, result.n_quat)
+    written.append(write_joint_angles_csv(out / "joint_angles.csv", result.t, angles))
+    written.append(write_bvh(out / "motion.bvh", skel, result.t, result.n_quat, result.n_pos[:, 0]))
+    timing = {}
+    if args.lag is not None:
+        timing = timing_summary(result.info, float(session.t[-1] - session.t[0]))
+        written.append(atomic_write_text(out / "timing.json", json.dumps(json_ready(timing), indent=1) + "\n"))
+        filt = result.info.get("filtered")
+        if filt is not None:
+            written.append(write_mocap_npz(out / "mocap_filtered.npz", filt.t, filt.names, filt.n_quat, filt.n_pos))
+    scores, reference = None, None
+    if session.truth is not None and "n_quat" in session.truth:
+        from imugraph.body.evaluate import score_against_truth
+
+        scores = score_against_truth(result, session.truth, skel)
+        tn = list(session.truth["names"])
+        q_ref = np.asarray(session.truth["n_quat"])[:, [tn.index(n) for n in result.names]]
+        reference = joint_angles(skel, q_ref)
+    progress.say("drawing figures")
+    plot_joint_angles(out / "joint_angles.png", result.t, angles, reference, title=f"Joint angles: {session.name}",
+                      ref_label="truth")
+    plot_stick_figures(out / "stick_figures.png", skel, result.t, result.n_quat, result.n_pos,
+                       title=f"Stick figures: {session.name}")
+    written += [out / "joint_angles.png", out / "stick_figures.png"]
+    info = {"session": str(path), "name": session.name, "solver": solver, "use_mag": bool(args.mag),
+            "hinges": list(hinges), "samples": int(session.n), "segments": list(result.names),
+            "placements": result.placements, "info": {k: v for k, v in result.info.items()
+                                                      if k in ("build_s", "solve_s", "passes", "keyframes", "npose",
+                                                               "factors", "timing", "biases", "joint_names")},
+            "timing": timing, "scores": scores}
+    written.append(atomic_write_text(out / "mocap_info.json", json.dumps(json_ready(info), indent=1) + "\n"))
+    progress.say("wrote " + ", ".join(p.name for p in written))
+    secs = result.info.get("solve_s", result.info.get("total_s"))
+    print(f"mocap {session.name}: {session.n} samples, {len(result.names)} segments, {solver}"
+          + (f", solved in {secs:.1f} s" if isinstance(secs, (int, float)) else "") + f" → {out}")
+    if timing.get("updates"):
+        print(f"  {timing['updates']} updates, {timing['realtime_factor']:.1f}× real time, "
+              f"update p50 {timing['p50_ms']:.1f} ms, p99 {timing['p99_ms']:.1f} ms")
+    if scores is not None:
+        worst = max(scores["joints"], key=lambda j: scores["joints"][j]["all"])
+        print(f"  vs truth: joint-angle RMSE max {scores['joint_rmse_max_deg']:.2f}° ({worst}), "
+              f"relative position RMS {100 * scores['position']['rms_m']:.2f} cm")
+    return 0
