@@ -270,3 +270,13 @@ def test_atomic_write_keeps_the_old_file_on_failure(tmp_path):
         atomic_write_bytes(target, 12345)                           # not bytes: the write fails
     assert target.read_text() == "old"
     assert [p.name for p in tmp_path.iterdir()] == ["a.txt"]
+
+
+def test_atomic_writes_get_the_usual_file_mode(tmp_path):
+    """mkstemp's 0600 must not leak into result files: they follow the umask like any new file."""
+    import os
+    from imugraph.io.writers import atomic_write_text
+    out = atomic_write_text(tmp_path / "a.txt", "x")
+    plain = tmp_path / "b.txt"
+    plain.write_text("x")
+    assert os.stat(out).st_mode & 0o777 == os.stat(plain).st_mode & 0o777

@@ -27,6 +27,12 @@ from imugraph.errors import SessionError
 PathLike = Union[str, Path]
 
 
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
 def atomic_write_bytes(path: PathLike, data: bytes) -> Path:
     """Write `data` to `path` through a temporary file in the same directory and os.replace.
 
@@ -46,6 +52,7 @@ def atomic_write_bytes(path: PathLike, data: bytes) -> Path:
             fh.write(data)
             fh.flush()
             os.fsync(fh.fileno())
+        os.chmod(tmp, 0o666 & ~_umask())          # mkstemp makes 0600; a result file gets the usual mode
         os.replace(tmp, target)
     except BaseException:
         if os.path.exists(tmp):
