@@ -5,16 +5,17 @@ BVH-driven simulator (imugraph.sim.body: N-pose prefix, random placements up to 
 bias), played forward, backward, forward, ... ("ping-pong", continuous poses) to --duration seconds.
 Not timed: the simulation. Timed (wall clock, time.perf_counter; the machine may be shared): building the
 problem (noise, N-pose, preintegration, initial values) and solving; fixed lag: the sum of the per-update
-solver times after the batch bootstrap on the first --bootstrap-s seconds (real-time factor = streamed
+solver times after the batch bootstrap (--bootstrap-s: "auto" = until every sensor has moved enough,
+imugraph.graphs.body_bootstrap; or seconds) (real-time factor = streamed
 duration ÷ that sum; the bootstrap's own time is given apart) and the total including the per-sample output.
 Peak memory: the process's peak resident set size (resource.getrusage ru_maxrss) after each stage, which
 includes gtsam's C++ allocations (tracemalloc would see only Python's).
 Accuracy (a sanity check here; issue 4a has its own runs): RMS error of every parent→child relative
 rotation (deg), worst joint, and of segment origins relative to the pelvis (cm, world frame).
 
-    .venv/bin/python benchmarks/body_speed.py [--duration 60] [--modes batch,lag] [--keyframe-every 6]
+    .venv/bin/python benchmarks/body_speed.py [--duration 60] [--modes batch,lag,isam2] [--keyframe-every 6]
                                               [--lag 1.0] [--update-every 5] [--lag-keyframe-every 6]
-                                              [--lag-iterations 1] [--bootstrap-s 20]
+                                              [--lag-iterations 1] [--bootstrap-s auto] [--factorization QR]
 
 Writes bench_out/body_speed.json (--out-name to change).
 """
@@ -94,7 +95,9 @@ def main(argv=None) -> int:
     ap.add_argument("--lag", type=float, default=1.0)
     ap.add_argument("--update-every", type=int, default=5)
     ap.add_argument("--lag-keyframe-every", type=int, default=6)
-    ap.add_argument("--bootstrap-s", type=float, default=20.0, help="batch bootstrap of the fixed lag (0: none)")
+    ap.add_argument("--bootstrap-s", default="auto",
+                    help="batch bootstrap of the incremental modes: 'auto' (until enough motion), seconds, or 0: none")
+    ap.add_argument("--factorization", default=None, help="QR or CHOLESKY (default: Cholesky after a bootstrap)")
     ap.add_argument("--lag-iterations", type=int, default=1)
     ap.add_argument("--out-name", default="body_speed.json", help="file name under bench_out/")
     a = ap.parse_args(argv)
@@ -113,10 +116,13 @@ def main(argv=None) -> int:
                    "iterations": [p["iterations"] for p in res.info["passes"]], "keyframes": res.info["keyframes"]}
         else:
             lag_opts = BodyOptions(placements=nom, npose_heading_deg=psi0, keyframe_every=a.lag_keyframe_every)
-            res = solve_body_incremental(sess, lag_opts, lag_s=a.lag, smoother="batch", update_every=a.update_every,
-                                         lag_iterations=a.lag_iterations, bootstrap_s=a.bootstrap_s or None)
+            boot = a.bootstrap_s if a.bootstrap_s == "auto" else (float(a.bootstrap_s) or None)
+            res = solve_body_incremental(sess, lag_opts, lag_s=None if mode == "isam2" else a.lag, smoother="batch",
+                                         update_every=a.update_every, lag_iterations=a.lag_iterations,
+                                         bootstrap_s=boot, factorization=a.factorization)
             u = res.info["update_s"]
-            row = {"wall_s": time.perf_counter() - t0, "cpu_s": time.process_time() - c0, "lag_s": a.lag,
+            row = {"wall_s": time.perf_counter() - t0, "cpu_s": time.process_time() - c0,
+                   "lag_s": None if mode == "isam2" else a.lag,
                    "keyframe_every": a.lag_keyframe_every, "lag_iterations": a.lag_iterations,
                    "bootstrap": res.info["bootstrap"],
                    "update_every": a.update_every, "updates": int(u.size), "update_sum_s": float(u.sum()),

@@ -8,6 +8,9 @@ and root motion blended in. Truth is computed here, not by the code under test:
     p_child(t)   = p_parent(t) + nRb_parent(t) · offset      segment origins (forward kinematics)
     nRs(t) = nRb(t) · bRs,   n_p_s(t) = p(t) + nRb(t) · b_pos  sensor pose on its segment
 
+The sensors sit near the estimator's assumed site (imugraph.body.placement.nominal_placement, its prior):
+bRs = bRs_nom · Exp(random ≤ max_place_deg), b_pos = b_pos_nom shifted ≤ 3 cm on the skin.
+
 Gyro sample k = Log(R(t_k)ᵀ R(t_{k+1}))/dt (the rate constant over [t_k, t_{k+1}), as the preintegration
 assumes); n_acc = second derivative of the sensor position at the interval midpoint (central difference).
 """
@@ -18,6 +21,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from imugraph.body.placement import nominal_placement
 from imugraph.geometry import expmap, logmap, rotmat_to_quat
 from imugraph.sim.sensors import SensorParams, simulate_imu
 
@@ -130,8 +134,9 @@ def chain_session(duration_s: float = 12.0, rate_hz: float = 60.0, seed: int = 0
     for name in skel.sensed:
         i = skel.index(name)
         ax = rng.standard_normal(3)
-        bRs = expmap(ax / np.linalg.norm(ax) * np.deg2rad(rng.uniform(0.5, 1.0) * max_place_deg))
-        b_pos = 0.5 * skel.ends[i] + np.array([0.05, rng.uniform(-0.03, 0.03), 0.0])
+        nom = nominal_placement(skel, name)
+        bRs = nom.bRs @ expmap(ax / np.linalg.norm(ax) * np.deg2rad(rng.uniform(0.5, 1.0) * max_place_deg))
+        b_pos = nom.b_pos + nom.bRs[:, :2] @ rng.uniform(-0.03, 0.03, 2)          # shifted on the skin
         nRs = R[:, i] @ bRs
         w = logmap(np.swapaxes(nRs, 1, 2) @ (R1[:, i] @ bRs)) / dt
         pos = lambda RR, PP: PP[:, i] + np.einsum("tij,j->ti", RR[:, i], b_pos)   # noqa: E731

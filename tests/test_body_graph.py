@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from imugraph.body.placement import nominal_placement
 from imugraph.errors import SessionError
 from imugraph.geometry import expmap, quat_conj, quat_mul, quat_to_rotvec, rotmat_to_quat
 from imugraph.graphs.body import solve_body_batch
@@ -66,7 +67,8 @@ def test_joints_between_sensed_segments_lump_unsensed_links():
 
 
 def test_batch_recovers_chain_from_nominal_placement(chain, chain_result):
-    """Unknown placements (up to 30°, nominal bRs = I): joint rotations, positions and placements recovered."""
+    """Unknown placements (up to 30° off the default nominal site): joint rotations, positions and placements
+    recovered."""
     res = chain_result
     S = len(chain.skeleton.names)
     assert res.names == chain.skeleton.names
@@ -84,8 +86,9 @@ def test_relative_heading_observable_only_with_motion():
     (hence bRs) observable through the joints; a static session cannot (bRs keeps the start error). (Root
     translation alone is enough motion: the joint's acceleration seen by both sensors fixes their relative
     heading, so the static case holds the root still too.)"""
-    wrong = {n: (expmap(np.array([0, 0, np.deg2rad(25.0)])), np.zeros(3) + 0.5 * chain_skeleton().ends[i])
-             for i, n in enumerate(chain_skeleton().names) if i > 0}
+    skel = chain_skeleton()
+    wrong = {n: (expmap(np.array([0, 0, np.deg2rad(25.0)])) @ nominal_placement(skel, n).bRs,
+                 nominal_placement(skel, n).b_pos) for n in skel.names[1:]}
     opts = BodyOptions(placements=wrong, heading_sigma_rad=None)
     moving = chain_session(duration_s=8.0, seed=2, max_place_deg=5.0)
     res = solve_body_batch(moving, opts)
@@ -140,13 +143,13 @@ def test_incremental_isam2_and_fixed_lag():
     within a few degrees once the motion has made the relative headings observable (second half)."""
     sess = chain_session(duration_s=8.0, seed=6)
     batch = solve_body_batch(sess)
-    isam = solve_body_incremental(sess, lag_s=None, update_every=5)
+    isam = solve_body_incremental(sess, lag_s=None, update_every=5, bootstrap_s=None)
     K = batch.info["keyframes"]
     assert len(isam.info["update_s"]) == int(np.ceil(K / 5))
     assert max(joint_errors(sess, isam).values()) < 1.5
     assert max(joint_errors(sess, batch).values()) < 1.0
     assert max(joint_errors(sess, isam.info["filtered"]).values()) < 3.0
-    lag = solve_body_incremental(sess, lag_s=1.0, smoother="batch", update_every=5)
+    lag = solve_body_incremental(sess, lag_s=1.0, smoother="batch", update_every=5, bootstrap_s=None)
     assert lag.info["failed_updates"] == 0 and lag.n_quat.shape == batch.n_quat.shape
     h = sess.t.size // 2
     late = replace(sess, truth={**sess.truth, "n_quat": sess.truth["n_quat"][h:]})
@@ -167,6 +170,25 @@ def test_fixed_lag_after_batch_bootstrap():
     e_lag, e_b = joint_errors(sess, res), joint_errors(sess, batch)
     assert max(e_b.values()) < 1.0 and max(e_lag.values()) < 2.0
     assert max(joint_errors(sess, res.info["filtered"]).values()) < 2.5
+
+
+def test_automatic_bootstrap_waits_for_motion():
+    """Default bootstrap "auto": ends once every sensor has turned and accelerated (A1), after the N-pose
+    and the motion's start; then Cholesky, close to the batch."""
+    sess = chain_session(duration_s=10.0, seed=9)
+    batch = solve_body_batch(sess)
+    res = solve_body_incremental(sess, lag_s=1.0)
+    boot = res.info["bootstrap"]
+    assert boot["auto"] and boot["motion_reached"]
+    assert 2.5 < boot["bootstrap_s"] < 6.0               # N-pose 2 s, motion blended in over 1 s
+    assert res.info["failed_updates"] == 0
+    assert max(joint_errors(sess, res).values()) < max(joint_errors(sess, batch).values()) + 1.0
+    static = chain_session(duration_s=6.0, seed=2, amp_deg=0.0, root_move=False)
+    from imugraph.graphs.body import build_problem
+    from imugraph.graphs.body_bootstrap import motion_bootstrap_s
+    pb = build_problem(static, BodyOptions(npose=(0.0, 1.0)))
+    length, info = motion_bootstrap_s(static, pb, max_s=5.0)
+    assert length == 5.0 and not info["motion_reached"]
 
 
 def _data(rel: str) -> Path:

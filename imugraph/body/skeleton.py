@@ -9,10 +9,17 @@ root (Pelvis) origin, and the joint positions follow by forward kinematics
 
 with offset_i the (constant) origin of segment i in its parent's frame.
 
-Unsensed segments are tied to their neighbours (`fill_unsensed`):
+Unsensed segments are tied to their neighbours (`fill_unsensed`, rules from the tree by `tie_rules`): an
+unsensed segment u between its nearest given ancestor A and the single given segment D below it (reached
+through unsensed segments only) turns by the fraction of the joints passed,
 
-    nR_L5 = slerp(nR_Pelvis, nR_T8, 1/4),  nR_L3 = … 1/2,  nR_T12 = … 3/4,
-    nR_Neck = slerp(nR_T8, nR_Head, 1/2),  nR_Toe = nR_Foot                                  (K2)
+    nR_u = slerp(nR_A, nR_D, (depth u − depth A)/(depth D − depth A)),                        (K2)
+
+and one with nothing given below it turns with A. On the MVN body this gives
+nR_L5 = slerp(nR_Pelvis, nR_T8, 1/4), nR_L3 = … 1/2, nR_T12 = … 3/4, nR_Neck = slerp(nR_T8, nR_Head, 1/2),
+nR_Toe = nR_Foot (`TIES`); on the CMU skeleton (no L3, T12) nR_L5 = slerp(nR_Pelvis, nR_T8, 1/2). An
+unsensed segment with several given branches below it (e.g. T8 missing: Head and both shoulders) has no
+rule: SessionError naming it (or, strict=False, it turns with A).
 
 Anthropometry of `full_body`: segment lengths as fractions of body height H from Winter,
 "Biomechanics and Motor Control of Human Movement" (4th ed., 2009, Fig. 4.1): hip-joint height
@@ -49,7 +56,7 @@ FULL_BODY_SENSED = ("Pelvis", "T8", "Head", "RightShoulder", "RightUpperArm", "R
                     "LeftShoulder", "LeftUpperArm", "LeftForeArm", "LeftHand", "RightUpperLeg",
                     "RightLowerLeg", "RightFoot", "LeftUpperLeg", "LeftLowerLeg", "LeftFoot")
 LOWER_BODY = ("Pelvis", "RightUpperLeg", "RightLowerLeg", "RightFoot", "LeftUpperLeg", "LeftLowerLeg", "LeftFoot")
-# (K2): unsensed segment -> (segment a, segment b, fraction u): nR = slerp(nR_a, nR_b, u)
+# (K2) on the MVN body with the 17 sensors (what `tie_rules` derives): segment -> (a, b, u), nR = slerp(nR_a, nR_b, u)
 TIES = {"L5": ("Pelvis", "T8", 0.25), "L3": ("Pelvis", "T8", 0.5), "T12": ("Pelvis", "T8", 0.75),
         "Neck": ("T8", "Head", 0.5), "RightToe": ("RightFoot", "RightFoot", 0.0),
         "LeftToe": ("LeftFoot", "LeftFoot", 0.0)}
@@ -211,31 +218,79 @@ def lower_body(height_m: float = 1.75) -> Skeleton:
     return full_body(height_m).subset(LOWER_BODY)
 
 
-def fill_unsensed(skel: Skeleton, n_quat_sensed: dict) -> np.ndarray:
-    """All segment orientations from the sensed ones, ties (K2) for the unsensed segments.
+def _depths(skel) -> list[int]:
+    d = []
+    for p in skel.parents:
+        d.append(0 if p < 0 else d[p] + 1)
+    return d
+
+
+def tie_rules(skel, given) -> dict:
+    """{unsensed segment: (segment a, segment b, fraction u)} of eq. (K2) for the segments not in `given`.
+
+    Raises:
+        SessionError: the root not given, or (strict rules) an unsensed segment with several given
+        branches below it; the message names the segment.
+    """
+    given = set(given)
+    depth = _depths(skel)
+    rules = {}
+    for i, name in enumerate(skel.names):
+        if name in given:
+            continue
+        a = skel.parents[i]
+        while a >= 0 and skel.names[a] not in given:
+            a = skel.parents[a]
+        if a < 0:
+            raise SessionError(_SRC, name, "no orientation and no given ancestor",
+                               f"an orientation for {name} or for the root {skel.names[0]}")
+        below, stack = [], [c for c, p in enumerate(skel.parents) if p == i]
+        while stack:                                  # first given segment on every branch below i
+            c = stack.pop()
+            if skel.names[c] in given:
+                below.append(c)
+            else:
+                stack += [k for k, p in enumerate(skel.parents) if p == c]
+        if len(below) > 1:
+            rules[name] = ("ambiguous", skel.names[a], sorted(skel.names[c] for c in below))
+        elif below:
+            d = below[0]
+            rules[name] = (skel.names[a], skel.names[d], (depth[i] - depth[a]) / (depth[d] - depth[a]))
+        else:
+            rules[name] = (skel.names[a], skel.names[a], 0.0)
+    return rules
+
+
+def fill_unsensed(skel: Skeleton, n_quat_sensed: dict, strict: bool = True) -> np.ndarray:
+    """All segment orientations from the given ones, ties (K2) for the others.
 
     Args:
         skel: the skeleton.
-        n_quat_sensed: segment name → (T, 4) segment → n quaternions (at least every segment a tie needs).
+        n_quat_sensed: segment name → (T, 4) segment → n quaternions (the root at least).
+        strict: an unsensed segment with several given branches below it raises (True) or turns with its
+            nearest given ancestor (False: the estimator's output, which must not fail).
     Returns:
         (T, S, 4) in `skel.names` order.
     Raises:
-        SessionError: a segment with neither an orientation nor a usable tie, or inconsistent shapes.
+        SessionError: inconsistent shapes, the root missing, or (strict) a segment without a rule —
+        each message names the segment.
     """
     shapes = {np.shape(q) for q in n_quat_sensed.values()}
     if len(shapes) != 1 or len(next(iter(shapes))) != 2 or next(iter(shapes))[1] != 4:
         raise SessionError(_SRC, "n_quat_sensed", f"shapes {sorted(shapes)}", "(T, 4) arrays of one length T")
     T = next(iter(shapes))[0]
+    rules = tie_rules(skel, [n for n in n_quat_sensed if n in skel.names])
     out = np.empty((T, len(skel.names), 4))
     for i, name in enumerate(skel.names):
         if name in n_quat_sensed:
             out[:, i] = quat_normalize(np.asarray(n_quat_sensed[name], float))
             continue
-        tie = TIES.get(name)
-        if tie is None or tie[0] not in n_quat_sensed or tie[1] not in n_quat_sensed:
-            raise SessionError(_SRC, name, "no orientation and no tie to given segments",
-                               f"an orientation for {name} or for the segments of its tie {tie}")
-        a, b, u = tie
+        a, b, u = rules[name]
+        if a == "ambiguous":
+            if strict:
+                raise SessionError(_SRC, name, f"no orientation and given segments on several branches below it {u}",
+                                   f"an orientation for {name} (a segment can be tied along one chain only)")
+            a, b, u = b, b, 0.0
         out[:, i] = quat_slerp(np.asarray(n_quat_sensed[a], float), np.asarray(n_quat_sensed[b], float),
                                np.full(T, u))                                                   # (K2)
     return out

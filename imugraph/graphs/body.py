@@ -32,6 +32,13 @@ these comparisons ran with gyro_bias_sigma 0.02, before it became 0.002, see `Bo
 - integration_sigma 1e-2 (position integration noise, `BodyOptions`): 1e-4 on the walk took 30 LM
   iterations (78 s) for the same accuracy as 1e-2 (11 iterations); ≥ 0.3 decouples position from velocity
   and lets the world heading drift (relpos 3.5 cm).
+- Preintegration fed with `factors.body.exact_rotation_gyro` (P5): gtsam's tangent-space preintegration is
+  first order in |ω dt| per sample (25 rad/s with a turning axis: 1.7–2.6° per keyframe interval), which
+  is what made fast arms fail: CMU 131_01, 17 IMUs, no magnetometers, seeds 0–2, RightShoulder joint RMSE
+  8.2/10.3/8.8° → 0.32/2.21/0.29°. Extra keyframes keep each interval's turn below 2.5 rad
+  (`BodyOptions.max_keyframe_turn_rad`: the preintegrated Log(ΔR) must stay below π).
+- Default placement: the nominal site (imugraph.body.placement) rather than bRs = I at mid-segment:
+  gaittoolbox walk (offset handling vs Vicon) 5.77° → 5.03° mean, 30 → 14 LM iterations.
 - COLAMD ordering: 9.3 s vs 19.0 s with METIS (walk, 25 s). LM relative tolerance 1e-3: on a 20 s walk the
   cost plateaus after 4 iterations (125.5 → 124.8 in 35 more, accuracy unchanged).
 """
@@ -48,7 +55,7 @@ from imugraph.errors import SessionError
 from imugraph.factors import body as bf
 from imugraph.graphs.body_init import initial_orientations, initial_values, nominal_levers
 from imugraph.graphs.body_model import (BodyJoint, BodyOptions, body_joints, check_session,  # noqa: F401
-                                        keyframes, npose_samples, sensor_setup)
+                                        keyframes, npose_samples, sample_turn, sensor_setup)
 from imugraph.graphs.body_output import BodyResult  # noqa: F401  (re-exported: the public result type)
 
 
@@ -91,7 +98,8 @@ def build_problem(session, opts: BodyOptions = BodyOptions()) -> BodyProblem:
     joints = body_joints(skel) if opts.use_joints else []
     npose_idx, method = npose_samples(session, opts)
     setups = sensor_setup(session, skel, opts, npose_idx)
-    kf = keyframes(session.t.size, opts.keyframe_every)
+    turn = sample_turn(session, names, setups) if opts.max_keyframe_turn_rad is not None else None
+    kf = keyframes(session.t.size, opts.keyframe_every, turn, opts.max_keyframe_turn_rad)
     init_mag = opts.init_heading_from_mag
     if init_mag is None:
         init_mag = opts.use_mag or all(np.all(np.isfinite(session.sensors[n].mag[npose_idx]), axis=1).any() for n in names)

@@ -12,14 +12,23 @@ its preintegrated IMU (x_k = pim.predict(x_{k−1}, b̂)), joint centres J = nTs
   Measured on the 4-sensor chain (12 s, second half, worst joint): IncrementalFixedLagSmoother 31.6° (lag
   1 s) and 4.2° (lag 2 s), with Cholesky "key has no clique" (borglab/gtsam #1638); the batch smoother
   2.0° (lag 1 s, one update per keyframe, 3 iterations) — default, available as smoother="incremental".
-- `bootstrap_s` (recommended): the first seconds — N-pose plus some motion, which is what makes the relative
-  headings and hence bRs observable — are solved in batch; bRs and ψ are then held, keyframe states and
-  globals continue from the bootstrap's last keyframe under diagonal priors (`_anchor`), and no N-pose keys
-  need to stay in the window. benchmarks/body_speed.py (17 IMUs, 60 s walk, bootstrap 20 s, lag 1 s,
-  keyframes at 10 Hz, 5 per update, one LM iteration): 1.29× real time on the streamed 40 s, worst joint
-  2.55° (batch: 1.06°). Without a bootstrap the same smoother reached 5–13° (bRs from an N-pose whose
-  headings were not yet observable, improved only through linearised marginals). A bootstrap without
-  motion cannot fix bRs (8 s of standing: 15° bRs errors).
+- `bootstrap_s` (default "auto"): the first seconds — N-pose plus some motion, which is what makes the
+  relative headings and hence bRs observable — are solved in batch; bRs and ψ are then held, keyframe states
+  and globals continue from the bootstrap's last keyframe under diagonal priors (`_anchor`), and no N-pose
+  keys need to stay in the window. "auto" ends it once every sensor has turned ≥ 1 rad and accelerated
+  ≥ 2 m/s beyond the N-pose (imugraph.graphs.body_bootstrap, A1). After a bootstrap the linear solves use
+  Cholesky (the anchors make them well posed; QR without one), with weak priors on every new keyframe
+  variable (`_weak_priors`: without them 26 of 88 updates of the 17-IMU 60 s run below threw
+  IndeterminateLinearSystem during the standing phases). gaittoolbox walk (7 MTw, 100 Hz, auto bootstrap to
+  13.5 s, offset handling vs Vicon; batch 5.03°): lag 2 s 5.09–5.12° at 3.7–6.6× real time (QR: 1.9×),
+  iSAM2 5.11° at 5.1× (relinearisation threshold 0.1; 0.01 and QR: 0.58×). Without a bootstrap the same
+  lag-2 s smoother reached 13.1° at 0.63× (QR), and 3 LM iterations per update did not help (13.7°, 0.18×):
+  bRs comes from an N-pose whose headings were not yet observable and is improved only through linearised
+  marginals. benchmarks/body_speed.py (17 IMUs, 60 s walk at 60 Hz, auto bootstrap 16.4 s, lag 1 s,
+  keyframes at 10 Hz, 5 per update, one LM iteration): Cholesky 4.3–11.5× real time on the streamed 43.6 s
+  (the spread is the shared machine's load), worst joint 2.1–2.3° (QR: 1.29×, 2.48°; batch: 1.0–1.4°);
+  iSAM2 1.8–2.65×, 2.1–2.2°, peak RSS 1.6 GB. A bootstrap without motion cannot fix bRs (8 s of standing:
+  15° bRs errors).
 - `update_every` keyframes per update (default 5): the cost of an update barely depends on how many new
   keyframes it brings, so fewer updates are cheaper; 17 IMUs, 20 s walk, keyframes at 5 Hz, lag 1 s, one
   LM iteration: 0.94× real time (benchmarks/body_speed.py).
@@ -42,6 +51,7 @@ import numpy as np
 from imugraph.errors import SessionError
 from imugraph.factors import body as bf
 from imugraph.graphs.body import BodyProblem, build_problem, factors_at, full_graph, optimize
+from imugraph.graphs.body_bootstrap import motion_bootstrap_s
 from imugraph.graphs.body_model import BodyOptions
 from imugraph.geometry import expmap, rotmat_to_quat
 from imugraph.graphs.body_init import rz
@@ -92,24 +102,32 @@ def _initial_k0(pb: BodyProblem) -> gtsam.Values:
 
 
 def solve_body_incremental(session, opts: BodyOptions = BodyOptions(), lag_s: float | None = None,
-                           relinearize_threshold: float = 0.01, smoother: str = "batch",
-                           lag_iterations: int = 1, keep_npose: int = 2, factorization: str = "QR",
-                           update_every: int = 5, bootstrap_s: float | None = None) -> BodyResult:
+                           relinearize_threshold: float | None = None, smoother: str = "batch",
+                           lag_iterations: int = 1, keep_npose: int = 2, factorization: str | None = None,
+                           update_every: int = 5, bootstrap_s: float | str | None = "auto") -> BodyResult:
     """iSAM2 (lag_s None) or fixed-lag smoothing over the body graph; see the module docstring.
 
     Args:
         session: BodySession; opts: the batch solver's options (same graph).
         lag_s: None for iSAM2 over everything, else the smoother lag in s.
-        relinearize_threshold: iSAM2 relinearisation threshold.
+        relinearize_threshold: iSAM2 relinearisation threshold (tangent-space step that triggers a
+            relinearisation); None: 0.1 after a bootstrap (17 IMUs × 60 s at 60 Hz, auto bootstrap: 2.65× real
+            time, worst joint 2.09°, peak RSS 1.65 GB; 0.01: 0.37×, 2.07°, 3.2 GB — benchmarks/body_speed.py
+            set-up), 0.01 without one (the headings then move far from their first linearisation point:
+            tests/test_body_graph.py's chain, 2.3° with 0.1).
         smoother: "batch" (BatchFixedLagSmoother, LM with `lag_iterations` per update) or "incremental"
             (IncrementalFixedLagSmoother, iSAM2 with `factorization`).
         lag_iterations: LM iterations per update (batch smoother), iSAM2 update() calls per update (iSAM2).
         keep_npose: the last N-pose keyframes kept in the window (re-stamped) so bRs keeps improving.
+        factorization: "QR" or "CHOLESKY" (iSAM2, and the batch smoother's MULTIFRONTAL_ solver); None:
+            Cholesky after a bootstrap (its anchor priors make every update well posed; gaittoolbox walk,
+            lag 2 s: 6.8× real time vs 1.9× with QR, same accuracy; iSAM2 2.4× vs 0.58×), QR without.
         update_every: keyframes per solver update (>1: the newest keyframes of an update are estimated
             with up to update_every − 1 keyframes of look-ahead; fewer, cheaper updates).
         bootstrap_s: batch-solve the first bootstrap_s seconds (N-pose and some motion), fix bRs and ψ from
             it, then continue incrementally from its last keyframe (see `_anchor`); its wall time is in
-            info["bootstrap"], not in update_s. None: incremental from the first sample.
+            info["bootstrap"], not in update_s. "auto" (default): until every sensor has turned and
+            accelerated enough (imugraph.graphs.body_bootstrap, A1). None: incremental from the first sample.
     """
     t_start = time.perf_counter()
     pb = build_problem(session, opts)
@@ -121,30 +139,25 @@ def solve_body_incremental(session, opts: BodyOptions = BodyOptions(), lag_s: fl
     glob = _global_keys(pb)
     n_npose = int(np.sum(pb.kf <= pb.npose_idx[-1]))
     npose_keys = [key for k in range(max(0, n_npose - keep_npose), n_npose) for key in _keys_at(pb, k)]
-    if lag_s is None:
-        prm = gtsam.ISAM2Params()
-        prm.setRelinearizeThreshold(relinearize_threshold)
-        prm.relinearizeSkip = 1
-        prm.setFactorization("QR")          # Cholesky throws IndeterminateLinearSystem early (GTSAM_NOTES)
-        solver = gtsam.ISAM2(prm)
-    elif smoother == "batch":
-        lm = gtsam.LevenbergMarquardtParams()
-        lm.setMaxIterations(lag_iterations)
-        lm.setLinearSolverType(f"MULTIFRONTAL_{factorization}")
-        solver = gtsam.BatchFixedLagSmoother(float(lag_s), lm)
-    else:
-        prm = gtsam.ISAM2Params()
-        prm.setRelinearizeThreshold(relinearize_threshold)
-        prm.relinearizeSkip = 1
-        prm.setFactorization(factorization)
-        solver = gtsam.IncrementalFixedLagSmoother(float(lag_s), prm)
     records = []                                  # per keyframe: (sensor nRs (n,3,3), p, v of root, bRs, ψ)
     lagged: dict = {}                             # fixed lag: the record of each keyframe as it leaves the window
-    update_s, failures = [], 0
+    update_s, failures, first_failure = [], 0, None
     est, fixed_place, k_first, boot = None, None, 0, {}
     anchor, anchor_vals = gtsam.NonlinearFactorGraph(), gtsam.Values()
+    auto = {}
+    if isinstance(bootstrap_s, str):
+        if bootstrap_s != "auto":
+            raise SessionError(session.source, "bootstrap_s", repr(bootstrap_s), '"auto", seconds or None')
+        bootstrap_s, auto = motion_bootstrap_s(session, pb)
+    if factorization is None:
+        factorization = "QR" if bootstrap_s is None else "CHOLESKY"
+    if relinearize_threshold is None:
+        relinearize_threshold = 0.01 if bootstrap_s is None else 0.1
+    solver = _make_solver(lag_s, smoother, factorization, relinearize_threshold, lag_iterations)
+    regularize = factorization.upper() == "CHOLESKY"
     if bootstrap_s is not None:
         k_first, x_b, fixed_place, boot = _bootstrap(session, pb, opts, bootstrap_s)
+        boot.update(auto)
         for k in range(k_first):
             records.append(_record(pb, x_b, k, fixed_place))
             lagged[k] = records[-1]
@@ -164,6 +177,8 @@ def solve_body_incremental(session, opts: BodyOptions = BodyOptions(), lag_s: fl
         for k in ks:                              # predictions chain through the batch's own new keyframes
             graph.push_back(factors_at(pb, k))
             v = _initial_k0(pb) if k == 0 else _predict(pb, cur, k)
+            if regularize:
+                graph.push_back(_weak_priors(v))
             new.insert(v)
             cur.insert(v)
         t0 = time.perf_counter()
@@ -183,10 +198,11 @@ def solve_body_incremental(session, opts: BodyOptions = BodyOptions(), lag_s: fl
                 for _ in range(max(0, lag_iterations - 1)):     # extra iSAM2 relinearisation steps
                     solver.update()
             est = solver.calculateEstimate()
-        except RuntimeError:                      # counted, never raised after the start (as the stream does)
+        except RuntimeError as exc:               # counted, never raised after the start (as the stream does)
             failures += 1
             if est is None:
                 raise
+            first_failure = first_failure or f"keyframe {ks[0]}: {str(exc)[:300]}"
             est = cur
         update_s.append(time.perf_counter() - t0)
         place = fixed_place if fixed_place is not None else estimate_placements(pb, est)
@@ -202,6 +218,7 @@ def solve_body_incremental(session, opts: BodyOptions = BodyOptions(), lag_s: fl
     dur = float(session.t[-1] - (session.t[pb.kf[k_first - 1]] if k_first > 0 else session.t[0]))  # streamed
     info = {"mode": "isam2" if lag_s is None else f"fixed_lag_{lag_s}s", "keyframes": pb.K,
             "update_s": np.asarray(update_s), "total_s": total, "failed_updates": failures,
+            "first_failure": first_failure,
             "realtime_factor": dur / max(float(np.sum(update_s)), 1e-12), "npose": pb.npose_method,
             "bootstrap": boot}
     info["filtered"] = filtered_result(pb, records)
@@ -211,6 +228,38 @@ def solve_body_incremental(session, opts: BodyOptions = BodyOptions(), lag_s: fl
         lagged.update({k: _record(pb, est, k, fixed_place) for k in range(k_first, pb.K)})
     res = filtered_result(pb, [lagged[k] for k in range(pb.K)])
     return BodyResult(res.t, res.names, res.n_quat, res.n_pos, res.placements, info)
+
+
+def _weak_priors(v: gtsam.Values) -> gtsam.NonlinearFactorGraph:
+    """Priors σ 1 rad / 10 m / 10 m/s at the predicted values of new keyframe variables: a regulariser
+    (information 1–0.01 against ≥ 10⁵ from the IMU and joint factors) that keeps Cholesky's eliminations
+    positive definite while the body stands still."""
+    g = gtsam.NonlinearFactorGraph()
+    pose_m = gtsam.noiseModel.Diagonal.Sigmas(np.r_[np.full(3, 1.0), np.full(3, 10.0)])
+    vec_m = gtsam.noiseModel.Isotropic.Sigma(3, 10.0)
+    for key in v.keys():
+        ch = chr(gtsam.Symbol(key).chr())
+        if ch == "x":
+            g.add(gtsam.PriorFactorPose3(key, v.atPose3(key), pose_m))
+        elif ch == "v":
+            g.add(gtsam.PriorFactorVector(key, v.atVector(key), vec_m))
+        elif ch == "j":
+            g.add(gtsam.PriorFactorPoint3(key, v.atPoint3(key), vec_m))
+    return g
+
+
+def _make_solver(lag_s, smoother: str, factorization: str, relinearize_threshold: float, lag_iterations: int):
+    """gtsam.ISAM2 (lag_s None), BatchFixedLagSmoother ("batch") or IncrementalFixedLagSmoother."""
+    if lag_s is None or smoother != "batch":
+        prm = gtsam.ISAM2Params()
+        prm.setRelinearizeThreshold(relinearize_threshold)
+        prm.relinearizeSkip = 1
+        prm.setFactorization(factorization)   # QR without a bootstrap: Cholesky threw IndeterminateLinearSystem
+        return gtsam.ISAM2(prm) if lag_s is None else gtsam.IncrementalFixedLagSmoother(float(lag_s), prm)
+    lm = gtsam.LevenbergMarquardtParams()
+    lm.setMaxIterations(lag_iterations)
+    lm.setLinearSolverType(f"MULTIFRONTAL_{factorization}")
+    return gtsam.BatchFixedLagSmoother(float(lag_s), lm)
 
 
 def _bootstrap(session, pb: BodyProblem, opts: BodyOptions, bootstrap_s: float):

@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from imugraph.body.placement import nominal_placement
 from imugraph.calibration.rest import MIN_REST, detect_rest, noise_from_rest
 from imugraph.errors import SessionError
 
@@ -41,7 +42,9 @@ class BodyOptions:
         start_velocity_sigma: velocity prior at k = 0 (the N-pose is static), m/s.
         npose: (t_start, t_end) of the static N-pose in s; None: detected by rest detection at the start.
         npose_heading_deg: forward heading in the N-pose when the hips cannot tell it (no hip joints).
-        placements: nominal {segment: (bRs (3,3), b_pos (3,))}; missing: bRs = I, b_pos = mid-segment.
+        placements: nominal {segment: (bRs (3,3), b_pos (3,))}; segments missing here get
+            `imugraph.body.placement.nominal_placement` (on the skin mid-segment, z out of the skin, x along
+            the segment; `default_placement`).
         use_mag: magnetometer factors (B5) with a per-sensor field direction from the N-pose.
         mag_sigma: σ of the normalised field direction (unitless, per axis).
         init_heading_from_mag: initial sensor headings from the magnetometers (no magnetometer factors);
@@ -51,6 +54,9 @@ class BodyOptions:
         g: gravity, m/s².
         max_iterations, relative_tol: LM stopping.
         ordering: "colamd" or "metis".
+        max_keyframe_turn_rad: extra keyframes so that no sensor turns more than this between two
+            (Σ|ω|dt; None: regular keyframes only). 2.5 rad < π, the limit of gtsam's preintegrated
+            rotation; at 60 Hz and keyframes every 6 samples it acts above ≈ 25 rad/s only (fast hands).
     """
 
     keyframe_every: int = 6
@@ -79,6 +85,7 @@ class BodyOptions:
     max_iterations: int = 30
     relative_tol: float = 1e-3
     ordering: str = "colamd"
+    max_keyframe_turn_rad: float | None = 2.5
 
 
 @dataclass(frozen=True)
@@ -160,17 +167,48 @@ def sensor_setup(session, skel, opts: BodyOptions, npose_idx: np.ndarray) -> dic
         noise = noise_from_rest(s, mask)
         sg = np.full(3, opts.gyro_noise) if opts.gyro_noise is not None else np.maximum(noise["gyr"], 1e-3)
         sa = np.full(3, opts.acc_noise) if opts.acc_noise is not None else np.maximum(noise["acc"], 1e-2)
-        i = skel.index(name)
-        bRs, b_pos = opts.placements.get(name, (np.eye(3), 0.5 * np.asarray(skel.ends[i], float)))
+        bRs, b_pos = opts.placements[name] if name in opts.placements else default_placement(skel, name)
         out[name] = SensorSetup(name, sg, sa, np.asarray(noise["gyro_bias"], float), np.asarray(bRs, float),
                                 np.asarray(b_pos, float))
     return out
 
 
-def keyframes(n: int, every: int) -> np.ndarray:
-    """Keyframe sample indices: every `every`-th sample, the last sample always included."""
-    kf = np.arange(0, n, max(1, int(every)))
-    return kf if kf[-1] == n - 1 else np.append(kf, n - 1)
+def default_placement(skel, name: str) -> tuple[np.ndarray, np.ndarray]:
+    """(bRs, b_pos) assumed for a sensor without a given placement: the nominal site (imugraph.body.placement)."""
+    p = nominal_placement(skel, name)
+    return np.asarray(p.bRs, float), np.asarray(p.b_pos, float)
+
+
+def keyframes(n: int, every: int, turn: np.ndarray | None = None, max_turn: float | None = None) -> np.ndarray:
+    """Keyframe sample indices: every `every`-th sample, the last sample always included.
+
+    With `turn` ((N,) rotation angle of each sample interval, rad, e.g. max over sensors of |ω − b̂| dt) and
+    `max_turn`, a keyframe is also inserted before the interval's accumulated turn would exceed max_turn
+    (gtsam's tangent-space preintegration holds Log(ΔR), |θ| < π; see factors.body.exact_rotation_gyro);
+    the regular spacing restarts from there.
+    """
+    every = max(1, int(every))
+    if turn is None or max_turn is None:
+        kf = np.arange(0, n, every)
+        return kf if kf[-1] == n - 1 else np.append(kf, n - 1)
+    kf, a, acc = [0], 0, 0.0
+    for i in range(n - 1):
+        if i - a == every or (i > a and acc + turn[i] > max_turn):
+            kf.append(i)
+            a, acc = i, 0.0
+        acc += float(turn[i])
+    if kf[-1] != n - 1:
+        kf.append(n - 1)
+    return np.asarray(kf, int)
+
+
+def sample_turn(session, names, setups: dict) -> np.ndarray:
+    """(N,) max over sensors of |ω_i − b̂| dt_i (b̂ the N-pose gyro bias): rotation per sample interval, rad."""
+    out = np.zeros(np.asarray(session.t).size)
+    for name in names:
+        s = session.sensors[name]
+        out = np.maximum(out, np.linalg.norm(s.gyr - setups[name].gyro_bias0, axis=1) * s.dt)
+    return out
 
 
 def check_session(session) -> None:

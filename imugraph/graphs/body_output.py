@@ -1,15 +1,16 @@
 """From a solved body graph to segment orientations and positions at every input sample.
 
-1. N-pose heading ψ: the body faces (J_LeftHip − J_RightHip) × z at the N-pose (x forward, y left, z up);
-   without both hips, `npose_heading_deg`.
+1. N-pose heading ψ: the rotation about z between the skeleton's neutral joint centres and the estimated
+   ones at the N-pose (`npose_heading`, O1; x forward, y left, z up); with < 2 joints, `npose_heading_deg`.
 2. Sensor-to-segment rotation: in the N-pose nRb = Rz(ψ), so bRs = Rz(ψ)ᵀ nRs, averaged over the N-pose
    keyframes (chordal mean: SVD projection of the summed matrices). Sensor origin on its segment:
    b_pos = b_joint − bRs l, averaged over the sensor's joints.
 3. Per sample between keyframes a and b: the gyro (minus the estimated bias) integrated forward from a and
    backward from b, blended by slerp with u = (i − a)/(b − a) (continuous at both keyframes).
-4. Segments: nRb = nRs bRsᵀ; unsensed ones via imugraph.body.skeleton.fill_unsensed (fallback: the nearest
-   sensed ancestor's orientation); root origin = p_s + nRs (sRb (0 − b_pos)) with p_s Hermite-interpolated from
-   keyframe positions and velocities; the other origins by forward kinematics with the skeleton's offsets.
+4. Segments: nRb = nRs bRsᵀ; unsensed ones via imugraph.body.skeleton.fill_unsensed (non-strict: where no
+   tie applies, the nearest sensed ancestor's orientation); root origin = p_s + nRs (sRb (0 − b_pos)) with
+   p_s Hermite-interpolated from keyframe positions and velocities; the other origins by forward kinematics
+   with the skeleton's offsets.
 5. Output frame: the graph's frame is fixed by the gauge (root sensor heading from its nominal placement),
    which is off by the unknown placement heading; the output is turned about z by Rz(ψ₀ − ψ) so that the body
    faces ψ₀ = `npose_heading_deg` in the N-pose (the MVN convention: facing +x), with or without magnetometers.
@@ -49,21 +50,34 @@ def project_so3(M: np.ndarray) -> np.ndarray:
     return U @ D @ Vt
 
 
-def _joint_index(pb, child: str) -> int | None:
-    for j, jt in enumerate(pb.joints):
-        if jt.child == child:
-            return j
-    return None
+def _neutral_joint_centres(pb) -> np.ndarray:
+    """(J, 3) joint centres (= child origins) in the neutral pose, root origin at 0 (offsets summed, K1)."""
+    skel = pb.skel
+    pos = np.zeros((len(skel.names), 3))
+    for i, p in enumerate(skel.parents):
+        if p >= 0:
+            pos[i] = pos[p] + np.asarray(skel.offsets[i], float)
+    return np.array([pos[skel.index(jt.child)] for jt in pb.joints]).reshape(-1, 3)
 
 
 def npose_heading(pb, x: gtsam.Values, kfs: np.ndarray) -> float:
-    """ψ of the N-pose from the hip joint centres (see module docstring), else the option."""
-    jl, jr = _joint_index(pb, "LeftUpperLeg"), _joint_index(pb, "RightUpperLeg")
-    if jl is None or jr is None:
+    """ψ of the N-pose (module docstring, step 1): the rotation about z that best maps the skeleton's neutral
+    joint centres onto the estimated ones (horizontal parts, centroids removed),
+
+        ψ = atan2(Σ_j (u_j × d_j)_z, Σ_j u_j · d_j),   u_j = P(c_j − c̄), d_j = P(J_j − J̄)          (O1)
+
+    (2-D Procrustes; P drops z). With the hips only this is the heading of (J_LeftHip − J_RightHip) × z,
+    the former rule; a ψ error δ conjugates every relative rotation (nRb_est = nRb Rz(δ)). Measured with
+    benchmarks/body_sim_accuracy.py (17 IMUs, no magnetometers, seeds 0–2, geodesic joint RMSE): CMU 131_02
+    worst joint hips-only 2.06/4.69/2.99° (elbows, neck) → all joints 1.11/3.15/0.83°; legs only or hips +
+    shoulders no better overall; on the Xsens walk (seeds 0, 1) mean joint RMSE 0.40/0.34° → 0.50/0.47°
+    (both far below target). Fewer than two joints: `npose_heading_deg`."""
+    if len(pb.joints) < 2:
         return float(np.deg2rad(pb.opts.npose_heading_deg))
-    d = np.mean([x.atPoint3(bf.joint_key(jl, k)) - x.atPoint3(bf.joint_key(jr, k)) for k in kfs], axis=0)
-    f = np.cross(d, [0.0, 0.0, 1.0])            # left × up = forward
-    return float(np.arctan2(f[1], f[0]))
+    c = _neutral_joint_centres(pb)
+    J = np.mean([[x.atPoint3(bf.joint_key(j, k)) for j in range(len(pb.joints))] for k in kfs], axis=0)
+    u, d = (c - c.mean(axis=0))[:, :2], (J - J.mean(axis=0))[:, :2]
+    return float(np.arctan2(np.sum(u[:, 0] * d[:, 1] - u[:, 1] * d[:, 0]), np.sum(u * d)))          # (O1)
 
 
 def estimate_placements(pb, x: gtsam.Values) -> tuple[dict, float]:
@@ -117,20 +131,11 @@ def _hermite(t: np.ndarray, kf_t: np.ndarray, p: np.ndarray, v: np.ndarray) -> n
 
 
 def fill_segments(skel, n_quat_sensed: dict) -> np.ndarray:
-    """(N, S, 4) for all segments: the skeleton module's fill_unsensed, else nearest sensed ancestor."""
-    try:
-        from imugraph.body.skeleton import fill_unsensed
-        return fill_unsensed(skel, n_quat_sensed)
-    except ImportError:
-        pass
-    N = next(iter(n_quat_sensed.values())).shape[0]
-    out = np.empty((N, len(skel.names), 4))
-    for i, name in enumerate(skel.names):
-        j = i
-        while skel.names[j] not in n_quat_sensed:
-            j = skel.parents[j]
-        out[:, i] = n_quat_sensed[skel.names[j]]
-    return out
+    """(N, S, 4) for all segments: imugraph.body.skeleton.fill_unsensed (ties K2), non-strict: a segment with
+    estimated segments on several branches below it turns with its nearest estimated ancestor (never raises
+    for a skeleton whose root is sensed, e.g. BVH-derived ones with 21 segments)."""
+    from imugraph.body.skeleton import fill_unsensed
+    return fill_unsensed(skel, n_quat_sensed, strict=False)
 
 
 def forward_kinematics(skel, n_quat: np.ndarray, n_root: np.ndarray) -> np.ndarray:

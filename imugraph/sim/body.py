@@ -5,12 +5,14 @@ Pipeline:
    N-pose prefix (all segments aligned with the subject's initial heading: the pose a calibration
    asks for), blended into the first frame with a quintic smoothstep, then resampled to `rate_hz`.
    Segment origins are recomputed by the skeleton's forward kinematics (K1), so the truth satisfies
-   the joint constraints exactly (folded BVH joints' own rotations are dropped). Before that, the BVH
-   segment quaternions (made sign-continuous) and the root position are low-pass filtered (zero-phase
-   4th-order Butterworth, default 10 Hz, then renormalised): mocap files hold glitches (CMU 131_01's
-   right wrist turns 60° in one 1/120 s frame, > 100 rad/s) that no body segment or gyroscope does.
-2. `random_placements`: a plausible pose of each sensor on its segment (on the skin, mid-segment,
-   the sensor's z axis along the outward surface normal) plus a random rotation and shift.
+   the joint constraints exactly (folded BVH joints' own rotations are dropped). Before that, mocap
+   glitches are repaired: joint rotations faster than 25 rad/s (CMU 131_01's right wrist turns 60° in one
+   1/120 s frame, > 100 rad/s), which no body segment or gyroscope does, are replaced by the geodesic
+   across the bad frames (imugraph.body.repair, G1–G2; the report is in BodyMotion.info["repair"]); then
+   the segment quaternions (made sign-continuous) and the root position are low-pass filtered (zero-phase
+   4th-order Butterworth, default 10 Hz, then renormalised).
+2. `random_placements`: a plausible pose of each sensor on its segment (imugraph.body.placement: on the
+   skin, mid-segment, the sensor's z axis along the outward surface normal) plus a random rotation and shift.
 3. `simulate_body`: per sensed segment, sensor orientation and position
 
        nRs = nRb · bRs,     n_p_s = n_p_b + nRb · b_pos                                        (P1)
@@ -34,7 +36,7 @@ Pipeline:
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Optional, Union
 
@@ -43,6 +45,8 @@ from scipy.interpolate import CubicSpline
 from scipy.signal import butter, filtfilt
 
 from imugraph.body.bvh_map import segment_motion
+from imugraph.body.placement import Placement, nominal_placement  # noqa: F401  (re-exported)
+from imugraph.body.repair import MAX_JOINT_RATE, repair_glitches
 from imugraph.body.skeleton import Skeleton, fill_unsensed
 from imugraph.errors import SessionError
 from imugraph.geometry import (expmap, quat_conj, quat_mul, quat_normalize, quat_slerp, quat_to_rotmat,
@@ -55,23 +59,14 @@ _SRC = "<imugraph.sim.body>"
 
 @dataclass(frozen=True)
 class BodyMotion:
-    """Segment trajectories: t (T,) s; names (S,); n_quat (T, S, 4) segment → n; n_pos (T, S, 3) origins, m."""
+    """Segment trajectories: t (T,) s; names (S,); n_quat (T, S, 4) segment → n; n_pos (T, S, 3) origins, m;
+    info: how they were made (`motion_from_bvh`: {"repair": the glitch-repair report, ...})."""
 
     t: np.ndarray
     names: tuple
     n_quat: np.ndarray
     n_pos: np.ndarray
-
-
-@dataclass(frozen=True)
-class Placement:
-    """Pose of a sensor on its segment: bRs (3, 3) sensor → segment; b_pos (3,) sensor origin in b, m."""
-
-    bRs: np.ndarray
-    b_pos: np.ndarray
-
-    def to_dict(self) -> dict:
-        return {"bRs": np.asarray(self.bRs, float), "b_pos": np.asarray(self.b_pos, float)}
+    info: dict = field(default_factory=dict)
 
 
 def _continuous(q: np.ndarray) -> np.ndarray:
@@ -112,7 +107,8 @@ def motion_from_bvh(path: Union[str, Path], rate_hz: float = 60.0, npose_s: floa
                     *, mapping: Optional[dict] = None, units_m: Optional[float] = None,
                     skip_s: Optional[float] = None,
                     duration_s: Optional[float] = None, tie_unsensed: bool = False,
-                    lowpass_hz: Optional[float] = 10.0) -> tuple[Skeleton, BodyMotion]:
+                    lowpass_hz: Optional[float] = 10.0,
+                    max_joint_rate: Optional[float] = MAX_JOINT_RATE) -> tuple[Skeleton, BodyMotion]:
     """Segment motion of a BVH file with an N-pose prefix, resampled (module docstring, step 1).
 
     Args:
@@ -129,8 +125,11 @@ def motion_from_bvh(path: Union[str, Path], rate_hz: float = 60.0, npose_s: floa
         tie_unsensed: replace the unsensed segments' rotations by the ties (K2) of the sensed ones, so
             the truth follows the estimator's model exactly.
         lowpass_hz: cut-off of the zero-phase low-pass on the BVH motion, Hz (None: no filter).
+        max_joint_rate: joint rotations faster than this (rad/s) are glitches, repaired before the
+            low-pass (imugraph.body.repair, eqs. G1–G2); None: no repair.
     Returns:
-        (Skeleton, BodyMotion) with t from 0 at `rate_hz`.
+        (Skeleton, BodyMotion) with t from 0 at `rate_hz`; BodyMotion.info["repair"] = the repair report
+        (frames replaced per segment, runs left unrepaired, max joint rates before and after).
     Raises:
         SessionError: unreadable BVH, or fewer than 4 frames left after skip/duration.
     """
@@ -142,6 +141,9 @@ def motion_from_bvh(path: Union[str, Path], rate_hz: float = 60.0, npose_s: floa
     if keep.sum() < 4:
         raise SessionError(str(path), "Frames", f"{int(keep.sum())} frames after skip/duration", "at least 4")
     t_b, q_b, root = t_b[keep] - t_b[keep][0], q_b[keep], p_b[keep, 0]
+    repair = {}
+    if max_joint_rate is not None:
+        q_b, repair = repair_glitches(skel.parents, skel.names, t_b, q_b, max_joint_rate)
     if tie_unsensed:
         q_b = fill_unsensed(skel, {n: q_b[:, skel.index(n)] for n in skel.sensed})
     dt = float(np.median(np.diff(t_b)))
@@ -163,31 +165,8 @@ def motion_from_bvh(path: Union[str, Path], rate_hz: float = 60.0, npose_s: floa
     t = np.arange(0.0, t_b[-1] + 1e-9, 1.0 / rate_hz)
     n_quat = smooth.quat(t)
     n_pos = skel.forward_kinematics(n_quat, smooth.root(t))
-    return skel, BodyMotion(t=t, names=skel.names, n_quat=n_quat, n_pos=n_pos)
-
-
-# Nominal sensor sites: segment suffix → (fraction along the segment's end vector, outward normal in b, skin depth m)
-_SITES = {"Pelvis": (0.5, (-1, 0, 0), 0.10), "T8": (0.5, (1, 0, 0), 0.10), "Head": (0.7, (1, 0, 0), 0.09),
-          "Shoulder": (0.5, (-1, 0, 0), 0.06), "UpperArm": (0.5, "lateral", 0.045),
-          "ForeArm": (0.7, "lateral", 0.035), "Hand": (0.5, "lateral", 0.015),
-          "UpperLeg": (0.5, "lateral", 0.07), "LowerLeg": (0.4, (1, 0, 0), 0.05), "Foot": (0.5, (0, 0, 1), 0.03)}
-
-
-def nominal_placement(skel: Skeleton, name: str) -> Placement:
-    """Sensor on the skin at mid-segment: z along the outward normal, x along the segment's long axis."""
-    i = skel.index(name)
-    key = next((k for k in _SITES if name.endswith(k)), None)
-    frac, normal, depth = _SITES.get(key, (0.5, (1, 0, 0), 0.05))
-    if normal == "lateral":
-        normal = (0, -1, 0) if name.startswith("Right") else (0, 1, 0)
-    z = np.asarray(normal, float)
-    axis = np.asarray(skel.ends[i], float)
-    x = axis - np.dot(axis, z) * z
-    if np.linalg.norm(x) < 1e-6:
-        x = np.array([0.0, 0.0, 1.0]) - z[2] * z
-    x /= np.linalg.norm(x)
-    bRs = np.column_stack([x, np.cross(z, x), z])
-    return Placement(bRs=bRs, b_pos=frac * axis + depth * z)
+    info = {"source": str(path), "repair": repair, "lowpass_hz": lowpass_hz}
+    return skel, BodyMotion(t=t, names=skel.names, n_quat=n_quat, n_pos=n_pos, info=info)
 
 
 def random_placements(skel: Skeleton, rng: np.random.Generator, max_angle_deg: float = 30.0,
