@@ -2,7 +2,7 @@
 
 Per trial (read once, not timed):
     stream iSAM2 / stream lag   imugraph.graphs.stream_run.stream_session: bootstrap calibration on the
-                                first --bootstrap-s seconds (batch ML, held fixed; its wall time is given
+                                first --bootstrap-s seconds (batch ML; then re-estimated online, or held fixed: --calibration; its wall time is given
                                 apart), then every sample pushed in order; iSAM2 over the whole trial, and
                                 the fixed-lag smoother with --lag seconds
     batch smooth                imugraph.graphs.cpp_smoother.smooth_fixed with the same calibration: what
@@ -15,6 +15,7 @@ per-update latency p50/p99 (ms; one update per keyframe), and the orientation er
 calibration (see docs/stream.md). Wall times; the machine may be shared: compare ratios in one run.
 
     .venv/bin/python benchmarks/stream_speed.py [TRIALS] [--lag 2 | --no-lag] [--no-batch] [--bootstrap-s 30]
+        [--calibration online|fixed|both] [--lag-solver batch|incremental] [--lag-only] [--no-cal-compare]
 
 TRIALS: comma-separated BROAD trial numbers, or "all" (the 17 trials; default 01). --no-lag / --no-batch skip
 the fixed-lag run / the batch smoother (time). Prints the per-trial table, then the means of the filtered
@@ -42,7 +43,8 @@ def _err(q, s):
     return orientation_error(q, s.quat, s.movement, s.rate).rms_deg
 
 
-def run_trial(path: Path, lag: float | None, bootstrap_s: float, batch: bool = True) -> list[dict]:
+def run_trial(path: Path, lag: float | None, bootstrap_s: float, batch: bool = True, online=(True,),
+              compare_cal: bool = True, lag_solver: str = "batch", lag_only: bool = False) -> list[dict]:
     from imugraph.evaluate import orientation_error
     from imugraph.graphs.cpp_smoother import smooth_fixed
     from imugraph.graphs.stream import StreamOptions
@@ -55,15 +57,22 @@ def run_trial(path: Path, lag: float | None, bootstrap_s: float, batch: bool = T
     boot = time.perf_counter() - start
     q_batch, t_batch = timed(smooth_fixed, s, cal) if batch else (None, None)
     rows = []
-    runs = [("stream iSAM2", None)] + ([(f"stream lag {lag:g} s", lag)] if lag is not None else [])
-    for label, lag_s in runs:
-        r = stream_session(s, cal, StreamOptions(lag_s=lag_s))
+    runs = ([] if lag_only else [("stream iSAM2", None)]) + ([(f"stream lag {lag:g} s", lag)] if lag is not None else [])
+    runs = [(f"{label} {'online' if on else 'fixed'} cal", lag_s, on) for label, lag_s in runs for on in online]
+    cal_full = None
+    if compare_cal and any(on for *_, on in runs):
+        from imugraph.calibration.ml import calibrate
+        cal_full = calibrate(s).calibration            # the batch calibration of the whole trial
+    for label, lag_s, on in runs:
+        r = stream_session(s, cal, StreamOptions(lag_s=lag_s, online_calibration=on, fixed_lag_solver=lag_solver))
         tm = r.timing
         rows.append({"trial": name, "method": label, "rt_factor": tm["realtime_factor"], "p50_ms": tm["p50_ms"],
                      "p99_ms": tm["p99_ms"], "filtered_deg": _err(r.filtered, s), "smoothed_deg": _err(r.smoothed, s),
                      "vs_batch_deg": orientation_error(r.smoothed, q_batch, None, s.rate, heading=False,
                                                        max_shift=0.0).rms_deg if batch else None,
-                     "seconds": tm["seconds"], "bootstrap_s": boot, "failed": r.counts["failed_updates"]})
+                     "seconds": tm["seconds"], "bootstrap_s": boot, "failed": r.counts["failed_updates"],
+                     **(_cal_agreement(r.calibration, cal_full) if on and cal_full is not None else {}),
+                     **(_last_refit(r.calibration_history, r.calibration, cal_full) if on and cal_full is not None else {})})
     if batch:
         rows.append({"trial": name, "method": "batch smooth", "smoothed_deg": _err(q_batch, s), "seconds": t_batch,
                      "rt_factor": s.n / s.rate / t_batch})
@@ -73,6 +82,33 @@ def run_trial(path: Path, lag: float | None, bootstrap_s: float, batch: bool = T
     for r in rows:
         r.update(samples=s.n, rate_hz=round(s.rate, 1), bootstrap_samples=n_boot)
     return rows
+
+
+def _cal_agreement(cal, ref) -> dict:
+    """Streamed vs batch calibration: max over D, o of |difference| / sqrt(std_stream² + std_batch²)
+    (`cal_z`), and the max relative difference of D (`cal_dD_rel`, of the field scale)."""
+    def std(c, k, shape):
+        return np.asarray(c.std.get(k, np.zeros(shape)), float) if c.std else np.zeros(shape)
+    z = []
+    for k, shape in (("D", (3, 3)), ("o", (3,))):
+        diff = np.asarray(getattr(cal, k)) - np.asarray(getattr(ref, k))
+        z.append((np.abs(diff) / np.sqrt(std(cal, k, shape) ** 2 + std(ref, k, shape) ** 2 + 1e-30)).ravel())
+    scale = float(np.cbrt(abs(np.linalg.det(ref.D))))
+    return {"cal_z": float(np.max(np.concatenate(z))), "cal_dD_rel": float(np.abs(cal.D - ref.D).max() / scale)}
+
+
+def _last_refit(history: list, cal, ref) -> dict:
+    """The last online refit (applied or not) against the batch calibration, and how many were applied."""
+    from dataclasses import replace
+
+    rows = [h for h in history if h.get("std")]
+    if not rows:
+        return {}
+    h = rows[-1]
+    last = replace(cal, D=np.asarray(h["D"]), o=np.asarray(h["o"]), std={k: np.asarray(v) for k, v in h["std"].items()})
+    a = _cal_agreement(last, ref)
+    return {"refit_z": a["cal_z"], "refit_dD_rel": a["cal_dD_rel"], "applied": sum(bool(x.get("applied")) for x in history),
+            "refits": len(history)}
 
 
 def _means(rows: list[dict]) -> list[dict]:
@@ -97,6 +133,12 @@ def main(argv=None) -> int:
     ap.add_argument("--no-lag", action="store_true")
     ap.add_argument("--no-batch", action="store_true")
     ap.add_argument("--bootstrap-s", type=float, default=30.0)
+    ap.add_argument("--calibration", choices=("online", "fixed", "both"), default="online",
+                    help="online re-estimation of D, o (default), the bootstrap held fixed, or both runs")
+    ap.add_argument("--lag-solver", choices=("batch", "incremental"), default="batch",
+                    help="gtsam BatchFixedLagSmoother (default) or IncrementalFixedLagSmoother for --lag")
+    ap.add_argument("--lag-only", action="store_true", help="skip the full iSAM2 run")
+    ap.add_argument("--no-cal-compare", action="store_true", help="skip the whole-trial batch calibration")
     a = ap.parse_args(argv)
     every = a.trials == "all"
     wanted = set() if every else {int(x) for x in a.trials.split(",")}
@@ -107,10 +149,11 @@ def main(argv=None) -> int:
     lag = None if a.no_lag else a.lag
     rows = []
     for p in paths:
-        rows += run_trial(p, lag, a.bootstrap_s, not a.no_batch)
+        online = {"online": (True,), "fixed": (False,), "both": (True, False)}[a.calibration]
+        rows += run_trial(p, lag, a.bootstrap_s, not a.no_batch, online, not a.no_cal_compare, a.lag_solver, a.lag_only)
         print(f"trial {trial_number(p):02d} done", file=sys.stderr, flush=True)
     cols = ["trial", "method", "rt_factor", "p50_ms", "p99_ms", "filtered_deg", "smoothed_deg", "vs_batch_deg",
-            "seconds", "bootstrap_s", "failed"]
+            "seconds", "bootstrap_s", "failed", "cal_z", "cal_dD_rel", "refit_z", "refit_dD_rel", "applied", "refits"]
     print_table(rows, cols)
     means = _means(rows)
     print_table(means, ["method", "trials", "filtered_deg", "smoothed_deg", "rt_factor", "p99_ms"])

@@ -7,7 +7,9 @@ calibration.json from `imugraph calibrate`, read with imugraph.io.writers.read_c
 acquisition loop is simulated by iterating over a simulated session; replace `acquire()` with your driver.
 Each `push` returns at once the filtered orientation (w, x, y, z, sensor → nav) for that sample; pass
 mag=None when the magnetometer has no new sample (lower rate). `finish()` then `smoothed()` give the
-smoothed orientation of every accepted sample (rows at `sample_times()`).
+smoothed orientation of every accepted sample (rows at `sample_times()`). The calibration (D, o) is
+re-estimated online from the bootstrap start: `smoother.cal` is the latest one applied, and
+`smoother.calibration_history` one row per refit (t, D, o, dip_deg, std, applied) for a convergence plot.
 """
 
 import numpy as np
@@ -35,3 +37,8 @@ smoother.finish()
 q_smoothed = smoother.smoothed()
 print(f"{smoother.stats.accepted} samples, {len(smoother.stats.update_s)} updates, "
       f"p99 update {1e3 * np.percentile(smoother.stats.update_s, 99):.2f} ms; counts {smoother.stats.counts()}")
+hist = smoother.calibration_history
+if hist:
+    last = hist[-1]
+    print(f"{len(hist)} calibration refits ({sum(r['applied'] for r in hist)} applied); last at t = {last['t']:.1f} s: "
+          f"o = {np.round(last['o'], 3)} ± {np.round(last['std']['o'], 3) if last['std'] else '—'}")

@@ -108,8 +108,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("stream", help="incremental orientation: samples in arrival order through iSAM2",
                        description="Writes orientation.npz (smoothed), orientation_filtered.npz (available "
-                       "when each sample arrived), calibration.json and timing.json. The calibration comes "
-                       "from a batch bootstrap on the first seconds (or --calibration) and is held fixed.")
+                       "when each sample arrived), calibration.json, calibration_history.json and timing.json. The "
+                       "calibration starts from a batch bootstrap on the first seconds (or --calibration) and is "
+                       "re-estimated online (D, o by least squares every 2 s) unless --fixed-calibration.")
     p.add_argument("session", metavar="SESSION", help=session_help)
     p.add_argument("--lag", type=_positive(float), default=None, metavar="S",
                    help="fixed-lag smoother keeping S seconds (default: iSAM2 over the whole stream)")
@@ -117,6 +118,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="seconds calibrated in batch before streaming (default 30)")
     p.add_argument("--calibration", metavar="FILE", default=None,
                    help="calibration.json to hold fixed instead of the bootstrap")
+    p.add_argument("--fixed-calibration", action="store_true",
+                   help="hold the start calibration fixed (no online re-estimation of D and o)")
     _common(p, default_out, data_dir=True)
     _keyframes(p)
 

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from imugraph.cli import main
+from imugraph.errors import SessionError
 from imugraph.evaluate import orientation_error
 from imugraph.graphs.cpp_smoother import smooth_fixed
 from imugraph.graphs.stream import StreamOptions, StreamSmoother
@@ -14,6 +15,7 @@ from imugraph.graphs.stream_run import stream_session
 from imugraph.sim.scenario import distorted_session
 
 RATE = 100.0
+FIXED = StreamOptions(online_calibration=False)     # the batch comparisons: the same (true) calibration
 
 
 @pytest.fixture(scope="module")
@@ -35,7 +37,7 @@ def test_isam2_smoothed_is_the_batch_solution(case):
     linearisation points may stay that far off). The issue's target is 0.1° RMS; and the solver difference
     must stay well below the estimation error itself (both against the truth)."""
     session, cal, batch, batch_err = case
-    r = stream_session(session, cal, StreamOptions())
+    r = stream_session(session, cal, FIXED)
     gap = _err(r.smoothed, batch, align=False)
     assert gap < 0.1 and gap < 0.25 * batch_err
     assert r.smoothed.shape == (session.n, 4) and r.filtered.shape == (session.n, 4)
@@ -56,7 +58,7 @@ def test_isam2_newest_keyframe_is_the_filtering_optimum(case):
     from imugraph.graphs.cpp_velocity import pose_key
 
     session, cal, _, _ = case
-    sm = StreamSmoother(cal, RATE, StreamOptions(), g0=float(np.median(np.linalg.norm(session.acc, axis=1))))
+    sm = StreamSmoother(cal, RATE, FIXED, g0=float(np.median(np.linalg.norm(session.acc, axis=1))))
     for i in range(session.n // 2):
         sm.push(session.t[i], session.gyr[i], session.acc[i], session.mag[i])
     assert sm.stats.failed_updates == 0
@@ -74,10 +76,22 @@ def test_fixed_lag_close_to_batch(case):
     """A 2 s window sees the next 2 s of data for every keyframe (> the 2 s velocity correlation time):
     its smoothed output is within a fraction of a degree of the full batch solution."""
     session, cal, batch, batch_err = case
-    r = stream_session(session, cal, StreamOptions(lag_s=2.0))
+    r = stream_session(session, cal, StreamOptions(lag_s=2.0, online_calibration=False))
     assert _err(r.smoothed, batch, align=False) < 0.5
     assert _err(r.smoothed, session.quat) < batch_err + 0.2
     assert r.counts["failed_updates"] == 0
+
+
+def test_incremental_fixed_lag_close_to_batch(case):
+    """gtsam's IncrementalFixedLagSmoother (iSAM2 inside, weak pose prior) as the --lag solver: no failed
+    update on this session, and the same accuracy bounds as the batch fixed-lag smoother."""
+    session, cal, batch, batch_err = case
+    r = stream_session(session, cal, StreamOptions(lag_s=2.0, online_calibration=False, fixed_lag_solver="incremental"))
+    assert r.counts["failed_updates"] == 0
+    assert _err(r.smoothed, batch, align=False) < 0.5
+    assert _err(r.smoothed, session.quat) < batch_err + 0.2
+    with pytest.raises(SessionError):
+        StreamSmoother(cal, RATE, StreamOptions(lag_s=2.0, fixed_lag_solver="fast"))
 
 
 def test_arrival_problems_are_counted_and_harmless(case):
@@ -146,6 +160,12 @@ def test_cli_writes_the_four_files(tmp_path, capsys):
         with np.load(out / name) as z:
             assert z["quat"].shape == (session.n, 4) and np.allclose(z["t"], session.t)
             assert _err_rate(z["quat"], session.quat, 50.0) < 3.0
+    hist = json.loads((out / "calibration_history.json").read_text())
+    assert len(hist["calibration_history"]) >= 2 and np.asarray(hist["start"]["D"]).shape == (3, 3)
+    applied = [r for r in hist["calibration_history"] if r["applied"]] or [hist["start"]]
+    assert np.allclose(applied[-1]["D"], json.loads((out / "calibration.json").read_text())["D"])
+    row = hist["calibration_history"][-1]
+    assert np.asarray(row["std"]["D"]).shape == (3, 3) and row["t"] > 20.0
     timing = json.loads((out / "timing.json").read_text())
     assert {"updates", "seconds", "p50_ms", "p99_ms"} <= set(timing) and timing["updates"] > 0
     assert timing["bootstrap_samples"] == int(np.sum(session.t <= session.t[0] + 20.0))

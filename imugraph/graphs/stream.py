@@ -20,13 +20,15 @@ still open (`late_inserted`), else dropped (`late_dropped`); rows with non-finit
 are dropped (`invalid`); a time step over 1.5 nominal steps is a gap (`gaps`, `missing`): the gyro is
 integrated across it (held rate) and the covariances grow with the step. A NaN magnetometer row is "no
 sample" (lower magnetometer rates); a keyframe interval without one gets no magnetometer factor.
-The calibration (D, o, dip, noise, lag, disturbance windows) is held fixed; only the gyro bias (per
-segment) and gravity are estimated with the orientations.
+Online calibration (options.online_calibration): see `imugraph.graphs.stream_online` (D, o re-estimated,
+new magnetometer factors use the latest well-determined refit); gyro bias (per segment) and gravity are
+estimated with the orientations.
 """
 
 from __future__ import annotations
 
 import time
+from collections import deque
 from dataclasses import replace
 
 import gtsam
@@ -39,9 +41,11 @@ from imugraph.factors.gyro import Preintegration, preintegrate
 from imugraph.factors.velocity import velocity_increments
 from imugraph.geometry import rotmat_to_quat
 from imugraph.graphs.cpp_velocity import (G_KEY, SIGMA_ACC_BIAS_RW, SIGMA_G, SIGMA_POS, gauss_markov_factors,
-                                          imu_bias_key, pose_key, robust, split_noise, super_sample_pim,
+                                          imu_bias_key, pose_key, split_noise, super_sample_pim,
                                           super_samples)
 from imugraph.graphs.orientation_init import sample_orientations, triad
+from imugraph.graphs.stream_calib import OnlineMagCalibration
+from imugraph.graphs.stream_online import OnlineCalibrationMixin
 from imugraph.graphs.stream_options import StreamOptions, StreamStats
 
 __all__ = ["StreamOptions", "StreamSmoother", "StreamStats"]
@@ -74,7 +78,7 @@ def _quat(R: gtsam.Rot3) -> np.ndarray:
     return -out if out[0] < 0 else out
 
 
-class StreamSmoother:
+class StreamSmoother(OnlineCalibrationMixin):
     """Push samples in arrival order; get the filtered orientation of each at once, the smoothed ones at the end.
 
     Args:
@@ -86,16 +90,24 @@ class StreamSmoother:
     def __init__(self, cal: Calibration, rate: float, options: StreamOptions = StreamOptions(), g0: float = 9.81):
         if not (np.isfinite(rate) and rate > 0):
             raise SessionError("stream", "rate", repr(rate), "a positive sampling rate in Hz")
-        self.cal, self.rate, self.opt = cal, float(rate), options
+        if options.fixed_lag_solver not in ("batch", "incremental"):
+            raise SessionError("stream", "fixed_lag_solver", repr(options.fixed_lag_solver), '"batch" or "incremental"')
+        self.rate, self.opt = float(rate), options
         self.stride = max(1, int(round(rate / options.keyframe_hz)))
         self.stats = StreamStats()
-        self._D_inv = np.linalg.inv(cal.D)
         self._cal0 = replace(cal, mag_delay_s=0.0)       # disturbance windows only; the lag is shifted here
         self._mag_shift = int(round(cal.mag_delay_s * rate))
         scale = float(np.cbrt(abs(np.linalg.det(cal.D))))
         tau = cal.coverage.get("noise_correlation", {}) if isinstance(cal.coverage, dict) else {}
-        sig_y = np.asarray(cal.noise.get("mag", np.full(3, 0.01 * scale)), float) * np.sqrt(tau.get("mag", 1.0))
-        self._S_m = self._D_inv @ np.diag(sig_y**2) @ self._D_inv.T
+        self._sig_y = np.asarray(cal.noise.get("mag", np.full(3, 0.01 * scale)), float) * np.sqrt(tau.get("mag", 1.0))
+        self._set_calibration(cal)
+        self._online = OnlineMagCalibration(
+            cal, options.calib_prior_rel, estimate_dip=options.calib_dip, use_start_std=options.calib_prior_from_start) if options.online_calibration else None
+        self._pending: deque = deque()       # intervals not yet folded: (k, t_k, kRb (n,3,3), y (n,3))
+        self._next_refit = options.calib_every_s
+        self._hist_y: list = []              # iSAM2 + keep_history: per interval y, for the final re-issue
+        self._mag_index: dict = {}           # keyframe → index of its magnetometer factor in iSAM2
+        self._n_factors = 0
         self._sig_g = np.asarray(cal.noise.get("gyr", np.full(3, 0.005)), float)
         self._sig_acc = np.asarray(cal.noise.get("acc", np.full(3, 0.05)), float)
         self._b_hat = np.asarray(cal.gyro_bias, float)
@@ -111,9 +123,10 @@ class StreamSmoother:
         if options.lag_s is None:
             self._solver = gtsam.ISAM2(params)
         else:
-            # BatchFixedLagSmoother: gtsam's IncrementalFixedLagSmoother fails to marginalise a key that sits
+            # default BatchFixedLagSmoother: gtsam's IncrementalFixedLagSmoother fails to marginalise a key that sits
             # inside a clique (borglab/gtsam #1638, #1680; seen here on BROAD 01: "key 'x0' has no clique")
-            self._solver = gtsam.BatchFixedLagSmoother(float(options.lag_s))
+            self._solver = (gtsam.IncrementalFixedLagSmoother(float(options.lag_s), params)
+                            if options.fixed_lag_solver == "incremental" else gtsam.BatchFixedLagSmoother(float(options.lag_s)))
         self._weak_pose = gtsam.noiseModel.Isotropic.Sigma(6, SIGMA_WEAK_POSE)
         self._buf: list = []                 # open interval: rows (t, gyr(3), acc(3), mag(3) or NaN)
         self._k = 0                          # index of the open interval's keyframe
@@ -228,9 +241,8 @@ class StreamSmoother:
         kf, skf = np.array([0, n]), np.r_[np.zeros(n, int), 1]
         pre = preintegrate(w, dt, kf, skf, self._b_hat, self._sig_g, self.opt.gyro_rate_error)
         dv, sig_dv = velocity_increments(pre.kRb, skf, a, dt, 2, self._sig_acc, self.opt.acc_rate_error)
-        m_cal = (m_raw - self.cal.o) @ self._D_inv.T
-        if self.cal.disturbances:
-            m_cal = self.cal.apply(self._cal0.corrected(t[:-1], m_raw))
+        y = self._cal0.corrected(t[:-1], m_raw) if self._cal0.disturbances else m_raw
+        m_cal = (y - self.cal.o) @ self._D_inv.T
         ok = np.all(np.isfinite(m_cal), axis=1)
         kRb = pre.kRb[:n]
         graph, values, stamps = gtsam.NonlinearFactorGraph(), gtsam.Values(), {}
@@ -250,27 +262,31 @@ class StreamSmoother:
         for g_f in gm[1:]:
             graph.add(g_f)
         if ok.any():
-            m_avg = np.einsum("mij,mj->i", kRb[ok], m_cal[ok]) / ok.sum()
-            cov = np.einsum("mij,jl,mkl->ik", kRb[ok], self._S_m, kRb[ok]) / ok.sum() ** 2
-            mdl = robust(gtsam.noiseModel.Gaussian.Covariance(cov), self.opt.huber_k)
-            graph.add(gtsam.MagPoseFactorPose3(pose_key(k), m_avg, 1.0, self.cal.n_mag, np.zeros(3), mdl))
+            self._mag_index[k] = self._n_factors + graph.size()
+            graph.add(self._mag_factor(k, kRb, y))
         # prediction of keyframe k+1 from the latest estimate of keyframe k
         nRk = self._nRk.matrix()
         c = np.array([0.0, 0.0, -self._g]) * pre.dt[0] + nRk @ dv[0]
         R_next = nRk @ pre.delta_R[0]
         values.insert(pose_key(k + 1), gtsam.Pose3(gtsam.Rot3(R_next), self._p + self._v * pre.dt[0] + 0.5 * c * pre.dt[0]))
         values.insert(keys.vel(k + 1), self._v + c)
-        if self.opt.lag_s is None:
+        if self.opt.lag_s is None or self.opt.fixed_lag_solver == "incremental":     # iSAM2 inside
             graph.add(gtsam.PriorFactorPose3(pose_key(k + 1), values.atPose3(pose_key(k + 1)), self._weak_pose))
         for key in (pose_key(k + 1), keys.vel(k + 1), imu_bias_key(seg)) + ((G_KEY,) if self._estimate_g else ()):
             stamps[key] = t_next - self._t0
+        self._n_factors += graph.size()
         self._update(graph, values, stamps, k + 1, seg, R_next)
         self._kf_t.append(t_next)
         if self.opt.keep_history:
             self._hist_kRb.append(rotmat_to_quat(kRb))
             self._hist_dR.append(pre.delta_R[0])
             self._hist_t.append(t[:-1])
+            if self.opt.lag_s is None:
+                self._hist_y.append(y)
         self._k = k + 1
+        if self._online is not None:
+            self._pending.append((k, self._kf_t[k] - self._t0, kRb, y))
+            self._calibrate(t_next - self._t0)
         self.stats.update_s.append(time.perf_counter() - start)
 
     def _start(self, graph, values, stamps, pre: Preintegration, a, m_cal, ok) -> None:
@@ -340,13 +356,16 @@ class StreamSmoother:
             last = self._buf.pop()
             self._close(last[0], last[1], last[2])
             self._buf = [last]
+        if self._online is not None and self._k > 0:
+            self._calibrate(self._kf_t[-1] - self._t0, flush=True)
         if self.opt.lag_s is None and self._k > 0:
             for _ in range(self.opt.final_updates):
                 self._solver.update()
             # the end-of-stream smoothing: Levenberg–Marquardt on iSAM2's own factors from its estimate
-            # (iSAM2 relinearises only past a threshold and can stop short of the batch optimum)
-            lm = gtsam.LevenbergMarquardtOptimizer(self._solver.getFactorsUnsafe(),
-                                                   self._solver.calculateEstimate(), gtsam.LevenbergMarquardtParams())
+            # (iSAM2 relinearises only past a threshold and can stop short of the batch optimum), with every
+            # magnetometer factor re-issued with the final calibration when it was re-estimated online
+            lm = gtsam.LevenbergMarquardtOptimizer(self._final_graph(), self._solver.calculateEstimate(),
+                                                   gtsam.LevenbergMarquardtParams())
             self._final = lm.optimize()
         self._finished = True
 

@@ -12,15 +12,28 @@ class StreamOptions:
     Attributes:
         keyframe_hz: keyframes per second (stride = round(rate / keyframe_hz) samples).
         lag_s: None: iSAM2 over the whole stream; a number: fixed-lag smoother keeping lag_s seconds.
+        fixed_lag_solver: with lag_s, "batch" (gtsam.BatchFixedLagSmoother) or "incremental"
+            (gtsam.IncrementalFixedLagSmoother: iSAM2 inside, with the weak pose prior and the iSAM2 settings).
         g: gravity, m/s², held fixed; None: estimated (started at `g0`, the caller's median |acc|).
         final_updates: relinearising iSAM2 updates at `finish` (iSAM2 only).
         relinearize_threshold: iSAM2's relinearisation threshold (tangent-space step).
         keep_history: keep per-sample data for `smoothed()` (memory O(N)); False: filtered output only.
+        online_calibration: re-estimate D and o (the dip with calib_dip) online (`imugraph.graphs.stream_calib`); False:
+            the calibration is held fixed.
+        calib_every_s: stream seconds between refits; calib_delay_s: a keyframe's samples are folded in once
+            it is this old (at least the lag with a fixed-lag smoother); calib_prior_rel: σ of the prior about
+            the start calibration, relative to the field scale (calib_prior_from_start: the start's own std
+            where it has one, e.g. a bootstrap's); calib_memory_s: time constant of the exponential forgetting
+            of folded samples (None: none); calib_every_s refits; calib_swap: a well-determined refit (all std
+            of D, o < calib_swap_rel × scale; with calib_beat_start also ≤ the start's std) becomes the
+            calibration of new magnetometer factors; calib_dip: re-estimate the dip too (off: it drifted on
+            simulation, see stream_online).
         Other fields: as `smooth_fixed`.
     """
 
     keyframe_hz: float = 10.0
     lag_s: float | None = None
+    fixed_lag_solver: str = "batch"
     g: float | None = None
     huber_k: float = 2.0
     gyro_rate_error: float = 0.01
@@ -35,6 +48,16 @@ class StreamOptions:
     final_updates: int = 3
     relinearize_threshold: float = 0.01
     keep_history: bool = True
+    online_calibration: bool = True
+    calib_every_s: float = 2.0
+    calib_delay_s: float = 2.0
+    calib_prior_rel: float = 0.2
+    calib_swap: bool = True
+    calib_dip: bool = False
+    calib_prior_from_start: bool = True
+    calib_beat_start: bool = False
+    calib_memory_s: float | None = 20.0
+    calib_swap_rel: float = 0.002
 
 
 @dataclass
@@ -51,6 +74,7 @@ class StreamStats:
     mag_samples: int = 0
     mag_dropped: int = 0
     failed_updates: int = 0
+    calib_refits: int = 0
     update_s: list = field(default_factory=list)
 
     def counts(self) -> dict:

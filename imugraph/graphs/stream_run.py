@@ -1,7 +1,8 @@
 """A whole session through `StreamSmoother`, in arrival order: what `imugraph stream` runs.
 
 Calibration: given, or a batch bootstrap — `imugraph.calibration.ml.calibrate` on the first `bootstrap_s`
-seconds — then held fixed for the rest of the stream (it is not re-estimated online). The stream then
+seconds — as the start (and prior) of the online re-estimation of D, o and the dip
+(options.online_calibration; `imugraph.graphs.stream_calib`), or held fixed without it. The stream then
 starts at the first sample with that calibration, so the filtered output of the bootstrap seconds is a
 replay: causal in the samples, but with a calibration that saw those seconds (`bootstrap_samples` says
 how many rows that is).
@@ -27,8 +28,11 @@ class StreamResult:
 
     Attributes:
         t: (N,) s; filtered: (N, 4) nRb w,x,y,z available when each sample arrived; smoothed: (N, 4) at the end.
-        calibration: the calibration used; timing: see `timing_summary`; counts: `StreamStats.counts()`.
+        calibration: the calibration at the end (online estimate, or the one held fixed); timing: see
+        `timing_summary`; counts: `StreamStats.counts()`.
         bootstrap_samples: rows inside the bootstrap window (0 with a given calibration).
+        calibration_history: one row per online refit {t, D, o, dip_deg, std, samples, rejected} ([] without).
+        start_calibration: the bootstrap's (or the given) calibration.
     """
 
     t: np.ndarray
@@ -38,6 +42,8 @@ class StreamResult:
     timing: dict
     counts: dict
     bootstrap_samples: int
+    calibration_history: list
+    start_calibration: Calibration
 
 
 def bootstrap_calibration(session: Session, bootstrap_s: float, keyframe_hz: float = 10.0,
@@ -116,4 +122,5 @@ def stream_session(session: Session, cal: Optional[Calibration] = None, options:
     smoothed = smoother.smoothed()
     timing = timing_summary(smoother.stats.update_s, seconds, session.n, session.rate)
     timing["bootstrap_seconds"] = boot_s
-    return StreamResult(session.t, filtered, smoothed, cal, timing, smoother.stats.counts(), n_boot)
+    return StreamResult(session.t, filtered, smoothed, smoother.cal, timing, smoother.stats.counts(), n_boot,
+                        smoother.calibration_history, cal)

@@ -1,0 +1,162 @@
+"""Online magnetometer calibration of a stream: running sums, closed-form refit of D, o and the dip.
+
+Model (Kok & Schön): y_i = D·bRn_i·n_mag(δ) + o + e_i, with n_mag(δ) = (cos δ, 0, −sin δ). For given
+orientations nRb_i write bRn_i·n_mag = cos δ·u_i + sin δ·w_i with u_i = bRn_i·e_x and w_i = −bRn_i·e_z.
+For a fixed δ the model is linear in the calibration, and each magnetometer axis j is a separate regression
+with the same design x_i = (b_i, 1):
+
+    y_ij = θ_j·x_i + e_ij,   θ_j = (D_j,: , o_j)                               (1)
+
+so the normal matrix A(δ) = Σ x_i x_iᵀ (4×4) and right-hand side r(δ) = Σ x_i y_iᵀ (4×3) are quadratic in
+(cos δ, sin δ) of a fixed set of running sums (Σuuᵀ, Σuwᵀ, Σwwᵀ, Σu, Σw, Σuyᵀ, Σwyᵀ, Σy, Σyyᵀ, N):
+constant memory, whatever the length of the stream. A Gaussian prior about the start calibration θ⁰ with
+information Λ (per axis) keeps the refit defined while the data hold too little rotation:
+
+    (A/σ_j² + Λ) θ_j = r_j/σ_j² + Λ θ⁰_j                                       (2)
+
+δ: the profile least-squares cost SSE(δ) = Σ_j (Σ y_j² − 2 θ_jᵀ r_j + θ_jᵀ A θ_j) is minimised by a bounded
+1-D search. Marginal standard deviations: of θ_j from the inverse of (2)'s matrix (scaled by the reduced χ²
+when the residuals are larger than the nominal noise, and by the magnetometer's noise correlation time), of δ
+from the curvature of the profile cost, var δ = 2 s² / SSE''(δ).
+
+Which orientations: the stream folds a keyframe interval in once its keyframe is final enough (it left the
+fixed-lag window, or it is `delay_s` old under iSAM2), with its samples' orientations nRk·kRb_i.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+from scipy.optimize import minimize_scalar
+
+from imugraph.calibration.result import Calibration
+
+__all__ = ["OnlineMagCalibration"]
+
+
+class OnlineMagCalibration:
+    """Running sums of (1) and the refit (2).
+
+    Args:
+        cal0: start calibration (prior mean; its noise["mag"] is the nominal σ per axis).
+        prior_rel: prior σ of every entry of D and o, relative to the field scale |det D|^(1/3).
+        gate: samples whose residual under the current calibration exceeds gate × scale are not used
+            (short disturbances).
+        estimate_dip: False: δ held at the start calibration's (std then that of the start, or 0).
+        use_start_std: the prior's std is the start calibration's own (cal0.std), where it has one.
+    """
+
+    def __init__(self, cal0: Calibration, prior_rel: float = 0.2, gate: float = 0.3, estimate_dip: bool = True,
+                 use_start_std: bool = False):
+        self.cal0, self.estimate_dip = cal0, estimate_dip
+        self.scale = float(np.cbrt(abs(np.linalg.det(cal0.D))))
+        sig = np.asarray(cal0.noise.get("mag", np.full(3, 0.01 * self.scale)), float).reshape(3)
+        self.sig = np.maximum(sig, 1e-6 * self.scale)
+        tau = cal0.coverage.get("noise_correlation", {}) if isinstance(cal0.coverage, dict) else {}
+        self.corr = max(1.0, float(tau.get("mag", 1.0)))
+        # Λ (diagonal, per axis j: row j of `prior_info`): the start calibration's own std when it has one
+        # (a bootstrap's), else prior_rel × scale
+        self.prior_info = np.full((3, 4), 1.0 / (prior_rel * self.scale) ** 2)
+        if use_start_std and cal0.std and "D" in cal0.std and "o" in cal0.std:
+            std0 = np.hstack([np.asarray(cal0.std["D"], float).reshape(3, 3), np.asarray(cal0.std["o"], float).reshape(3, 1)])
+            ok = np.isfinite(std0) & (std0 > 0)
+            self.prior_info[ok] = 1.0 / std0[ok] ** 2
+        self.theta0 = np.hstack([cal0.D, cal0.o[:, None]]).T                   # (4, 3): column j = θ⁰_j
+        self.gate = gate * self.scale
+        self.current = cal0
+        self.n = 0.0                     # (weighted) number of samples folded in
+        self.rejected = 0
+        z3, z33 = np.zeros(3), np.zeros((3, 3))
+        self.Suu, self.Suw, self.Sww = z33.copy(), z33.copy(), z33.copy()
+        self.Su, self.Sw, self.Sy = z3.copy(), z3.copy(), z3.copy()
+        self.Suy, self.Swy, self.Syy = z33.copy(), z33.copy(), z33.copy()
+        self.history: list = []
+
+    # ------------------------------------------------------------------ data
+    def forget(self, factor: float) -> None:
+        """Down-weight everything folded so far by `factor` (0..1): exponential forgetting of samples whose
+        orientations were estimated with an older calibration."""
+        for name in ("Suu", "Suw", "Sww", "Su", "Sw", "Sy", "Suy", "Swy", "Syy"):
+            setattr(self, name, getattr(self, name) * factor)
+        self.n *= factor
+
+    def add(self, y: np.ndarray, nRb: np.ndarray) -> int:
+        """Fold in raw field samples y (n, 3) (NaN rows: none) with their orientations nRb (n, 3, 3);
+        returns the number used."""
+        y = np.asarray(y, float).reshape(-1, 3)
+        ok = np.all(np.isfinite(y), axis=1)
+        if not ok.any():
+            return 0
+        y, R = y[ok], np.asarray(nRb, float).reshape(-1, 3, 3)[ok]
+        u, w = R[:, 0, :], -R[:, 2, :]                  # bRn·e_x, −bRn·e_z (rows of nRb)
+        c = self.current
+        pred = (np.cos(c.dip_rad) * u + np.sin(c.dip_rad) * w) @ c.D.T + c.o
+        keep = np.linalg.norm(y - pred, axis=1) <= self.gate
+        self.rejected += int((~keep).sum())
+        y, u, w = y[keep], u[keep], w[keep]
+        self.n += len(y)
+        self.Suu += u.T @ u
+        self.Suw += u.T @ w
+        self.Sww += w.T @ w
+        self.Su += u.sum(0)
+        self.Sw += w.sum(0)
+        self.Sy += y.sum(0)
+        self.Suy += u.T @ y
+        self.Swy += w.T @ y
+        self.Syy += y.T @ y
+        return len(y)
+
+    # ------------------------------------------------------------------ refit
+    def _normal(self, dip: float) -> tuple[np.ndarray, np.ndarray]:
+        """A(δ) (4×4) and r(δ) (4×3) of (1) from the running sums."""
+        c, s = np.cos(dip), np.sin(dip)
+        Sbb = c * c * self.Suu + c * s * (self.Suw + self.Suw.T) + s * s * self.Sww
+        Sb = c * self.Su + s * self.Sw
+        A = np.empty((4, 4))
+        A[:3, :3], A[:3, 3], A[3, :3], A[3, 3] = Sbb, Sb, Sb, self.n
+        r = np.vstack([c * self.Suy + s * self.Swy, self.Sy[None]])
+        return A, r
+
+    def _solve(self, dip: float) -> tuple[np.ndarray, float, list]:
+        """θ (4×3) of (2) at δ, the data SSE, and the per-axis inverse matrices of (2)."""
+        A, r = self._normal(dip)
+        theta, sse, inv = np.empty((4, 3)), 0.0, []
+        for j in range(3):
+            M = A / self.sig[j] ** 2 + np.diag(self.prior_info[j])
+            M_inv = np.linalg.inv(M)
+            theta[:, j] = M_inv @ (r[:, j] / self.sig[j] ** 2 + self.prior_info[j] * self.theta0[:, j])
+            sse += (self.Syy[j, j] - 2 * theta[:, j] @ r[:, j] + theta[:, j] @ A @ theta[:, j]) / self.sig[j] ** 2
+            inv.append(M_inv)
+        return theta, float(sse), inv
+
+    def refit(self, t: float) -> Calibration:
+        """Closed-form refit from everything folded in so far; becomes `current` and a `history` row."""
+        if self.n < 8:
+            self.history.append(self._row(t, self.current, None))
+            return self.current
+        dip = self.current.dip_rad
+        if self.estimate_dip:
+            res = minimize_scalar(lambda d: self._solve(d)[1], bounds=(dip - 0.5, dip + 0.5), method="bounded",
+                                  options={"xatol": 1e-5})
+            dip = float(np.clip(res.x, -np.pi / 2, np.pi / 2))
+        theta, sse, inv = self._solve(dip)
+        chi2 = max(1.0, sse / max(3 * self.n - 13, 1))        # reduced χ² (≥ 1: never shrink the std)
+        var_scale = chi2 * self.corr
+        std_th = np.sqrt(np.array([np.diag(m) for m in inv]) * var_scale)      # (3, 4): row j = axis j
+        h = 1e-3                                                               # profile curvature of SSE
+        curv = (self._solve(dip + h)[1] - 2 * sse + self._solve(dip - h)[1]) / h ** 2
+        std_dip = float(np.sqrt(2.0 * var_scale / curv)) if curv > 0 else float("inf")
+        if not self.estimate_dip:
+            std_dip = float(np.deg2rad(self.cal0.std.get("dip_deg", 0.0))) if self.cal0.std else 0.0
+        std = {"D": std_th[:, :3], "o": std_th[:, 3], "dip_deg": float(np.rad2deg(std_dip))}
+        self.current = replace(self.current, D=theta[:3].T.copy(), o=theta[3].copy(),
+                               dip_deg=float(np.rad2deg(dip)), std=std)
+        self.history.append(self._row(t, self.current, std))
+        return self.current
+
+    def _row(self, t: float, cal: Calibration, std) -> dict:
+        return {"t": float(t), "D": cal.D.tolist(), "o": cal.o.tolist(), "dip_deg": float(cal.dip_deg),
+                "std": None if std is None else {"D": np.asarray(std["D"]).tolist(), "o": np.asarray(std["o"]).tolist(),
+                                                  "dip_deg": std["dip_deg"]},
+                "samples": float(self.n), "rejected": int(self.rejected)}
