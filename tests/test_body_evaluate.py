@@ -174,3 +174,61 @@ def test_xsens_mvn_against_vicon_real_data():
         for j in ("RightHip", "LeftHip", "RightKnee", "LeftKnee"):
             assert 1.0 < r["joints"][j]["flexion"] < 6.0, (method, j, r["joints"][j])
         assert all(1.0 < v["all"] < 15.0 for v in r["joints"].values())
+
+
+def rx(a):
+    c, s = np.cos(a), np.sin(a)
+    return np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
+
+
+def test_geodesic_column_known_answer_any_axis():
+    """Shank turned by θ about an arbitrary fixed axis: knee and ankle joint rotations both differ by exactly θ
+    (pRd_knee·Exp(aθ) and Exp(−aθ)·pRd_ankle), whatever the Cardan columns say; the other joints by 0."""
+    skel, _, R = flexion_only_poses(T=200, seed=3)
+    axis = np.array([0.3, -0.5, 0.8]) / np.linalg.norm([0.3, -0.5, 0.8])
+    theta = np.deg2rad(4.0)
+    Re = R.copy()
+    k = skel.index("RightLowerLeg")
+    Re[:, k] = R[:, k] @ expmap(axis * theta)
+    r = joint_angle_rmse(skel, rotmat_to_quat(Re), rotmat_to_quat(R))
+    assert r["RightKnee"]["geodesic"] == pytest.approx(4.0, abs=1e-6)
+    assert r["RightAnkle"]["geodesic"] == pytest.approx(4.0, abs=1e-6)
+    for j in ("RightHip", "LeftHip", "LeftKnee", "LeftAnkle"):
+        assert r[j]["geodesic"] < 1e-6
+
+
+def test_geodesic_stays_small_near_cardan_singularity():
+    """Hip abducted to 89.5° (β → 90°, the Cardan singularity, as at a raised shoulder) and a 1° error about
+    the thigh's own y axis: the geodesic column is 1°, while the Cardan flexion/rotation columns swing by
+    tens of degrees (α and γ become interchangeable)."""
+    skel = lower_body()
+    T = 50
+    R = np.tile(np.eye(3), (T, len(skel.names), 1, 1))
+    i = skel.index("RightUpperLeg")
+    for c in skel.names:                               # the whole right leg follows the thigh
+        if c.startswith("Right"):
+            R[:, skel.index(c)] = rx(np.deg2rad(-89.5))
+    Re = R.copy()
+    Re[:, i] = R[:, i] @ expmap(np.array([0.0, np.deg2rad(1.0), 0.0]))
+    r = joint_angle_rmse(skel, rotmat_to_quat(Re), rotmat_to_quat(R))
+    assert r["RightHip"]["geodesic"] == pytest.approx(1.0, abs=1e-6)
+    assert max(r["RightHip"]["flexion"], r["RightHip"]["rotation"]) > 10.0
+    assert r["LeftHip"]["geodesic"] < 1e-6
+
+
+def test_geodesic_offset_removal_and_truth_summary():
+    """A constant joint-rotation offset is removed by offsets=True (geodesic 0), kept without it; the
+    truth scoring reports the worst geodesic joint."""
+    from imugraph.body.evaluate import joint_geodesic_errors
+    skel, _, R = flexion_only_poses(T=100, seed=1)
+    Re = R.copy()
+    k = skel.index("LeftFoot")
+    Re[:, k] = R[:, k] @ expmap(np.array([0.02, 0.05, -0.03]))
+    g0 = joint_geodesic_errors(skel, rotmat_to_quat(Re), rotmat_to_quat(R))
+    g1 = joint_geodesic_errors(skel, rotmat_to_quat(Re), rotmat_to_quat(R), offsets=True)
+    assert np.allclose(g0["LeftAnkle"], np.rad2deg(np.linalg.norm([0.02, 0.05, -0.03])), atol=1e-6)
+    assert np.max(g1["LeftAnkle"]) < 1e-6
+    res = SimpleNamespace(names=skel.names, n_quat=rotmat_to_quat(Re), n_pos=np.zeros((100, len(skel.names), 3)))
+    truth = {"names": skel.names, "n_quat": rotmat_to_quat(R), "n_pos": np.zeros((100, len(skel.names), 3))}
+    sc = score_against_truth(res, truth, skel)
+    assert sc["joint_geodesic_max_deg"] == pytest.approx(g0["LeftAnkle"][0], abs=1e-6)

@@ -5,6 +5,11 @@ columns flexion, abduction, rotation); the error is wrapped into (−180°, 180�
 
     e_j,c(t) = wrap(a_est,j,c(t) − a_ref,j,c(t)),   RMSE_j,c = sqrt(mean_t e²),   RMSE_j = sqrt(mean_c RMSE_j,c²)   (E1)
 
+plus a geodesic column, the total rotation angle between the two joint rotations pRd (angles.py (A1)),
+free of the Cardan singularity at |abduction| → 90° (shoulders), where (E1)'s flexion/rotation blow up:
+
+    g_j(t) = |Log(pRd_ref(t)ᵀ · pRd_est(t))|,   RMSE_j,geodesic = sqrt(mean_t g²)                      (E1g)
+
 Relative segment position error. Segment origins relative to the root (Pelvis), r_i(t) = p_i(t) − p_root(t),
 compared after the constant heading offset ψ about z that fits them best (an estimator without magnetometers
 fixes its heading arbitrarily — the gauge — so only a constant rotation about the vertical is removed):
@@ -54,13 +59,46 @@ def wrap_deg(a: np.ndarray) -> np.ndarray:
     return 180.0 - np.mod(180.0 - np.asarray(a, float), 360.0)
 
 
-def _rmse_table(err: dict) -> dict:
-    """{joint: (T, 3) errors, deg} → {joint: {flexion, abduction, rotation, all}} RMSE, eq. (E1)."""
+def _rmse_table(err: dict, geo: Optional[dict] = None) -> dict:
+    """{joint: (T, 3) errors, deg} → {joint: {flexion, abduction, rotation, all[, geodesic]}} RMSE, eq. (E1);
+    geo {joint: (T,) geodesic errors, deg} adds the (E1g) column."""
     out = {}
     for j, e in err.items():
         cols = np.sqrt(np.mean(np.square(e), axis=0)) if e.shape[0] else np.full(3, np.nan)
         out[j] = {c: float(v) for c, v in zip(COLUMNS, cols)}
         out[j]["all"] = float(np.sqrt(np.mean(np.square(cols))))
+        if geo is not None and j in geo:
+            g = geo[j]
+            out[j]["geodesic"] = float(np.sqrt(np.mean(np.square(g)))) if g.size else float("nan")
+    return out
+
+
+def _joint_rotations(skel, q: np.ndarray, joints) -> dict:
+    """{joint: (T, 3, 3) pRd = nR_pᵀ nR_d} (angles.py (A1)) for the joints in `joints` the skeleton has."""
+    R = quat_to_rotmat(np.asarray(q, float))
+    names = list(skel.names)
+    return {j: np.swapaxes(R[:, names.index(p)], -1, -2) @ R[:, names.index(d)]
+            for j, (p, d) in JOINTS.items() if j in joints and p in names and d in names}
+
+
+def joint_geodesic_errors(skel, q_est: np.ndarray, q_ref: np.ndarray, joints=None,
+                          offsets: bool = False) -> dict:
+    """{joint: (T,) total rotation angle in degrees between estimated and reference joint rotations} (E1g).
+
+    offsets True: a constant per-joint rotation offset C = proj_SO3(Σ_t E(t)), E = pRd_refᵀ pRd_est, is
+    removed first (g = |Log(Cᵀ E)|), the geodesic analogue of the "offset" handling of `compare_with_vicon`.
+    """
+    q_est, q_ref = np.asarray(q_est, float), np.asarray(q_ref, float)
+    if q_est.shape != q_ref.shape:
+        raise SessionError(_SRC, "n_quat", f"estimate {q_est.shape} vs reference {q_ref.shape}", "equal shapes")
+    keep = JOINTS if joints is None else joints
+    Re, Rr = _joint_rotations(skel, q_est, keep), _joint_rotations(skel, q_ref, keep)
+    out = {}
+    for j in Re:
+        E = np.swapaxes(Rr[j], -1, -2) @ Re[j]                       # pRd_refᵀ pRd_est
+        if offsets and E.shape[0]:
+            E = _proj_so3(E.sum(0)).T @ E
+        out[j] = np.rad2deg(np.linalg.norm(logmap(E), axis=-1)) if E.shape[0] else np.zeros(0)
     return out
 
 
@@ -93,10 +131,11 @@ def joint_angle_rmse(skel, q_est: np.ndarray, q_ref: np.ndarray, mask: Optional[
         mask: (T,) samples to score (default all).
         joints: joint names to keep (default every joint of `JOINTS` the skeleton has).
     Returns:
-        {joint: {"flexion", "abduction", "rotation", "all"} degrees}.
+        {joint: {"flexion", "abduction", "rotation", "all", "geodesic" (E1g)} degrees}.
     """
     m = _mask(mask, np.shape(q_est)[0], _SRC)
-    return _rmse_table({j: e[m] for j, e in joint_angle_errors(skel, q_est, q_ref, joints).items()})
+    geo = {j: g[m] for j, g in joint_geodesic_errors(skel, q_est, q_ref, joints).items()}
+    return _rmse_table({j: e[m] for j, e in joint_angle_errors(skel, q_est, q_ref, joints).items()}, geo)
 
 
 def best_heading(a: np.ndarray, b: np.ndarray) -> float:
@@ -165,7 +204,7 @@ def score_against_truth(result, truth: dict, skel, mask: Optional[np.ndarray] = 
         skel: the skeleton of `result` (joint definitions).
         mask: samples to score.
     Returns:
-        {"joints": {joint: {...}}, "joint_rmse_max_deg", "position": {...}, "segment_orientation_deg": {...}}.
+        {"joints": {joint: {...}}, "joint_rmse_max_deg", "joint_geodesic_max_deg", "position": {...}, "segment_orientation_deg": {...}}.
     Raises:
         SessionError: the truth lacks a segment of the result, or lengths differ.
     """
@@ -182,6 +221,7 @@ def score_against_truth(result, truth: dict, skel, mask: Optional[np.ndarray] = 
     pos = relative_position_error(names, result.n_pos, p_ref, names[0], mask)
     seg = segment_orientation_error(names, result.n_quat, q_ref, np.deg2rad(pos["heading_deg"]), mask)
     return {"joints": joints, "joint_rmse_max_deg": max((v["all"] for v in joints.values()), default=float("nan")),
+            "joint_geodesic_max_deg": max((v["geodesic"] for v in joints.values()), default=float("nan")),
             "position": pos, "segment_orientation_deg": seg}
 
 
@@ -252,7 +292,8 @@ def compare_with_vicon(vicon: dict, est_quat: dict, method: str = "segment", ali
         max_shift: time shifts of the estimate searched, ± samples.
         joints: joints to score.
     Returns:
-        {"method", "shift_samples", "n", "joints": {joint: {flexion, abduction, rotation, all}}, "mean_all_deg",
+        {"method", "shift_samples", "n", "joints": {joint: {flexion, abduction, rotation, all, geodesic}},
+         "mean_all_deg",
          "offsets_deg" (offset) or "alignment_deg" {segment: angle of C_s from the nominal axes} (segment)}.
     Raises:
         SessionError: unknown method, a missing segment, or an estimate too short for the Vicon window.
@@ -289,10 +330,11 @@ def compare_with_vicon(vicon: dict, est_quat: dict, method: str = "segment", ali
             q_v = np.stack([rotmat_to_quat(Rv[:, i] @ C.get(s, np.eye(3))) for i, s in enumerate(skel.names)], 1)
             extra["alignment_deg"] = {s: float(np.rad2deg(np.linalg.norm(logmap(c)))) for s, c in C.items()}
         err = {j: e[scored] for j, e in joint_angle_errors(skel, q_e, q_v, joints).items()}
+        geo = joint_geodesic_errors(skel, q_e[scored], q_v[scored], joints, offsets=method == "offset")
         if method == "offset":
             extra["offsets_deg"] = {j: e.mean(0).tolist() for j, e in err.items()}
             err = {j: e - e.mean(0) for j, e in err.items()}
-        table = _rmse_table(err)
+        table = _rmse_table(err, geo)
         mean_all = float(np.mean([v["all"] for v in table.values()]))
         if best is None or mean_all < best["mean_all_deg"]:
             best = dict({"method": method, "shift_samples": shift, "n": int(scored.sum()), "joints": table,
@@ -311,5 +353,5 @@ def vicon_joint_angles(vicon: dict) -> dict:
 
 
 __all__ = ["LOWER_JOINTS", "VICON_AXES", "best_heading", "compare_with_vicon", "fit_segment_alignment",
-           "joint_angle_errors", "joint_angle_rmse", "relative_position_error", "rz", "score_against_truth",
+           "joint_angle_errors", "joint_angle_rmse", "joint_geodesic_errors", "relative_position_error", "rz", "score_against_truth",
            "segment_orientation_error", "vicon_joint_angles", "wrap_deg"]

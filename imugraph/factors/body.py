@@ -2,11 +2,12 @@
 body motion capture using inertial sensors", IFAC 2014; numbered (B1)–(B5) here).
 
 Variables (keys below): per sensor s and keyframe k the sensor pose nTs = (nRs, n_p_s) as a gtsam Pose3
-X(s,k) and its velocity V(s,k); per sensor one `imuBias.ConstantBias` B(s); per joint j and keyframe k the
+X(s,k) and its velocity V(s,k); per sensor and bias segment m an `imuBias.ConstantBias` B(s,m) (random
+walk between segments, BetweenFactorConstantBias; m = 0 only for a constant bias); per joint j and keyframe k the
 joint centre J(j,k) in n (Point3); per (sensor, joint) pair a lever arm l = s_r (joint centre in the sensor
 frame, Point3, constant over time).
 
-    (B1) dynamics      ImuFactor(X(s,k), V(s,k), X(s,k+1), V(s,k+1), B(s)) from preintegrated gyr/acc
+    (B1) dynamics      ImuFactor(X(s,k), V(s,k), X(s,k+1), V(s,k+1), B(s,m(k))) from preintegrated gyr/acc
     (B2) joint         J(j,k) = nTs_P(k) · l_P  and  J(j,k) = nTs_C(k) · l_C   (both sensors meet at the joint)
     (B3) placement     l ~ N(l_nominal, σ_l² I)  (sensor approximately fixed on its segment)
     (B4) hinge         (nRs_P sRb_P a)ᵀ ⊥ … : the child's hinge axis stays on the parent's, 2-D residual
@@ -38,9 +39,10 @@ def vel_key(s: int, k: int) -> int:
     return gtsam.symbol("v", s * _STRIDE + k)
 
 
-def bias_key(s: int) -> int:
-    """B(s): imuBias.ConstantBias (acc, gyro) of sensor s."""
-    return gtsam.symbol("b", s)
+def bias_key(s: int, m: int = 0) -> int:
+    """B(s,m): imuBias.ConstantBias (acc, gyro) of sensor s in bias segment m (random walk, see
+    imugraph.graphs.body_model.bias_segments; m = 0 only when the bias is constant)."""
+    return gtsam.symbol("b", s * _STRIDE + m)
 
 
 def joint_key(j: int, k: int) -> int:

@@ -1,7 +1,8 @@
 """Multi-IMU body motion capture as one factor graph (Kok, Hol & Schön, IFAC 2014), batch solver.
 
 Graph (factors (B1)–(B5) in imugraph.factors.body): per sensed segment s and keyframe k the sensor pose
-X(s,k) = nTs and velocity V(s,k); one IMU bias B(s) per sensor; per joint j (between sensed segments, see
+X(s,k) = nTs and velocity V(s,k); per sensor one IMU bias B(s,m) per bias segment m (`bias_segment_s`, 1 s)
+joined by a random walk b_{m+1} − b_m ~ N(0, rw² Δt) (BetweenFactorConstantBias; `BodyOptions.bias_rw`); per joint j (between sensed segments, see
 imugraph.graphs.body_model) and keyframe k the joint centre J(j,k); per (sensor, joint) one lever arm l,
 constant in time, with a prior around the nominal placement (the sensor-to-segment position factor).
 
@@ -39,6 +40,15 @@ these comparisons ran with gyro_bias_sigma 0.02, before it became 0.002, see `Bo
   (`BodyOptions.max_keyframe_turn_rad`: the preintegrated Log(ΔR) must stay below π).
 - Default placement: the nominal site (imugraph.body.placement) rather than bRs = I at mid-segment:
   gaittoolbox walk (offset handling vs Vicon) 5.77° → 5.03° mean, 30 → 14 LM iterations.
+- Bias random walk (issue 4) instead of one constant bias per sensor: with a drifting gyro bias the drift
+  had nowhere to go but into the joints. benchmarks/body_ablation.py --bias-walk 0.002 (true walk 0.002
+  rad/s/√s), worst joint full vs no_joints: constant bias 7.75° vs 3.21° (CMU 131_02), 39.9° vs 4.4° (Xsens);
+  bias_rw 2e-4: 5.81° vs 3.21°, 6.39° vs 3.63°; 1e-3: 2.45° vs 3.23°, 2.79° vs 3.44°; 2e-3: 1.81°, 2.30°.
+  Without bias walk (constant true bias) 1e-3 was no worse: CMU 1.07° → 0.87°, Xsens 0.92° → 0.62°.
+  Gaittoolbox walk (offset handling, mean all): 5.03° (constant), 5.02° (2e-4), 5.01° (1e-3), 5.02° (2e-3).
+  Segments of 0.5 s instead of 1 s: no gain (CMU 1.84° vs 1.81° at rw 2e-3).
+  Cost: benchmarks/body_speed.py --duration 60 --modes batch (17 IMUs, constant true biases): 12.1 s wall,
+  worst joint 1.76° (bias_rw 1e-3) vs 12.8 s, 1.39° (constant bias model); 5e-4: 12.0 s, 1.62°.
 - COLAMD ordering: 9.3 s vs 19.0 s with METIS (walk, 25 s). LM relative tolerance 1e-3: on a 20 s walk the
   cost plateaus after 4 iterations (125.5 → 124.8 in 35 more, accuracy unchanged).
 """
@@ -54,8 +64,8 @@ import numpy as np
 from imugraph.errors import SessionError
 from imugraph.factors import body as bf
 from imugraph.graphs.body_init import initial_orientations, initial_values, nominal_levers
-from imugraph.graphs.body_model import (BodyJoint, BodyOptions, body_joints, check_session,  # noqa: F401
-                                        keyframes, npose_samples, sample_turn, sensor_setup)
+from imugraph.graphs.body_model import (BodyJoint, BodyOptions, bias_segments, body_joints,  # noqa: F401
+                                        check_session, keyframes, npose_samples, sample_turn, sensor_setup)
 from imugraph.graphs.body_output import BodyResult  # noqa: F401  (re-exported: the public result type)
 
 
@@ -76,6 +86,11 @@ class BodyProblem:
     init: gtsam.Values
     bRs_fixed: dict | None = None      # for hinge factors (second pass)
     mag_dirs: dict | None = None       # per-sensor field direction n_m(s) (use_mag)
+    bias_seg: np.ndarray | None = None  # (K,) bias segment of each keyframe (body_model.bias_segments)
+
+    def bkey(self, s: int, k: int) -> int:
+        """Bias key of sensor s used by the ImuFactor from keyframe k to k+1."""
+        return bf.bias_key(s, int(self.bias_seg[k]) if self.bias_seg is not None else 0)
 
     @property
     def kf_t(self) -> np.ndarray:
@@ -106,14 +121,17 @@ def build_problem(session, opts: BodyOptions = BodyOptions()) -> BodyProblem:
     nRs = initial_orientations(session, names, setups, npose_idx, np.deg2rad(opts.npose_heading_deg), init_mag)
     levers = nominal_levers(joints, setups)
     t = np.asarray(session.t, float)
-    init = initial_values(names, joints, levers, {n: nRs[n][kf] for n in names}, t[kf], setups)
+    bias_seg = bias_segments(t[kf], opts.bias_segment_s if opts.bias_rw is not None else None)
+    init = initial_values(names, joints, levers, {n: nRs[n][kf] for n in names}, t[kf], setups,
+                          int(bias_seg.max()) + 1)
     pims = {}
     for name in names:
         s, st = session.sensors[name], setups[name]
         prm = bf.imu_params(opts.g, st.sigma_gyr, st.sigma_acc, float(np.median(s.dt)), opts.integration_sigma)
         bias = gtsam.imuBias.ConstantBias(np.zeros(3), st.gyro_bias0)
         pims[name] = bf.preintegrate(s.gyr, s.acc, s.dt, kf, prm, bias)
-    return BodyProblem(session, skel, opts, names, joints, setups, levers, kf, npose_idx, method, pims, init)
+    return BodyProblem(session, skel, opts, names, joints, setups, levers, kf, npose_idx, method, pims, init,
+                       bias_seg=bias_seg)
 
 
 def _joint_model(pb: BodyProblem, jt: BodyJoint):
@@ -146,7 +164,7 @@ def factors_at(pb: BodyProblem, k: int) -> gtsam.NonlinearFactorGraph:
     if k == 0:
         for s, name in enumerate(pb.names):
             st = pb.setups[name]
-            g.add(gtsam.PriorFactorConstantBias(bf.bias_key(s), gtsam.imuBias.ConstantBias(np.zeros(3), st.gyro_bias0),
+            g.add(gtsam.PriorFactorConstantBias(pb.bkey(s, 0), gtsam.imuBias.ConstantBias(np.zeros(3), st.gyro_bias0),
                   gtsam.noiseModel.Diagonal.Sigmas(np.r_[np.full(3, o.acc_bias_sigma), np.full(3, o.gyro_bias_sigma)])))
             T0 = pb.init.atPose3(bf.pose_key(s, 0))
             if s == 0:
@@ -165,7 +183,9 @@ def factors_at(pb: BodyProblem, k: int) -> gtsam.NonlinearFactorGraph:
     else:
         for s, name in enumerate(pb.names):
             g.add(gtsam.ImuFactor(bf.pose_key(s, k - 1), bf.vel_key(s, k - 1), bf.pose_key(s, k), bf.vel_key(s, k),
-                                  bf.bias_key(s), pb.pims[name][k - 1]))
+                                  pb.bkey(s, k - 1), pb.pims[name][k - 1]))
+        if pb.bkey(0, k) != pb.bkey(0, k - 1):
+            g.push_back(bias_walk_factors(pb, k))
     lever_index = {(seg, j): i for i, (seg, j, _) in enumerate(pb.levers)}
     for j, jt in enumerate(pb.joints):
         P, C = pb.names.index(jt.parent), pb.names.index(jt.child)
@@ -185,6 +205,20 @@ def factors_at(pb: BodyProblem, k: int) -> gtsam.NonlinearFactorGraph:
                 P, C = pb.names.index(jt.parent), pb.names.index(jt.child)
                 g.add(bf.hinge_factor(hm, bf.pose_key(P, k), bf.pose_key(C, k),
                                       pb.bRs_fixed[jt.parent].T, pb.bRs_fixed[jt.child].T))
+    return g
+
+
+def bias_walk_factors(pb: BodyProblem, k: int) -> gtsam.NonlinearFactorGraph:
+    """Random-walk link into the bias segment that starts at keyframe k: b_m − b_{m−1} ~ N(0, rw² Δt I),
+    Δt = time between the two segments' first keyframes (gyro rw = opts.bias_rw, acc rw = opts.acc_bias_rw)."""
+    o, g = pb.opts, gtsam.NonlinearFactorGraph()
+    seg = pb.bias_seg
+    k_prev = int(np.flatnonzero(seg == seg[k - 1])[0])
+    dt = float(pb.kf_t[k] - pb.kf_t[k_prev])
+    model = gtsam.noiseModel.Diagonal.Sigmas(np.r_[np.full(3, o.acc_bias_rw), np.full(3, o.bias_rw)] * np.sqrt(dt))
+    zero = gtsam.imuBias.ConstantBias()
+    for s in range(len(pb.names)):
+        g.add(gtsam.BetweenFactorConstantBias(pb.bkey(s, k - 1), pb.bkey(s, k), zero, model))
     return g
 
 

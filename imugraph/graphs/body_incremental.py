@@ -5,6 +5,10 @@ the solver with new variables predicted from keyframe k−1's estimate: every se
 its preintegrated IMU (x_k = pim.predict(x_{k−1}, b̂)), joint centres J = nTs_P l̂_P.
 
 - lag_s None: gtsam.ISAM2 over the whole session (global variables — biases, lever arms — stay in it).
+- Bias segments (random walk, BodyOptions.bias_rw): a segment's bias key enters with the keyframe that starts
+  the segment (predicted = the previous segment's estimate) and is stamped, at every update, with the time of
+  the newest keyframe whose factors use it (`_bias_stamps`), so the fixed-lag smoother marginalises it only
+  after its last ImuFactor; with bias_rw None the single bias is used at every keyframe and never leaves.
 - lag_s given: gtsam.BatchFixedLagSmoother with that lag (LM, `lag_iterations` per update, QR: Cholesky
   threw IndeterminateLinearSystem at the first update); the global keys (biases, lever arms) and the last
   `keep_npose` N-pose keyframes are re-stamped with the current time at every update so they are never
@@ -60,7 +64,19 @@ from imugraph.graphs.body_output import (BodyResult, estimate_placements, fill_s
 
 
 def _global_keys(pb: BodyProblem) -> list[int]:
-    return [bf.bias_key(s) for s in range(len(pb.names))] + [bf.lever_key(i) for i in range(len(pb.levers))]
+    """Keys re-stamped at every fixed-lag update: the lever arms (bias keys: `_bias_stamps`)."""
+    return [bf.lever_key(i) for i in range(len(pb.levers))]
+
+
+def _bias_stamps(pb: BodyProblem, ks: list[int]) -> dict[int, float]:
+    """Bias key → time of the newest keyframe among ks whose factors use it (ImuFactor from k−1, random-walk
+    link into k's segment): a segment's bias leaves the fixed-lag window only after its last use."""
+    out = {}
+    for k in ks:
+        for s in range(len(pb.names)):
+            for key in {pb.bkey(s, k), pb.bkey(s, max(k - 1, 0))}:
+                out[key] = max(out.get(key, -np.inf), float(pb.kf_t[k]))
+    return out
 
 
 def _keys_at(pb: BodyProblem, k: int) -> list[int]:
@@ -76,7 +92,10 @@ def _predict(pb: BodyProblem, est: gtsam.Values, k: int) -> gtsam.Values:
     poses = {}
     for s, name in enumerate(pb.names):
         state = gtsam.NavState(est.atPose3(bf.pose_key(s, k - 1)), est.atVector(bf.vel_key(s, k - 1)))
-        nxt = pb.pims[name][k - 1].predict(state, est.atConstantBias(bf.bias_key(s)))
+        b_prev = est.atConstantBias(pb.bkey(s, k - 1))
+        nxt = pb.pims[name][k - 1].predict(state, b_prev)
+        if pb.bkey(s, k) != pb.bkey(s, k - 1):            # a new bias segment starts: its random walk's mean
+            v.insert(pb.bkey(s, k), b_prev)
         poses[name] = nxt.pose()
         v.insert(bf.pose_key(s, k), nxt.pose())
         v.insert(bf.vel_key(s, k), nxt.velocity())
@@ -93,7 +112,7 @@ def _initial_k0(pb: BodyProblem) -> gtsam.Values:
     for s in range(len(pb.names)):
         out.insert(bf.pose_key(s, 0), pb.init.atPose3(bf.pose_key(s, 0)))
         out.insert(bf.vel_key(s, 0), pb.init.atVector(bf.vel_key(s, 0)))
-        out.insert(bf.bias_key(s), pb.init.atConstantBias(bf.bias_key(s)))
+        out.insert(pb.bkey(s, 0), pb.init.atConstantBias(pb.bkey(s, 0)))
     for j in range(len(pb.joints)):
         out.insert(bf.joint_key(j, 0), pb.init.atPoint3(bf.joint_key(j, 0)))
     for i in range(len(pb.levers)):
@@ -192,6 +211,8 @@ def solve_body_incremental(session, opts: BodyOptions = BodyOptions(), lag_s: fl
                             stamps.insert((key, float(kf_t[k])))
                 for key in restamp:
                     stamps.insert((key, float(kf_t[ks[-1]])))
+                for key, tk in _bias_stamps(pb, ks).items():
+                    stamps.insert((key, tk))
                 solver.update(graph, new, stamps)
             else:
                 solver.update(graph, new)
@@ -286,13 +307,13 @@ def _anchor(pb: BodyProblem, x: gtsam.Values, k: int) -> tuple[gtsam.NonlinearFa
     bias_m = gtsam.noiseModel.Diagonal.Sigmas(np.r_[np.full(3, 0.02), np.full(3, 0.002)])
     lever_m = gtsam.noiseModel.Isotropic.Sigma(3, 0.005)
     for s in range(len(pb.names)):
-        T, vel, b = x.atPose3(bf.pose_key(s, k)), x.atVector(bf.vel_key(s, k)), x.atConstantBias(bf.bias_key(s))
+        T, vel, b = x.atPose3(bf.pose_key(s, k)), x.atVector(bf.vel_key(s, k)), x.atConstantBias(pb.bkey(s, k))
         g.add(gtsam.PriorFactorPose3(bf.pose_key(s, k), T, pose_m))
         g.add(gtsam.PriorFactorVector(bf.vel_key(s, k), vel, vel_m))
-        g.add(gtsam.PriorFactorConstantBias(bf.bias_key(s), b, bias_m))
+        g.add(gtsam.PriorFactorConstantBias(pb.bkey(s, k), b, bias_m))   # same segments in the prefix problem
         v.insert(bf.pose_key(s, k), T)
         v.insert(bf.vel_key(s, k), vel)
-        v.insert(bf.bias_key(s), b)
+        v.insert(pb.bkey(s, k), b)
     for i in range(len(pb.levers)):
         g.add(gtsam.PriorFactorPoint3(bf.lever_key(i), x.atPoint3(bf.lever_key(i)), lever_m))
         v.insert(bf.lever_key(i), x.atPoint3(bf.lever_key(i)))
@@ -307,7 +328,7 @@ def _record(pb: BodyProblem, est: gtsam.Values, k: int, place_psi: tuple) -> dic
     S = len(pb.names)
     return {"nRs": np.stack([est.atPose3(bf.pose_key(s, k)).rotation().matrix() for s in range(S)]),
             "p": est.atPose3(bf.pose_key(0, k)).translation(), "v": est.atVector(bf.vel_key(0, k)),
-            "b_gyr": np.stack([est.atConstantBias(bf.bias_key(s)).gyroscope() for s in range(S)]),
+            "b_gyr": np.stack([est.atConstantBias(pb.bkey(s, k)).gyroscope() for s in range(S)]),
             "place": place, "psi": psi}
 
 

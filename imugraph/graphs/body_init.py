@@ -80,7 +80,7 @@ def nominal_levers(joints: list[BodyJoint], setups: dict[str, SensorSetup]) -> l
 
 
 def initial_values(names: list[str], joints: list[BodyJoint], levers: list, nRs_kf: dict[str, np.ndarray],
-                   kf_t: np.ndarray, setups: dict[str, SensorSetup]) -> gtsam.Values:
+                   kf_t: np.ndarray, setups: dict[str, SensorSetup], n_bias_seg: int = 1) -> gtsam.Values:
     """gtsam.Values for all keyframes: poses, velocities, biases, joint centres, lever arms."""
     K = kf_t.size
     idx = {n: i for i, n in enumerate(names)}
@@ -99,7 +99,8 @@ def initial_values(names: list[str], joints: list[BodyJoint], levers: list, nRs_
         for k in range(K):
             vals.insert(bf.pose_key(s, k), gtsam.Pose3(gtsam.Rot3(nRs_kf[name][k]), p[k]))
             vals.insert(bf.vel_key(s, k), v[k])
-        vals.insert(bf.bias_key(s), gtsam.imuBias.ConstantBias(np.zeros(3), setups[name].gyro_bias0))
+        for m in range(n_bias_seg):                  # one bias per random-walk segment, all at the N-pose value
+            vals.insert(bf.bias_key(s, m), gtsam.imuBias.ConstantBias(np.zeros(3), setups[name].gyro_bias0))
     for j in J:
         for k in range(K):
             vals.insert(bf.joint_key(j, k), J[j][k])

@@ -36,6 +36,12 @@ class BodyOptions:
             absorbed model errors (estimates 0.01 rad/s off while the N-pose mean was within 0.001) and the
             relative headings of little-moving segments drifted — walk, no magnetometer: worst joint 4.53° →
             0.92°; CMU 131_01: 5.71° → 2.69° (seed 7), 2.80° → 2.85° (seed 3).
+        bias_rw, acc_bias_rw: bias random walk densities (gyro rad/s/√s, acc m/s²/√s): one bias per sensor per
+            `bias_segment_s` joined by BetweenFactorConstantBias, σ = rw·√Δt (b_{m+1} − b_m ~ N(0, rw² Δt));
+            bias_rw None: one constant bias per sensor. Default 1e-3 rad/s/√s (≈ 0.06 °/s after 1 s, 0.4 °/s
+            after a minute: the upper end of consumer MEMS gyro drift incl. warm-up/temperature) and 2e-3
+            m/s²/√s; measured in imugraph.graphs.body's docstring.
+        bias_segment_s: duration of one bias segment, s.
         root_heading_sigma_rad: gauge: heading prior of the root sensor at k = 0.
         heading_sigma_rad: weak heading prior of every other sensor at k = 0 (None: none).
         tilt_sigma_rad: tilt prior σ at k = 0 (weak: the accelerometers see tilt).
@@ -69,6 +75,9 @@ class BodyOptions:
     integration_sigma: float = 1e-2
     gyro_bias_sigma: float = 0.002
     acc_bias_sigma: float = 0.2
+    bias_rw: float | None = 1e-3
+    acc_bias_rw: float = 2e-3
+    bias_segment_s: float = 1.0
     root_heading_sigma_rad: float = 1e-3
     heading_sigma_rad: float | None = 1.0
     tilt_sigma_rad: float = 0.5
@@ -200,6 +209,18 @@ def keyframes(n: int, every: int, turn: np.ndarray | None = None, max_turn: floa
     if kf[-1] != n - 1:
         kf.append(n - 1)
     return np.asarray(kf, int)
+
+
+def bias_segments(kf_t: np.ndarray, segment_s: float | None) -> np.ndarray:
+    """(K,) bias segment index of every keyframe: ⌊(t_k − t_0)/segment_s⌋ renumbered 0, 1, … (None: all 0).
+
+    Keyframe k's ImuFactor to k+1 uses the bias of segment[k]; depends on keyframe times only, so a
+    prefix of the session (incremental bootstrap) gets the same segments."""
+    kf_t = np.asarray(kf_t, float)
+    if segment_s is None or kf_t.size == 0:
+        return np.zeros(kf_t.size, int)
+    raw = np.floor((kf_t - kf_t[0]) / float(segment_s) + 1e-9).astype(int)
+    return np.unique(raw, return_inverse=True)[1].reshape(-1).astype(int)
 
 
 def sample_turn(session, names, setups: dict) -> np.ndarray:

@@ -97,7 +97,7 @@ def estimate_placements(pb, x: gtsam.Values) -> tuple[dict, float]:
 
 
 def sample_orientations(pb, x: gtsam.Values, s: int, name: str, bias_gyr: np.ndarray) -> np.ndarray:
-    """(N, 4) nRs at every sample: forward/backward gyro integration between keyframes, slerp-blended."""
+    """(N, 4) nRs at every sample (bias_gyr (3,) or per sample (N, 3)): forward/backward gyro integration between keyframes, slerp-blended."""
     sess = pb.session.sensors[name]
     N = sess.t.size
     dq = rotvec_to_quat((sess.gyr - bias_gyr) * sess.dt[:, None])           # Exp((ω_i − b) dt_i)
@@ -152,10 +152,13 @@ def make_result(pb, x: gtsam.Values, info: dict) -> BodyResult:
     place, psi = estimate_placements(pb, x)
     t = np.asarray(pb.session.t, float)
     q_seg, biases = {}, {}
+    owner = np.clip(np.searchsorted(pb.kf, np.arange(t.size), side="right") - 1, 0, pb.K - 1)   # sample → keyframe
     for s, name in enumerate(pb.names):
-        bias = x.atConstantBias(bf.bias_key(s))
-        biases[name] = {"acc": np.asarray(bias.accelerometer()), "gyr": np.asarray(bias.gyroscope())}
-        q_s = sample_orientations(pb, x, s, name, biases[name]["gyr"])
+        b_kf = [x.atConstantBias(pb.bkey(s, k)) for k in range(pb.K)]
+        acc_kf = np.stack([np.asarray(b.accelerometer()) for b in b_kf])
+        gyr_kf = np.stack([np.asarray(b.gyroscope()) for b in b_kf])
+        biases[name] = {"acc": acc_kf.mean(axis=0), "gyr": gyr_kf.mean(axis=0), "acc_kf": acc_kf, "gyr_kf": gyr_kf}
+        q_s = sample_orientations(pb, x, s, name, gyr_kf[owner])        # (N, 3): each sample its segment's bias
         q_seg[name] = quat_mul(q_s, quat_conj(rotmat_to_quat(place[name][0])))     # nRb = nRs bRsᵀ
         if s == 0:
             root_q = q_s
