@@ -51,3 +51,21 @@ def test_harness_small_blind_run_on_broad(data_dir):
         pytest.skip("BROAD trial 01 is absent")
     rep = run_harness(sessions, ["linear_acceleration"], 1, np.random.default_rng(1), clean=False)
     assert rep["cases"][0]["verdict"] == "linear_acceleration", rep["cases"][0]
+
+
+def test_crop_takes_the_most_moving_stretch():
+    """most_moving: a session at rest for its first 20 s and turning over the next 10 s is cropped to a
+    stretch that holds the turning (known answer: the 8 s crop lies inside 20–30 s)."""
+    from imugraph.diagnose.bench import most_moving
+    from imugraph.io.session import Session
+
+    rate = 50.0
+    t = np.arange(0, 40.0, 1 / rate)
+    gyr = np.zeros((len(t), 3)) + 0.01
+    gyr[(t >= 20) & (t < 30), 2] = 2.0
+    acc = np.tile([0.0, 0.0, 9.81], (len(t), 1))
+    mag = np.tile([20.0, 0.0, -40.0], (len(t), 1))
+    s = Session(t=t, gyr=gyr, acc=acc, mag=mag, quat=None, movement=None, source="<test>", name="rest_then_turn")
+    i0, i1 = most_moving(s, 8.0)
+    assert 20.0 - 1e-9 <= t[i0] and t[i1 - 1] < 30.0
+    assert t[i1 - 1] - t[i0] == pytest.approx(8.0, abs=2 / rate)

@@ -3,9 +3,9 @@ trials and on simulations; prints the confusion matrix and scores, writes harnes
 
 Sessions: the BROAD trials named by --trials (default the undisturbed rotation trials present in the data
 folder: 01, 02, 04, 06, 07 — the translation trials hold real linear acceleration, an effect of the
-library, so they are not "undisturbed" for the base model), each cropped to --duration seconds, plus
---sims simulated sessions (random rotation, BROAD-like sensor: 285.714 Hz by default, gyro bias, noise,
-distorted magnetometer in µT).
+library, so they are not "undisturbed" for the base model), each cropped to its --duration seconds with
+the most movement (`most_moving`), plus --sims simulated sessions (random rotation, BROAD-like sensor:
+285.714 Hz by default, gyro bias, noise, distorted magnetometer in µT).
 """
 
 from __future__ import annotations
@@ -33,6 +33,22 @@ def simulated_session(seed: int, duration_s: float, rate_hz: float):
     return simulate_imu(*motion, params, rng, name=f"sim{seed:02d}")
 
 
+def most_moving(session, duration_s: float) -> tuple[int, int]:
+    """Sample range [i0, i1) of the `duration_s` stretch with the largest mean angular rate |y_gyr − median|
+    (starts on a 1 s grid): a crop with movement in it (BROAD 02's first 40 s hold none, so a gyro effect
+    injected there is not observable, whatever the diagnoser does)."""
+    t = session.t
+    w = np.linalg.norm(np.nan_to_num(session.gyr - np.nanmedian(session.gyr, axis=0)), axis=1)
+    c = np.concatenate([[0.0], np.cumsum(w)])
+    best, span = (0, session.n), -1.0
+    for t0 in np.arange(t[0], t[-1] - duration_s + 1e-9, 1.0):
+        i0 = int(np.searchsorted(t, t0))
+        i1 = int(np.searchsorted(t, t0 + duration_s))
+        if c[i1] - c[i0] > span:
+            best, span = (i0, i1), c[i1] - c[i0]
+    return best
+
+
 def broad_sessions(trials, duration_s: float | None, data_dir: str | None = None) -> list:
     """The named BROAD trials present in the data folder (.mat), cropped to `duration_s` (None: whole)."""
     from imugraph.config import broad_dir
@@ -46,7 +62,7 @@ def broad_sessions(trials, duration_s: float | None, data_dir: str | None = None
             continue
         s = load_session(hits[0])
         if duration_s is not None and s.t[-1] - s.t[0] > duration_s:
-            s = s.slice(0, int(np.searchsorted(s.t, s.t[0] + duration_s)))
+            s = s.slice(*most_moving(s, duration_s))
         out.append(s)
     return out
 

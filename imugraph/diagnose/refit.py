@@ -26,13 +26,25 @@ from dataclasses import replace
 import numpy as np
 
 from imugraph.diagnose.effects.base import huber_rms, replace_session
-from imugraph.diagnose.fit import Fit, _raw_residuals, fit_simulation
+from imugraph.diagnose.effects.trajectory import reintegrate
+from imugraph.diagnose.fit import Fit, _raw_residuals, body_rate, fit_simulation
 
 
 def on_session(fit: Fit, session) -> Fit:
-    """The fitted parameters and trajectory of `fit` with residuals (R1)–(R3) of another session on the
-    same time base (the original measurements of a fit of corrected ones)."""
+    """The fitted parameters and keyframes of `fit` with residuals (R1)–(R3) of another session on the
+    same time base (the original measurements of a fit of corrected ones).
+
+    When the gyro differs (a gyro effect was removed before the refit), the per-sample orientations
+    between the keyframes are integrated again from `session`'s gyro (forward from R̂_k, backward from
+    R̂_{k+1}, slerp-blended, as the fit does): the fit's own sample orientations follow the CORRECTED gyro,
+    so the original gyro's residual (R1) would hold the whole per-sample correction −Δω_j, which the
+    effect's first-order refit (base (E2): only the interval mean Φ_k/T_k) cannot remove. With the
+    keyframes fixed and the samples integrated from the original gyro, (R1) is again the keyframe
+    mismatch rate c_k of the module doc of imugraph.diagnose.fit, and (E1)–(E3) apply around θ*."""
     out = replace(fit, session=session, residuals={})
+    if not np.array_equal(session.gyr, fit.session.gyr, equal_nan=True):
+        out.nRb = reintegrate(fit, session.gyr)
+        out.b_omega = body_rate(out.nRb, session.dt)
     out.residuals = _raw_residuals(out)
     return out
 

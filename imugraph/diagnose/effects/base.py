@@ -205,53 +205,6 @@ def noise_scale(fit, res: dict, train: np.ndarray, channels) -> dict:
     return out
 
 
-def interval_index(fit) -> tuple[np.ndarray, np.ndarray]:
-    """Keyframe interval k of each sample (N,) and its start sample s_k (N,) (last sample: own interval)."""
-    kf = np.asarray(fit.keyframe_samples, int)
-    k = np.clip(np.searchsorted(kf, np.arange(fit.n), side="right") - 1, 0, len(kf) - 1)
-    return k, kf[k]
-
-
-def interval_mean(fit, x: np.ndarray) -> np.ndarray:
-    """(N, d) per-sample mean of x over the sample's keyframe interval (NaN-aware)."""
-    k, _ = interval_index(fit)
-    ok = np.all(np.isfinite(x), axis=1)
-    K = int(k.max()) + 1
-    sums = np.zeros((K, x.shape[1]))
-    np.add.at(sums, k[ok], x[ok])
-    cnt = np.bincount(k[ok], minlength=K).astype(float)
-    means = sums / np.maximum(cnt, 1)[:, None]
-    means[cnt == 0] = np.nan
-    return means[k]
-
-
-def gyro_refit(fit, d_omega: np.ndarray) -> tuple[dict, np.ndarray]:
-    """Residuals (E1)–(E3) after the gyro changes by Δω (N, 3) rad/s with the keyframes fixed.
-
-    Returns (residuals dict, δθ (N, 3) body-frame orientation change)."""
-    d_omega = np.nan_to_num(np.asarray(d_omega, float))
-    dt = fit.session.dt
-    kf = np.asarray(fit.keyframe_samples, int)
-    C = np.concatenate([np.zeros((1, 3)), np.cumsum(d_omega * dt[:, None], axis=0)])   # C_j = Σ_{i<j}
-    k, s_k = interval_index(fit)
-    s_next = kf[np.minimum(k + 1, len(kf) - 1)]
-    has_next = k < len(kf) - 1
-    phi = C[np.arange(fit.n)] - C[s_k]                                                  # φ_j (E1)
-    Phi = np.where(has_next[:, None], C[s_next] - C[s_k], 0.0)                          # Φ_k
-    span = np.maximum(s_next - s_k, 1)
-    u = np.where(has_next, (np.arange(fit.n) - s_k) / span, 0.0)
-    dtheta = phi - u[:, None] * Phi                                                      # δθ_j (E1)
-    T = np.where(has_next, fit.session.t[s_next] - fit.session.t[s_k], 1.0)
-    bRn = np.transpose(fit.nRb, (0, 2, 1))
-    h_acc = bRn @ np.array([0.0, 0.0, fit.g])
-    b_nmag = bRn @ fit.calibration.n_mag
-    out = {c: fit.residuals[c].copy() for c in CHANNELS}
-    out["gyr"] = out["gyr"] + Phi / T[:, None]                                           # (E2)
-    out["acc"] = out["acc"] + np.cross(dtheta, h_acc)                                    # (E3)
-    out["mag"] = out["mag"] + np.cross(dtheta, b_nmag) @ np.asarray(fit.calibration.D).T  # (E3)
-    return out, dtheta
-
-
 def smooth(x: np.ndarray, n: int) -> np.ndarray:
     """NaN-aware centred moving average over n samples of (N,) or (N, d) x."""
     x = np.asarray(x, float)
@@ -379,3 +332,8 @@ def train_psd(x: np.ndarray, mask: np.ndarray, nperseg: int) -> tuple[np.ndarray
     if count == 0:
         return f, np.full_like(acc, np.nan)
     return f, acc / count / np.sum(win**2)
+
+
+# the gyro's effect on the fitted trajectory (keyframes fixed): imugraph/diagnose/effects/trajectory.py
+from imugraph.diagnose.effects.trajectory import (_EXACT_CACHE, gyro_exact, gyro_refit,  # noqa: E402,F401
+                                                  interval_index, interval_mean, reintegrate)

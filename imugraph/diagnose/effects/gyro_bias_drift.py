@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from imugraph.diagnose.effects.base import (Correction, Effect, check_train, gyro_refit, noise_scale,
+from imugraph.diagnose.effects.base import (Correction, Effect, check_train, gyro_exact, gyro_refit, noise_scale,
                                              replace_session)
 
 RANGES = {"drift_deg_s": (0.2, 1.0), "shapes": ("warm-up", "linear", "wander")}
@@ -36,7 +36,7 @@ def legendre_basis(t: np.ndarray, t0: float, t1: float, degree: int = DEGREE) ->
 
 class DriftCorrection(Correction):
     def raw_residuals(self, fit) -> dict:
-        return gyro_refit(fit, self.deltas["d_omega"])[0]
+        return gyro_exact(fit, self.deltas["d_omega"])
 
 
 class GyroBiasDrift(Effect):

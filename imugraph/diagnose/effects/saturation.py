@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from imugraph.diagnose.effects.base import (Correction, Effect, check_train, gyro_refit, noise_scale,
+from imugraph.diagnose.effects.base import (Correction, Effect, check_train, gyro_exact, noise_scale,
                                              replace_session)
 from imugraph.io.validate import runs
 
@@ -76,7 +76,7 @@ class SaturationCorrection(Correction):
         rails = self.deltas["rails"]
         if rails.get("gyr"):
             y_new = reconstruct_peaks(s.t, s.gyr, rails["gyr"])
-            out = gyro_refit(fit, y_new - s.gyr)[0]
+            out = gyro_exact(fit, y_new - s.gyr)
         for a, sign, level in rails.get("acc", []):
             out["acc"][np.abs(s.acc[:, a] - level) <= 1e-9 * max(1.0, abs(level))] = np.nan   # censored
         return out

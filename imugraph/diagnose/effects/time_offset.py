@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from imugraph.diagnose.effects.base import (Correction, Effect, check_train, gyro_refit, noise_scale,
+from imugraph.diagnose.effects.base import (Correction, Effect, check_train, gyro_exact, gyro_refit, noise_scale,
                                              replace_session, shift_signal)
 
 RANGES = {"tau_ms": (5.0, 50.0), "channel_p": {"mag": 0.5, "acc": 0.25, "gyr": 0.25}}
@@ -49,7 +49,7 @@ class TimeOffsetCorrection(Correction):
         y = getattr(s, c)
         y_new = shift_signal(s.t, y, -tau)                                           # y'(t) = y(t + τ)
         if c == "gyr":
-            return gyro_refit(fit, np.nan_to_num(y_new - y))[0]
+            return gyro_exact(fit, np.nan_to_num(y_new - y))
         return fit.residuals_with(**{c: y_new})
 
 
