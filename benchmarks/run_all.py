@@ -1,4 +1,4 @@
-"""`make bench`: the benchmarks of the foundation issue, each printing its own table.
+"""`make bench`: every benchmark, each printing its own table (results also in bench_out/).
 
     sim_coverage.py      simulated truth within reported std; noise levels         (issue 2a)
     broad_published.py   BROAD trials as published vs offline VQF / VQF + timing   (issue 2c, 2e)
@@ -7,6 +7,13 @@
     speed.py             calibrate+smooth / smooth with known calibration vs offline VQF   (issue 2e)
     peer_table.py        the peers alone (checks the metric against the data README)
     batch_scaling.py     `imugraph batch` on the BROAD trials, 1 vs 2 worker processes (issue 3)
+    stream_speed.py      `imugraph stream` on BROAD 01: real-time factor, latency, filtered vs online VQF (issue 3)
+    body_sim_accuracy.py 17-IMU simulations from CMU / Xsens BVH: joint and position errors     (issue 4a)
+    gaittoolbox_walk.py  real lower-body walk vs Vicon, beside Xsens MVN; ablation; fixed lag  (issue 4b, 4c)
+    body_ablation.py     simulation ablation with a drifting gyro bias                          (issue 4c)
+    body_speed.py        17 IMUs x 60 s at 60 Hz: batch and fixed lag, time and memory          (issue 4d)
+    diagnose_broad.py    diagnosis of disturbed and undisturbed BROAD trials, no labels         (issue 5)
+    diagnose_harness.py  blind injections: confusion matrix, window IoU, gap shrink             (issue 5)
 """
 
 from __future__ import annotations
@@ -22,7 +29,12 @@ def main() -> int:
     rc = 0
     for script, args in (("peer_table.py", []), ("sim_coverage.py", ["50", "60", "100"]),
                          ("broad_published.py", []), ("broad_known_distortion.py", []),
-                         ("rasteiro.py", []), ("speed.py", []), ("batch_scaling.py", [])):
+                         ("rasteiro.py", []), ("speed.py", []), ("batch_scaling.py", []),
+                         ("stream_speed.py", ["01", "--no-lag", "--calibration", "both"]),
+                         ("body_sim_accuracy.py", []), ("gaittoolbox_walk.py", ["--ablation", "--lag", "1"]),
+                         ("body_ablation.py", ["--motions", "cmu131_02,xsens", "--bias-walk", "0.002"]),
+                         ("body_speed.py", ["--duration", "60", "--modes", "batch,lag"]),
+                         ("diagnose_broad.py", []), ("diagnose_harness.py", ["--n", "2", "--duration", "60"])):
         print(f"\n=== {script} {' '.join(args)} ===", flush=True)
         rc |= subprocess.call([sys.executable, str(HERE / script), *args])
     return rc
