@@ -27,7 +27,7 @@ otherwise "none".
 from __future__ import annotations
 
 import traceback
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -86,6 +86,7 @@ class EffectResult:
     stage: str = "screen"
     screen: dict | None = None
     significant: bool = False
+    refit: tuple | None = field(default=None, repr=False, compare=False)   # (θ*, info) of stage 2, reused
 
     @property
     def relevant(self) -> bool:
@@ -236,6 +237,7 @@ def attribute(real, sim, null_gap: dict, effects: dict, opt: AttributionOptions 
                     continue                                               # nothing to refit: screening stands
                 res = evaluate_effect(effect, real, sim, null_gap, folds, opt, gap_opt, info["window"], base,
                                       ext=ext)
+                res.refit = (ext, info)
                 res.screen = {"shrink": results[name].shrink, "penalised_shrink": results[name].penalised,
                               "size": results[name].size}
             except Exception as exc:   # keep the screening result, say why the refit failed

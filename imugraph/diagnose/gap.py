@@ -69,6 +69,21 @@ def wasserstein1(a: np.ndarray, b: np.ndarray, n_quantiles: int = 256) -> float:
     return float(np.mean(np.abs(np.quantile(a, u) - np.quantile(b, u))))
 
 
+def quantiles(x: np.ndarray, u: np.ndarray) -> np.ndarray:
+    """(len(u), d) quantiles of each column of x (n, d) at probabilities u: numpy's default "linear"
+    method (F⁻¹(u) interpolated between the order statistics at u·(n−1)), from one sort of all columns
+    instead of a partition per column and quantile (same values, several times faster)."""
+    xs = np.sort(x, axis=0)
+    n = xs.shape[0]
+    idx = u * (n - 1)                                            # virtual index of F⁻¹(u)
+    lo = np.floor(idx).astype(int)
+    hi = np.minimum(lo + 1, n - 1)
+    w = (idx - lo)[:, None]
+    a, b = xs[lo], xs[hi]
+    d = b - a
+    return np.where(w >= 0.5, b - d * (1 - w), a + d * w)      # numpy's lerp, exact at both ends
+
+
 def autocorrelation(x: np.ndarray, mask: np.ndarray, lags: np.ndarray) -> np.ndarray:
     """(G3) normalised autocorrelation (len(lags), 3) of x (N, 3) over the samples in `mask` (pairs with
     both ends in the mask and finite). Zero where undefined."""
@@ -83,10 +98,9 @@ def autocorrelation(x: np.ndarray, mask: np.ndarray, lags: np.ndarray) -> np.nda
     for i, lag in enumerate(lags):
         if lag >= len(x):
             break
-        pairs = okf[:-lag] * okf[lag:]
-        npair = pairs.sum()
+        npair = float(np.dot(okf[:-lag], okf[lag:]))                 # pairs with both ends in S
         if npair > 0:
-            out[i] = np.sum(xc[:-lag] * xc[lag:], axis=0) / npair / var
+            out[i] = np.einsum("ij,ij->j", xc[:-lag], xc[lag:]) / npair / var
     return out
 
 
@@ -101,7 +115,7 @@ def channel_gap(z_real: np.ndarray, z_sim: np.ndarray, mask: np.ndarray, lags: n
         return (0.0, 0.0, 0.0) if parts else 0.0
     u = (np.arange(opt.n_quantiles) + 0.5) / opt.n_quantiles
     q_sim, rho_sim = _sim_stats(z_sim, ok_s, mask, lags, u)
-    dist = np.mean([np.mean(np.abs(np.quantile(z_real[ok_r, a], u) - q_sim[:, a])) for a in range(3)])  # (G2)
+    dist = float(np.mean(np.mean(np.abs(quantiles(z_real[ok_r], u) - q_sim), axis=0)))              # (G2)
     rho = np.abs(autocorrelation(z_real, mask, lags) - rho_sim)
     white = float(np.mean(rho))
     g = float(dist + opt.whiteness_weight * white)
@@ -123,7 +137,7 @@ def _sim_stats(z_sim: np.ndarray, ok_s: np.ndarray, mask: np.ndarray, lags: np.n
     if key not in _SIM_CACHE:
         if len(_SIM_CACHE) >= 64:
             _SIM_CACHE.pop(next(iter(_SIM_CACHE)))
-        q = np.stack([np.quantile(z_sim[ok_s, a], u) for a in range(3)], axis=1)
+        q = quantiles(z_sim[ok_s], u)
         _SIM_CACHE[key] = (q, autocorrelation(z_sim, mask, lags))
     return _SIM_CACHE[key]
 

@@ -171,7 +171,7 @@ def _after(effect, real: Fit, res: EffectResult, hints, options) -> dict:
     window = (hints or {}).get(effect.channel) if getattr(effect, "windowed", False) else None
     all_ = np.ones(real.n, bool)
     if res.stage == "refit":
-        ext, info = refit_effect(effect, real, options.attribution.refit_rounds, window)
+        ext, info = res.refit or refit_effect(effect, real, options.attribution.refit_rounds, window)
         return rescale(effect.fit(ext, all_, window=info["window"]).raw_residuals(ext), real, all_)
     return effect.fit(real, all_, window=window).residuals(real)
 

@@ -199,10 +199,27 @@ def noise_scale(fit, res: dict, train: np.ndarray, channels) -> dict:
     for c in channels:
         if c == "gyr":
             continue
-        base = huber_rms(fit.residuals[c][train], fit.sigma[c])
+        base = base_rms(fit, c, train)
         new = huber_rms(res[c][train], fit.sigma[c])
         out[c] = base / new
     return out
+
+
+_BASE_RMS: dict = {}
+
+
+def base_rms(fit, c: str, train: np.ndarray) -> np.ndarray:
+    """huber_rms of the fit's own residuals of channel c on the training samples, cached per (fit, c,
+    train): every effect's noise re-estimation on a fold divides by the same value (same numbers, once)."""
+    import hashlib
+
+    key = (id(fit), id(fit.residuals), c, hashlib.sha1(np.ascontiguousarray(train).tobytes()).hexdigest())
+    hit = _BASE_RMS.get(key)
+    if hit is None or hit[0] is not fit:
+        if len(_BASE_RMS) >= 64:
+            _BASE_RMS.pop(next(iter(_BASE_RMS)))
+        hit = _BASE_RMS[key] = (fit, huber_rms(fit.residuals[c][train], fit.sigma[c]))
+    return hit[1].copy()
 
 
 def smooth(x: np.ndarray, n: int) -> np.ndarray:

@@ -22,6 +22,7 @@ import numpy as np
 
 from imugraph.diagnose.effects.base import (Correction, Effect, check_train, gyro_exact, gyro_refit, noise_scale,
                                              replace_session)
+from imugraph.diagnose.effects.trajectory import cached_columns
 
 RANGES = {"drift_deg_s": (0.2, 1.0), "shapes": ("warm-up", "linear", "wander")}
 RELEVANT_DEG_S = 0.1         # relevance: a drift of ≥ 0.1 °/s integrates to ≥ 6° of heading per minute
@@ -75,14 +76,19 @@ class GyroBiasDrift(Effect):
         B = legendre_basis(t, float(t[0]), float(t[-1]))
         seg = fit.b_gyr_bias - np.asarray(fit.calibration.gyro_bias, float)         # b_s(j) − b̄
         base = fit.residuals
-        r0, _ = gyro_refit(fit, seg)                                                 # β = 0
-        cols = []
-        for p in range(B.shape[1]):
-            for a in range(3):
-                d = np.zeros((fit.n, 3))
-                d[:, a] = -B[:, p]
-                r1, _ = gyro_refit(fit, seg + d)
-                cols.append({c: r1[c] - r0[c] for c in base})
+
+        def columns():
+            r0, _ = gyro_refit(fit, seg)                                             # β = 0
+            out = []
+            for p in range(B.shape[1]):
+                for a in range(3):
+                    d = np.zeros((fit.n, 3))
+                    d[:, a] = -B[:, p]
+                    r1, _ = gyro_refit(fit, seg + d)
+                    out.append({c: r1[c] - r0[c] for c in base})
+            return r0, out
+
+        r0, cols = cached_columns(fit, self.name, columns)                          # shared by the folds
         rows_A, rows_y = [], []
         for c in ("gyr", "acc", "mag"):
             ok = train & np.all(np.isfinite(r0[c]), axis=1)

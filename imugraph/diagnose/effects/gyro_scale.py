@@ -23,6 +23,7 @@ import numpy as np
 
 from imugraph.diagnose.effects.base import (Correction, Effect, check_train, gyro_exact, gyro_refit,
                                              noise_scale, replace_session)
+from imugraph.diagnose.effects.trajectory import cached_columns
 
 RANGES = {"scale": (0.005, 0.03), "misalignment_deg": (0.5, 2.0)}
 FIT_CHANNELS = ("gyr",)
@@ -69,13 +70,18 @@ class GyroScale(Effect):
         train = check_train(fit, train)
         w_rate = fit.session.gyr - fit.b_gyr_bias                                  # y − b
         base = fit.residuals
-        cols = []
-        for a in range(3):
-            for b in range(3):
-                d = np.zeros_like(w_rate)
-                d[:, a] = -w_rate[:, b]                                             # −E_ab (y − b)
-                r1, _ = gyro_refit(fit, d)
-                cols.append({c: r1[c] - base[c] for c in base})
+
+        def columns():
+            out = []
+            for a in range(3):
+                for b in range(3):
+                    d = np.zeros_like(w_rate)
+                    d[:, a] = -w_rate[:, b]                                         # −E_ab (y − b)
+                    r1, _ = gyro_refit(fit, d)
+                    out.append({c: r1[c] - base[c] for c in base})
+            return out
+
+        cols = cached_columns(fit, self.name, columns)                              # shared by the folds
         ok = {c: train & np.all(np.isfinite(base[c]), axis=1) for c in base}
         for c in base:
             for col in cols:

@@ -59,14 +59,46 @@ def gyro_refit(fit, d_omega: np.ndarray) -> tuple[dict, np.ndarray]:
 def reintegrate(fit, gyr: np.ndarray) -> np.ndarray:
     """(N, 3, 3) nRb with the fit's keyframes R̂_k fixed and the samples between them integrated from `gyr`
     at the fit's bias (forward from R̂_k, backward from R̂_{k+1}, slerp-blended: as the fit does)."""
-    from imugraph.factors.gyro import keyframe_layout, preintegrate
+    from imugraph.factors.gyro import keyframe_layout
     from imugraph.geometry import quat_to_rotmat
     from imugraph.graphs.orientation_init import sample_orientations
 
     kf, skf = keyframe_layout(fit.n, int(fit.info["stride"]))
-    pre = preintegrate(np.asarray(gyr, float), fit.session.dt, kf, skf, fit.b_gyr_bias,
-                       np.asarray(fit.sigma["gyr"], float))
+    pre = _rotations_only(np.asarray(gyr, float), fit.session.dt, kf, skf, np.asarray(fit.b_gyr_bias, float))
     return quat_to_rotmat(sample_orientations(fit.nRb[kf], pre))
+
+
+def _rotations_only(gyr: np.ndarray, dt: np.ndarray, kf: np.ndarray, skf: np.ndarray, bias: np.ndarray):
+    """The rotation part of imugraph.factors.gyro.preintegrate (no covariance, no bias Jacobian, which
+    `reintegrate` does not use), same layout and same Exp:
+
+        ΔR_{k,j} = Π_{i=s_k}^{j−1} Exp((y_i − b) Δt_i),   ΔR_k = ΔR_{k,s_{k+1}}      (preintegration)
+
+    bias: (3,) or per-sample (N, 3) rad/s, as preintegrate takes it. Returns a Preintegration with
+    kf_samples, sample_kf, kRb and delta_R set (the other fields empty)."""
+    from imugraph.factors.gyro import Preintegration, exp_and_right_jacobian
+
+    n, K = gyr.shape[0], len(kf)
+    rows = bias[None, :] if bias.ndim == 1 else bias[np.minimum(np.arange(n), len(bias) - 1)]  # (3,) or (N, 3)
+    theta = (gyr - rows) * dt[:, None]
+    lengths = np.diff(np.append(kf, n))
+    L = int(lengths.max())
+    pos = np.arange(L)
+    valid = pos[:, None] < lengths[None, :]                            # (L, K)
+    idx = np.where(valid, pos[:, None] + kf[None, :], n)
+    inc, _ = exp_and_right_jacobian(np.concatenate([theta, np.zeros((1, 3))])[idx])   # Exp(0) = I past the end
+    R_at = np.empty((K, L, 3, 3))
+    R = np.broadcast_to(np.eye(3), (K, 3, 3)).copy()
+    for p in range(L):
+        R_at[:, p] = R
+        R = R @ inc[p]
+    if np.all(lengths[:-1] == L):
+        kRb = R_at.reshape(-1, 3, 3)[:n]
+    else:
+        kRb = np.empty((n, 3, 3))
+        kRb[idx.T[valid.T]] = R_at[valid.T]
+    empty = np.zeros((0,))
+    return Preintegration(kf, skf, kRb, R[:-1], empty, empty, empty, empty)
 
 
 def gyro_exact(fit, d_omega: np.ndarray) -> dict:
@@ -107,3 +139,19 @@ def _digest(*arrays) -> str:
     for a in arrays:
         h.update(np.ascontiguousarray(a, float).tobytes())
     return h.hexdigest()
+
+
+_COLUMN_CACHE: dict = {}
+
+
+def cached_columns(fit, tag: str, build):
+    """`build()` cached per (tag, fit object): an effect's Jacobian columns (E1)–(E3) depend on the fit
+    only, not on the training mask, so the cross-validation's folds share them (same numbers, built once).
+    The fit is held in the cache entry so that its id stays unique while the entry lives."""
+    key = (tag, id(fit), id(fit.residuals), id(fit.nRb))
+    hit = _COLUMN_CACHE.get(key)
+    if hit is None or hit[0] is not fit:
+        if len(_COLUMN_CACHE) >= 4:
+            _COLUMN_CACHE.pop(next(iter(_COLUMN_CACHE)))
+        hit = _COLUMN_CACHE[key] = (fit, build())
+    return hit[1]
