@@ -159,3 +159,27 @@ def test_mvnx_errors(tmp_path):
     with pytest.raises(SessionError) as e:
         read_mvnx(p)
     assert "sensorMagneticField" in e.value.field
+
+
+def test_folder_without_skeleton_gets_the_nominal_lower_body(tmp_path):
+    """session.json with "skeleton": null and the 7 lower-body sensors → lower_body(1.75); other sets → clear error."""
+    import json
+    from imugraph.body.skeleton import LOWER_BODY
+    from imugraph.errors import SessionError
+    from imugraph.io.body_session import read_body_session
+    n = 200
+    t = np.arange(n) / 50.0
+    files = {}
+    rng = np.random.default_rng(0)
+    for seg in LOWER_BODY:                      # a sensor at rest with noise (a constant signal looks clipped)
+        e = 0.01 * rng.standard_normal((3, n, 3))
+        np.savez(tmp_path / f"{seg}.npz", t=t, gyr=e[0], acc=[0, 0, 9.81] + e[1], mag=[0.4, 0.0, -0.9] + e[2])
+        files[seg] = f"{seg}.npz"
+    doc = {"format": "imugraph-body", "version": 1, "name": "x", "sensors": files, "skeleton": None}
+    (tmp_path / "session.json").write_text(json.dumps(doc))
+    s = read_body_session(tmp_path)
+    assert s.skeleton is not None and set(s.skeleton.names) == set(LOWER_BODY)
+    doc["sensors"] = {k: v for k, v in list(files.items())[:3]}
+    (tmp_path / "session.json").write_text(json.dumps(doc))
+    with pytest.raises(SessionError, match="skeleton"):
+        read_body_session(tmp_path)

@@ -187,10 +187,24 @@ def read_own_folder(folder: PathLike) -> BodySession:
             raise SessionError(str(folder / str(fname)), "t", f"{s.n} samples differing from the first sensor's",
                                f"the same {t.size} sample times for every sensor")
         sensors[seg] = s
-    skel = None if doc.get("skeleton") is None else skeleton_from_dict(src, doc["skeleton"])
+    skel = default_skeleton(src, sensors) if doc.get("skeleton") is None else skeleton_from_dict(src, doc["skeleton"])
     truth = None if not doc.get("truth") else _read_truth(folder / str(doc["truth"]))
     return BodySession(t=t, sensors=sensors, skeleton=skel, truth=truth, source=str(folder),
                        name=str(doc.get("name", folder.name)), meta=dict(meta))
+
+
+def default_skeleton(src: str, sensors: dict) -> Skeleton:
+    """The nominal (1.75 m) MVN full body when the sensors are its 17 sensed segments, the 7-segment lower
+    body when they are its 7; anything else needs a skeleton in session.json."""
+    from imugraph.body.skeleton import FULL_BODY_SENSED, LOWER_BODY, full_body, lower_body
+
+    names = set(sensors)
+    if names == set(FULL_BODY_SENSED):
+        return full_body(1.75)
+    if names == set(LOWER_BODY):
+        return lower_body(1.75)
+    raise SessionError(src, "skeleton", f"null with sensors {sorted(names)}",
+                       "a skeleton, or exactly the 17 full-body or 7 lower-body MVN segments")
 
 
 def read_body_session(path: PathLike) -> BodySession:
