@@ -46,29 +46,9 @@ from imugraph.graphs.cpp_velocity import (G_KEY, SIGMA_ACC_BIAS_RW, SIGMA_G, SIG
 from imugraph.graphs.orientation_init import sample_orientations, triad
 from imugraph.graphs.stream_calib import OnlineMagCalibration
 from imugraph.graphs.stream_online import OnlineCalibrationMixin
-from imugraph.graphs.stream_options import StreamOptions, StreamStats
+from imugraph.graphs.stream_options import SIGMA_WEAK_POSE, StreamOptions, StreamStats, isam2_thresholds
 
 __all__ = ["StreamOptions", "StreamSmoother", "StreamStats"]
-
-
-# σ of the weak pose prior added with every new keyframe (rad and m: information 1e-6 against ~1e9 of the
-# gyro rows). Without it gtsam's Cholesky throws IndeterminantLinearSystem at EVERY iSAM2 update of this
-# graph (measured on BROAD 01: 1964 of 1964 updates failed, the filtered output was then gyro dead
-# reckoning, 7.4° RMS); any one weakly constrained direction of the new pose suffices, QR works too but
-# is 3× slower. The batch path never saw it: Levenberg–Marquardt's damping regularises the same system.
-SIGMA_WEAK_POSE = 1e3
-
-
-def _thresholds(rot_threshold: float) -> "gtsam.ISAM2ThresholdMap":
-    """Per-type relinearisation thresholds: rotations (and gyro bias, rad/s ÷ 10) at `rot_threshold`;
-    positions never by themselves (they carry no information, see cpp_velocity, and drift freely); velocities
-    at 0.05 m/s. One threshold for all re-linearised ~all variables at every update (positions move)."""
-    m = gtsam.ISAM2ThresholdMap()
-    m.insert(("x", np.r_[np.full(3, rot_threshold), np.full(3, 1e3)]))
-    m.insert(("v", np.full(3, 0.05)))
-    m.insert(("b", np.r_[np.full(3, 1e-3), np.full(3, rot_threshold / 10)]))
-    m.insert(("g", np.full(3, 0.01)))
-    return m
 
 
 def _quat(R: gtsam.Rot3) -> np.ndarray:
@@ -115,7 +95,7 @@ class StreamSmoother(OnlineCalibrationMixin):
         self._g = float(options.g if options.g is not None else g0)
         self._pim_params = gtsam.PreintegrationParams.MakeSharedU(self._g)
         params = gtsam.ISAM2Params()
-        params.setRelinearizeThreshold(_thresholds(options.relinearize_threshold))
+        params.setRelinearizeThreshold(isam2_thresholds(options.relinearize_threshold))
         params.relinearizeSkip = 1
         # check only the variables the update touches (and their ancestors) for relinearisation: the full
         # check computes the whole delta, O(K) per update (measured: 10 ms at 100 keyframes → 0.4 ms)

@@ -4,6 +4,9 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+import gtsam
+import numpy as np
+
 
 @dataclass(frozen=True)
 class StreamOptions:
@@ -79,3 +82,23 @@ class StreamStats:
 
     def counts(self) -> dict:
         return {k: v for k, v in self.__dict__.items() if k != "update_s"}
+
+
+# σ of the weak pose prior added with every new keyframe (rad and m: information 1e-6 against ~1e9 of the
+# gyro rows). Without it gtsam's Cholesky throws IndeterminantLinearSystem at EVERY iSAM2 update of this
+# graph (measured on BROAD 01: 1964 of 1964 updates failed, the filtered output was then gyro dead
+# reckoning, 7.4° RMS); any one weakly constrained direction of the new pose suffices, QR works too but
+# is 3× slower. The batch path never saw it: Levenberg–Marquardt's damping regularises the same system.
+SIGMA_WEAK_POSE = 1e3
+
+
+def isam2_thresholds(rot_threshold: float) -> "gtsam.ISAM2ThresholdMap":
+    """Per-type relinearisation thresholds: rotations (and gyro bias, rad/s ÷ 10) at `rot_threshold`;
+    positions never by themselves (they carry no information, see cpp_velocity, and drift freely); velocities
+    at 0.05 m/s. One threshold for all re-linearised ~all variables at every update (positions move)."""
+    m = gtsam.ISAM2ThresholdMap()
+    m.insert(("x", np.r_[np.full(3, rot_threshold), np.full(3, 1e3)]))
+    m.insert(("v", np.full(3, 0.05)))
+    m.insert(("b", np.r_[np.full(3, 1e-3), np.full(3, rot_threshold / 10)]))
+    m.insert(("g", np.full(3, 0.01)))
+    return m
