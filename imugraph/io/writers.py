@@ -27,10 +27,14 @@ from imugraph.errors import SessionError
 PathLike = Union[str, Path]
 
 
-def _umask() -> int:
+def _read_umask() -> int:
     mask = os.umask(0)
     os.umask(mask)
     return mask
+
+
+# read once at import: os.umask can only be read by setting it, which races with other threads creating files
+_UMASK = _read_umask()
 
 
 def atomic_write_bytes(path: PathLike, data: bytes) -> Path:
@@ -52,7 +56,7 @@ def atomic_write_bytes(path: PathLike, data: bytes) -> Path:
             fh.write(data)
             fh.flush()
             os.fsync(fh.fileno())
-        os.chmod(tmp, 0o666 & ~_umask())          # mkstemp makes 0600; a result file gets the usual mode
+        os.chmod(tmp, 0o666 & ~_UMASK)          # mkstemp makes 0600; a result file gets the usual mode
         os.replace(tmp, target)
     except BaseException:
         if os.path.exists(tmp):
