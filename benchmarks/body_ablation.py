@@ -35,7 +35,8 @@ import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from benchmarks.body_bench import ablation_options, motion_path, simulated_session, summary_row  # noqa: E402
+from benchmarks.body_bench import (SUMMARY_COLUMNS, ablation_options, motion_path, simulated_session,  # noqa: E402
+                                   summary_row)
 from benchmarks.common import print_table  # noqa: E402
 from benchmarks.output import write_json  # noqa: E402
 
@@ -104,8 +105,7 @@ def main(argv=None) -> int:
     if not ok:
         return 1
     print()
-    print_table([r["row"] for r in ok], ["case", "joint_max_deg", "worst_joint", "joint_mean_deg", "pos_rms_cm",
-                                         "pos_worst_cm", "worst_segment", "solve_s"])
+    print_table([r["row"] for r in ok], SUMMARY_COLUMNS)
     payload = {"issue": "4c", "use_mag": a.mag, "tie_unsensed": a.tie, "gyro_bias_walk": a.bias_walk,
                "lower_body": a.lower,
                "duration": a.duration,

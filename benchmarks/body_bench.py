@@ -126,6 +126,11 @@ def ablation_options(variant: str, **base):
     return BodyOptions(**kw), ", ".join(how) or "defaults"
 
 
+# the columns of summary_row's table, in print order
+SUMMARY_COLUMNS = ["case", "joint_max_deg", "worst_joint", "joint_mean_deg", "pos_rms_cm", "pos_worst_cm",
+                   "worst_segment", "solve_s"]
+
+
 def summary_row(label: str, scores: dict, seconds: float) -> dict:
     """One table row: worst and mean joint RMSE (deg), relative position RMS and worst segment (cm), time."""
     j = scores["joints"]

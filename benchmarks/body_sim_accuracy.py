@@ -33,7 +33,8 @@ from pathlib import Path  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from benchmarks.body_bench import MOTIONS, NOISE, motion_path, simulated_session, summary_row  # noqa: E402
+from benchmarks.body_bench import (MOTIONS, NOISE, SUMMARY_COLUMNS, motion_path, simulated_session,  # noqa: E402
+                                   summary_row)
 from benchmarks.common import peak_memory_mb, print_table  # noqa: E402
 from benchmarks.output import write_json  # noqa: E402
 
@@ -102,8 +103,7 @@ def main(argv=None) -> int:
         print("no motion data found")
         return 1
     print()
-    print_table([r["row"] for r in records], ["case", "joint_max_deg", "worst_joint", "joint_mean_deg",
-                                              "pos_rms_cm", "pos_worst_cm", "worst_segment", "solve_s"])
+    print_table([r["row"] for r in records], SUMMARY_COLUMNS)
     joints = sorted({j for r in records for j in r["scores"]["joints"]})
     print()
     print_table([[r["label"]] + [r["scores"]["joints"][j]["all"] if j in r["scores"]["joints"] else "" for j in joints]
