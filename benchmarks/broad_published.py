@@ -2,7 +2,10 @@
 trial), side by side with offline VQF and VQF, scored over `movement` at the best time shift (±3 samples)
 and best constant heading offset. Prints a table and the means; writes bench_out/broad_published.json.
 
-    .venv/bin/python benchmarks/broad_published.py [TRIAL_NUMBERS,...] [--keyframe-hz HZ]
+    .venv/bin/python benchmarks/broad_published.py [TRIAL_NUMBERS,...] [--keyframe-hz HZ] [--opt FIELD=VALUE ...]
+
+--opt sets any field of imugraph.calibration.ml.Options (value as a Python literal), e.g.
+--opt field_sigma=0.015 --opt field_tau=1.0 --opt gyro_map=True.
 """
 
 from __future__ import annotations
@@ -23,11 +26,19 @@ from imugraph.evaluate import orientation_error  # noqa: E402
 
 
 def main(argv: list[str]) -> int:
-    options = Options()
+    import ast
+
+    fields = {}
     if "--keyframe-hz" in argv:
         i = argv.index("--keyframe-hz")
-        options = Options(keyframe_hz=float(argv[i + 1]))
+        fields["keyframe_hz"] = float(argv[i + 1])
         argv = argv[:i] + argv[i + 2:]
+    while "--opt" in argv:
+        i = argv.index("--opt")
+        name, value = argv[i + 1].split("=", 1)
+        fields[name] = ast.literal_eval(value)
+        argv = argv[:i] + argv[i + 2:]
+    options = Options(**fields)
     select = set(argv[0].split(",")) if argv else None
     rows = []
     for path in broad_trials():

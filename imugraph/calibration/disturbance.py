@@ -85,6 +85,7 @@ def detect_windows(t: np.ndarray, m_cal: np.ndarray) -> list[Window]:
 def fit_offsets(windows: list[Window], t: np.ndarray, b_mag: np.ndarray, nRb: np.ndarray, D: np.ndarray,
                 o: np.ndarray, n_mag: np.ndarray, undisturbed_rms: float) -> None:
     """Δo_w for each window given per-sample orientations nRb (N, 3, 3); marks whether it explains it.
+    n_mag: the nav-frame field (3,), or per sample (N, 3) (with a field perturbation, imugraph.factors.field).
 
     Δo_w = median_j (y_j − D bRn_j n_mag − o); explained when the remaining RMS (per axis) is within
     EXPLAINED × the undisturbed RMS and the window lasts at least MIN_OFFSET_S.
@@ -96,7 +97,9 @@ def fit_offsets(windows: list[Window], t: np.ndarray, b_mag: np.ndarray, nRb: np
         if ok.sum() < 10 or t[w.stop - 1] - t[w.start] < MIN_OFFSET_S:
             w.offset, w.explained = None, False
             continue
-        pred = np.einsum("ij,njk,k->ni", D, np.transpose(nRb[sl][ok], (0, 2, 1)), n_mag) + o
+        n = n_mag if np.ndim(n_mag) == 1 else n_mag[sl][ok]          # (3,) or per sample (N, 3)
+        pred = np.einsum("ij,njk,nk->ni", D, np.transpose(nRb[sl][ok], (0, 2, 1)),
+                         np.broadcast_to(n, (int(ok.sum()), 3))) + o
         r = y[ok] - pred
         w.offset = np.median(r, axis=0)
         w.residual_rms = float(np.sqrt(np.mean((r - w.offset) ** 2)))

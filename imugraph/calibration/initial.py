@@ -152,3 +152,25 @@ def initial_calibration(session: Session, check: bool = True,
                            mag_delay_s=delay,
                            noise_method={"gyr": nz["method"], "acc": nz["method"],
                                          "mag": nz["mag_method"]})
+
+
+def weak_initial(session: Session, reason: str):
+    """Initial estimate when D and o are not identifiable: D = median |y|·I, o = 0, dip from the mean
+    angle between field and accelerometer (m̂·û = −sin δ), noise and bias from rest."""
+    from types import SimpleNamespace
+
+    from imugraph.calibration.rest import detect_rest, noise_from_rest
+
+    rest = detect_rest(session)
+    nz = noise_from_rest(session, rest)
+    ok = session.mag_valid
+    y = session.mag[ok]
+    scale = float(np.median(np.linalg.norm(y, axis=1)))
+    u = session.acc[ok] / np.linalg.norm(session.acc[ok], axis=1, keepdims=True)
+    m = y / np.linalg.norm(y, axis=1, keepdims=True)
+    dip = float(np.arcsin(np.clip(-np.median(np.sum(m * u, axis=1)), -1, 1)))
+    return SimpleNamespace(D=scale * np.eye(3), o=np.zeros(3), dip_rad=dip,
+                           gyro_bias=np.asarray(nz["gyro_bias"], float),
+                           noise={k: np.asarray(nz[k], float) for k in ("gyr", "acc", "mag")}, rest=rest,
+                           coverage={"identifiable": False, "problems": [reason],
+                                     "fallback": "regularised around a sphere (D = s·I, o = 0, ±5 %)"})

@@ -28,7 +28,11 @@ from imugraph.factors.velocity import gravity_from_velocity
 from imugraph.geometry import quat_to_rotmat
 from imugraph.factors.theta import THETA_DIM, pack_theta, unpack_theta
 from imugraph.graphs.orientation_init import complementary_keyframes, sample_orientations
-from imugraph.graphs.single_imu import Noise, Problem, VelocityModel, build_problem, keyframe_rotations
+from imugraph.calibration.gyro_map import GyroMapState
+from imugraph.calibration.initial import weak_initial  # noqa: F401  (re-exported: diagnose.fit uses it)
+from imugraph.factors.field import field_key
+from imugraph.graphs.single_imu import (FieldModel, Noise, Problem, VelocityModel, build_problem,
+                                        keyframe_rotations)
 from imugraph.graphs.solver import SolverParams, keyframe_vectors, optimize
 from imugraph.io.session import Session
 
@@ -69,6 +73,14 @@ class Options:
     disturbance_windows: bool = True  # windowed hard-iron offsets (imugraph.calibration.disturbance)
     heading_only_orientation: bool = False  # final orientations with the field as heading only
     #                                        (graphs.heading_block): BROAD mean 1.13° vs 1.06° joint, off
+    field_sigma: float | tuple | None = None  # σ_d (scalar or per nav axis x, y, z), unit field: Gauss–Markov
+    #   nav-field perturbation (factors/field.py). (0.015, 0.003, 0.015) with τ_d = 1 s: BROAD 17-trial mean
+    #   0.99° → 0.83°, 10 → 7 trials behind offline VQF, but worse on 16, 26, 32 (0.61 → 0.84°); left off
+    field_tau: float = 10.0           # τ_d, s: its correlation time
+    gyro_map: bool = False            # gyro scale/misalignment E estimated jointly (calibration/gyro_map.py):
+    #   recovers E in simulation; on BROAD with field_sigma 0.015/τ 1 s: 04 1.74 → 0.48°, 01 1.60 → 0.82°,
+    #   but fast trials worse (06 → 1.62°, 16 → 16°; E pulled to −1 % on 06, cause not found); off
+    gyro_map_sigma: float = 0.02      # prior std of the entries of E
     round_min_samples: int = 8        # ML rounds see every n-th field sample, keeping at least this many
     #                                   per keyframe (the dof correction needs them); the final solve sees all
     round_relative_tol: float | None = 1e-4   # LM stopping tolerance of the ML rounds (None: solver's);
@@ -166,11 +178,14 @@ def calibrate(session: Session, options: Options | None = None, initial=None,
     round_solver = opt.solver if opt.round_relative_tol is None else replace(
         opt.solver, relative_tol=opt.round_relative_tol)
 
+    gyro = GyroMapState(opt.gyro_map_sigma)
+
     def solve_round(bias, noise, nRk, theta, every=1, final=False, values0=None):
         """Preintegrate at the current bias, build the graph, solve it (one round of the ML loop);
         values0: the previous round's solution, which holds exactly nRk, bias, θ and the velocities."""
-        pre = preintegrate(session.gyr, session.dt, kf, skf, _per_sample_bias(bias, seg, skf), noise.gyr,
-                           opt.gyro_rate_error)
+        g_c, b_rows = gyro.corrected(session.gyr), _per_sample_bias(bias, seg, skf)
+        pre = preintegrate(g_c, session.dt, kf, skf, b_rows, noise.gyr, opt.gyro_rate_error)
+        gmap = gyro.model(g_c, session.dt, pre, b_rows) if opt.gyro_map else None
         start = complementary_keyframes(pre, session.acc, m_cal0) if nRk is None else nRk
         velocity = _velocity_model(opt, vel_state)
         g_round = vel_state["g"] or g
@@ -179,9 +194,15 @@ def calibrate(session: Session, options: Options | None = None, initial=None,
                              theta_prior_sigma=theta_sigma, bias_prior_sigma=opt.bias_prior_sigma,
                              acc_kernel=opt.acc_kernel, mag_kernel=opt.mag_kernel,
                              bias_segment=seg, bias_rw_sigma=opt.bias_rw, velocity=velocity, dt=session.dt,
-                             mag_weights=mag_state["w"], values0=values0)
+                             mag_weights=mag_state["w"], values0=values0,
+                             field=None if opt.field_sigma is None else FieldModel(opt.field_sigma, opt.field_tau),
+                             gyro_map=gmap)
         values, info = optimize(prob.graph, prob.blocks, prob.values, prob.ordering,
                                 opt.solver if final else round_solver)
+        if gmap is not None:
+            gyro.fold(values)
+        if prob.block.with_field:      # residuals, noise levels and windows at the solution's field perturbation
+            prob.block.field_offsets = keyframe_vectors(values, field_key, len(kf))
         if velocity is not None:
             vel_state["s"] = keyframe_vectors(values, keys.vel, len(kf))
             vel_state["v"] = vel_state["s"][:, :3]
@@ -225,10 +246,16 @@ def calibrate(session: Session, options: Options | None = None, initial=None,
             # windowed hard iron at the current orientations (linear given them), Kok's o + Δo_w
             D_, o_, dip_ = unpack_theta(theta)
             nRb = _window_rotations(windows, nRk, pre)
-            fit_offsets(windows, session.t, session.mag, nRb, D_, o_, n_mag_from_dip(dip_),
+            n_nav = n_mag_from_dip(dip_)
+            if prob.block.field_offsets is not None:          # n + d_k of each sample's keyframe
+                n_nav = n_nav + prob.block.field_offsets[pre.sample_kf]
+            fit_offsets(windows, session.t, session.mag, nRb, D_, o_, n_nav,
                         float(np.sqrt(np.mean(noise.mag ** 2))))
             mag_state["y"], mag_state["w"] = apply_windows(windows, session.mag)
             history[-1]["windows"] = [w.as_dict(session.t) for w in windows]
+        if opt.gyro_map:
+            history[-1]["gyro_map"] = gyro.E.tolist()
+            change = max(change, gyro.step / 1e-4 * opt.noise_tol)     # E settled to 1e-4
         bias_change = float(np.max(np.linalg.norm(bias_new - bias, axis=1)))
         noise = Noise(new.get("gyr", noise.gyr), new.get("acc", noise.acc), new.get("mag", noise.mag))
         bias = bias_new
@@ -270,7 +297,8 @@ def calibrate(session: Session, options: Options | None = None, initial=None,
                      "acc_bias": (None if vel_state["s"] is None or vel_state["s"].shape[1] < 6
                                   else vel_state["s"][:, 3:].mean(axis=0)),
                      "velocity_sigma": vel_state["sigma"],
-                     "disturbance_windows": [w.as_dict(session.t) for w in windows], "keyframe_samples": kf})
+                     "disturbance_windows": [w.as_dict(session.t) for w in windows], "keyframe_samples": kf,
+                     "field_offsets": prob.block.field_offsets, "gyro_map": gyro.E})
 
 
 def _velocity_model(opt: Options, vel: dict) -> VelocityModel | None:
@@ -347,28 +375,6 @@ def _theta_prior_sigma(theta0: np.ndarray, tight: bool = False) -> np.ndarray:
     s = float(np.cbrt(abs(np.linalg.det(D0)))) or 1.0
     f = 0.05 if tight else 1.0
     return np.concatenate([np.full(9, f * s), np.full(3, 2.0 * f * s), [np.pi / 2]])
-
-
-def weak_initial(session: Session, reason: str):
-    """Initial estimate when D and o are not identifiable: D = median |y|·I, o = 0, dip from the mean
-    angle between field and accelerometer (m̂·û = −sin δ), noise and bias from rest."""
-    from types import SimpleNamespace
-
-    from imugraph.calibration.rest import detect_rest, noise_from_rest
-
-    rest = detect_rest(session)
-    nz = noise_from_rest(session, rest)
-    ok = session.mag_valid
-    y = session.mag[ok]
-    scale = float(np.median(np.linalg.norm(y, axis=1)))
-    u = session.acc[ok] / np.linalg.norm(session.acc[ok], axis=1, keepdims=True)
-    m = y / np.linalg.norm(y, axis=1, keepdims=True)
-    dip = float(np.arcsin(np.clip(-np.median(np.sum(m * u, axis=1)), -1, 1)))
-    return SimpleNamespace(D=scale * np.eye(3), o=np.zeros(3), dip_rad=dip,
-                           gyro_bias=np.asarray(nz["gyro_bias"], float),
-                           noise={k: np.asarray(nz[k], float) for k in ("gyr", "acc", "mag")}, rest=rest,
-                           coverage={"identifiable": False, "problems": [reason],
-                                     "fallback": "regularised around a sphere (D = s·I, o = 0, ±5 %)"})
 
 
 def marginal_covariances(prob: Problem, values: gtsam.Values) -> tuple[np.ndarray, np.ndarray]:

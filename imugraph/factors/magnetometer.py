@@ -61,32 +61,46 @@ def _rotate_back(kRb: np.ndarray, x: np.ndarray) -> np.ndarray:
     return kRb[:, 0, :] * x[:, :1] + kRb[:, 1, :] * x[:, 1:2] + kRb[:, 2, :] * x[:, 2:]
 
 
+def _nav_field(nRk: np.ndarray, dip: float, n_offset: np.ndarray | None) -> np.ndarray:
+    """v_k = R_kᵀ (n_mag(δ) + d_k) (K, 3): the field in each keyframe's body axes, with the optional
+    per-keyframe nav-frame field perturbation d_k (imugraph.factors.field)."""
+    n = n_mag(dip)
+    if n_offset is None:
+        return np.einsum("kji,j->ki", nRk, n)
+    return np.einsum("kji,kj->ki", nRk, n + np.asarray(n_offset, float))
+
+
 def magnetometer_residual(kRb: np.ndarray, kf: np.ndarray, nRk: np.ndarray, theta: np.ndarray,
-                          b_mag: np.ndarray) -> np.ndarray:
-    """Residuals e_j = D ΔR_jᵀ R_kᵀ n_mag(δ) + o − y_j (M, 3) only, keyframe rotations given per keyframe.
+                          b_mag: np.ndarray, n_offset: np.ndarray | None = None) -> np.ndarray:
+    """Residuals e_j = D ΔR_jᵀ R_kᵀ (n_mag(δ) + d_k) + o − y_j (M, 3) only, keyframe rotations given per
+    keyframe.
 
     Args:
         kRb: (M, 3, 3) ΔR_j; kf: (M,) keyframe of each sample; nRk: (K, 3, 3) keyframe orientations;
-        theta: (13,) calibration; b_mag: (M, 3) measured field.
+        theta: (13,) calibration; b_mag: (M, 3) measured field; n_offset: (K, 3) nav-frame field
+        perturbation d_k per keyframe (unit-field units), None: zero.
     """
     D, o, dip = unpack_theta(theta)
-    v = np.einsum("kji,j->ki", nRk, n_mag(dip))                 # v_k = R_kᵀ n   (K, 3)
+    v = _nav_field(nRk, dip, n_offset)                          # v_k = R_kᵀ (n + d_k)   (K, 3)
     u = _rotate_back(kRb, v[kf])                                # u_j = ΔR_jᵀ v_k
     return u @ D.T + o - b_mag
 
 
 def magnetometer_rows(kRb: np.ndarray, kf: np.ndarray, nRk: np.ndarray, theta: np.ndarray,
-                      b_mag: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+                      b_mag: np.ndarray, n_offset: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Unwhitened linearisation of M samples in a form whose per-keyframe Gram is cheap to accumulate.
 
     Returns X (M, 3, 3 + 13 + 1) with columns [D ΔR_jᵀ | ∂e_j/∂θ | e_j] and V (K, 3, 3) = [v_k]×,
     v_k = R_kᵀ n_mag: the rotation Jacobian of sample j is X[j, :, :3] · V[kf_j] (eq. above, ∂e/∂ξ =
     D ΔR_jᵀ [v_k]×), factored so that the 3×3 product is applied once per keyframe, not per sample.
 
+    With a field perturbation d_k (n_offset), v_k = R_kᵀ (n_mag + d_k) and ∂e_j/∂d_k = D ΔR_jᵀ R_kᵀ, i.e.
+    X[j, :, :3] · R_kᵀ (the same left factor as the rotation Jacobian).
+
     Args as `magnetometer_residual`.
     """
     D, o, dip = unpack_theta(theta)
-    v = np.einsum("kji,j->ki", nRk, n_mag(dip))                 # v_k = R_kᵀ n
+    v = _nav_field(nRk, dip, n_offset)                          # v_k = R_kᵀ (n + d_k)
     dv = np.einsum("kji,j->ki", nRk, np.array([-np.sin(dip), 0.0, -np.cos(dip)]))   # R_kᵀ n'(δ)
     m = len(kf)
     u = _rotate_back(kRb, v[kf])                                # u_j = ΔR_jᵀ v_k

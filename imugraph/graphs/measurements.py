@@ -56,6 +56,8 @@ class MeasurementBlock:
     g: float = 9.81
     use_theta: bool = True
     use_acc: bool = True        # False: acc residuals are reported but not in the cost (velocity model)
+    with_field: bool = False    # per-keyframe nav-field perturbation keys d_k (imugraph.factors.field)
+    field_offsets: np.ndarray | None = None   # (K, 3) current d_k, used by every residual/linearisation
     _last: dict = field(default_factory=dict, repr=False)
 
     # ---- residuals -------------------------------------------------------------------------------
@@ -74,7 +76,7 @@ class MeasurementBlock:
         ch = getattr(self, name)
         if name == "acc":
             return accelerometer_residual(ch.kRb, ch.kf, nRk, ch.values, self.g)
-        return magnetometer_residual(ch.kRb, ch.kf, nRk, theta, ch.values)
+        return magnetometer_residual(ch.kRb, ch.kf, nRk, theta, ch.values, self.field_offsets)
 
     def cost(self, nRk: np.ndarray, theta: np.ndarray) -> float:
         """Σ ρ(|r_j|) over both channels (GTSAM's ½|r|² for the quadratic kernel)."""
@@ -99,7 +101,8 @@ class MeasurementBlock:
         kf = ch.kf[rows] - k0
         if name == "acc":
             return accelerometer_rows(ch.kRb[rows], kf, nRk, ch.values[rows], self.g)
-        X, V = magnetometer_rows(ch.kRb[rows], kf, nRk, theta, ch.values[rows])
+        off = None if self.field_offsets is None else self.field_offsets[k0:k0 + len(nRk)]
+        X, V = magnetometer_rows(ch.kRb[rows], kf, nRk, theta, ch.values[rows], off)
         return (X if with_theta else X[:, :, [0, 1, 2, -1]]), V
 
     def channel_gram(self, name: str, nRk: np.ndarray, theta: np.ndarray, with_theta: bool = True):
@@ -162,11 +165,28 @@ class MeasurementBlock:
             a11, _, _, a1, _, af = self.channel_blocks("acc", nRk, theta, with_theta=False)
             G11 += a11; g1 += a1; f += af
         if self.mag is not None:
-            m11, m12, m22, m1, m2, mf = self.channel_blocks("mag", nRk, theta, with_theta=self.use_theta)
+            Gm, V = self.channel_gram("mag", nRk, theta, with_theta=self.use_theta)
+            m11, m12, m22, m1, m2, mf = self._blocks(Gm, V)
             G11 += m11; g1 += m1; f += mf
             if self.use_theta:
                 G12 += m12; G22 += m22; g2 += m2
+            if self.with_field:
+                self._last["field"] = self._field_blocks(Gm, V, nRk)
         return G11, G12, G22, g1, g2, f
+
+    @staticmethod
+    def _field_blocks(G: np.ndarray, V: np.ndarray, nRk: np.ndarray):
+        """Normal-equation blocks of the field perturbation d_k from the magnetometer Gram (J_d = J' R_kᵀ,
+        imugraph.factors.field): G_Rd = Vᵀ G'₀₀ R_kᵀ, G_θd = G'_θ₀ R_kᵀ, G_dd = R_k G'₀₀ R_kᵀ,
+        g_d = −R_k Σ J'ᵀ r. Returns G_Rd (K,3,3), G_θd (K,13,3) or None, G_dd (K,3,3), g_d (K,3)."""
+        Vt = np.transpose(V, (0, 2, 1))
+        kRn = np.transpose(nRk, (0, 2, 1))
+        G00 = G[:, :3, :3]
+        G_Rd = Vt @ G00 @ kRn
+        G_dd = nRk @ G00 @ kRn
+        g_d = -(nRk @ G[:, :3, -1:])[:, :, 0]
+        G_td = None if G.shape[2] == 4 else np.transpose(G[:, :3, 3:-1], (0, 2, 1)) @ kRn
+        return G_Rd, G_td, G_dd, g_d
 
     def linear_factors(self, nRk: np.ndarray, theta: np.ndarray) -> gtsam.GaussianFactorGraph:
         """A GaussianFactorGraph with one HessianFactor per keyframe (two keys when θ is estimated)."""
@@ -174,11 +194,27 @@ class MeasurementBlock:
         gfg = gtsam.GaussianFactorGraph()
         two = self.use_theta and self.mag is not None
         rot = state_keys(keys.rot, self.n_keyframes)
+        if self.with_field and self.mag is not None:
+            return self._field_factors(gfg, rot, two, G11, G12, G22, g1, g2, f)
         for k in range(self.n_keyframes):
             if two:
                 gfg.push_back(gtsam.HessianFactor(rot[k], keys.CALIB, G11[k], G12[k], g1[k], G22[k], g2[k], f[k]))
             else:
                 gfg.push_back(gtsam.HessianFactor(rot[k], G11[k], g1[k], f[k]))
+        return gfg
+
+    def _field_factors(self, gfg, rot, two, G11, G12, G22, g1, g2, f):
+        """One HessianFactor per keyframe on (R_k, θ, d_k), or (R_k, d_k) when θ is fixed."""
+        from imugraph.factors.field import field_key
+
+        G_Rd, G_td, G_dd, g_d = self._last.pop("field")
+        for k in range(self.n_keyframes):
+            if two:
+                gfg.push_back(gtsam.HessianFactor(rot[k], keys.CALIB, field_key(k), G11[k], G12[k], G_Rd[k], g1[k],
+                                                  G22[k], G_td[k], g2[k], G_dd[k], g_d[k], f[k]))
+            else:
+                gfg.push_back(gtsam.HessianFactor(rot[k], field_key(k), G11[k], G_Rd[k], g1[k], G_dd[k], g_d[k],
+                                                  f[k]))
         return gfg
 
 

@@ -18,7 +18,7 @@ from imugraph.factors.gyro import Preintegration, ahrs_factors
 from imugraph.factors.robust import QUADRATIC, Kernel
 from imugraph.factors.theta import THETA_DIM
 from imugraph.graphs.measurements import ChannelData, MeasurementBlock
-from imugraph.graphs.solver import chain_ordering, keyframe_rotations  # noqa: F401  (re-exported)
+from imugraph.graphs.solver import chain_ordering, keyframe_rotations, keyframe_vectors  # noqa: F401
 from imugraph.graphs.velocity_block import VelocityBlock
 
 
@@ -44,6 +44,9 @@ class BlockAdapter:
     def _state(self, values: gtsam.Values):
         nRk = keyframe_rotations(values, self.block.n_keyframes)
         theta = self.theta_fixed if self.theta_fixed is not None else values.atVector(keys.CALIB)
+        if self.block.with_field:      # the block reads the field perturbation of the Values it evaluates
+            from imugraph.factors.field import field_key
+            self.block.field_offsets = keyframe_vectors(values, field_key, self.block.n_keyframes)
         return nRk, theta
 
     def cost(self, values: gtsam.Values) -> float:
@@ -88,6 +91,26 @@ class VelocityModel:
 
 
 @dataclass
+class FieldModel:
+    """Slowly varying nav-field perturbation (imugraph.factors.field): stationary std sigma (unit-field
+    units, 0.01 ≈ 0.6°; scalar or (3,) per nav axis), correlation time tau, s; d0: (K, 3) initial values."""
+
+    sigma: float | tuple = 0.015
+    tau: float = 10.0
+    d0: np.ndarray | None = None
+
+
+@dataclass
+class GyroMapModel:
+    """Gyro scale/misalignment in the graph (imugraph.calibration.gyro_map): C (K−1, 3, 9) equivalent-bias
+    maps at the current preintegration, e_now (9,) the Ê already applied, sigma_e prior std of E's entries."""
+
+    C: np.ndarray
+    e_now: np.ndarray
+    sigma_e: float = 0.02
+
+
+@dataclass
 class Problem:
     graph: gtsam.NonlinearFactorGraph
     blocks: list
@@ -105,7 +128,8 @@ def build_problem(pre: Preintegration, b_acc: np.ndarray, b_mag: np.ndarray, noi
                   estimate_theta: bool = True, mag_weights=None,
                   bias_segment: np.ndarray | None = None, bias_rw_sigma: float = 0.0,
                   velocity: VelocityModel | None = None, dt: np.ndarray | None = None,
-                  values0: gtsam.Values | None = None) -> Problem:
+                  values0: gtsam.Values | None = None, field: FieldModel | None = None,
+                  gyro_map: GyroMapModel | None = None) -> Problem:
     """Assemble the graph for a keyframe layout.
 
     Args:
@@ -121,13 +145,19 @@ def build_problem(pre: Preintegration, b_acc: np.ndarray, b_mag: np.ndarray, noi
         values0: initial Values already holding every state of this layout (R, B, V and θ keys, e.g. the
         previous solution of the same problem): used as they are instead of inserting nRk0, bias0, v0,
         theta0 (which still centre the priors).
+        field: estimate a per-keyframe nav-field perturbation with a Gauss–Markov prior (FieldModel).
+        gyro_map: estimate the gyro scale/misalignment E jointly (GyroMapModel; each gyro factor then reads
+        its own bias key β_k, tied to the segment bias and E by graphs.gyro_map_block).
     """
     K = len(pre.kf_samples)
     graph = gtsam.NonlinearFactorGraph()
     seg = np.zeros(max(K - 1, 0), int) if bias_segment is None else np.asarray(bias_segment, int)
     bias0 = np.atleast_2d(np.asarray(bias0, float))
     n_seg = int(seg.max()) + 1 if len(seg) else 1
-    for f in ahrs_factors(pre, keys.rot, lambda i: keys.bias(seg[i]), noise.gyr):
+    if gyro_map is not None:
+        from imugraph.graphs.gyro_map_block import E_KEY, GyroMapBlock, beta_key
+    gyro_key = beta_key if gyro_map is not None else (lambda i: keys.bias(seg[i]))
+    for f in ahrs_factors(pre, keys.rot, gyro_key, noise.gyr):
         graph.add(f)
     fill = values0 is None
     values = gtsam.Values() if fill else values0
@@ -143,6 +173,15 @@ def build_problem(pre: Preintegration, b_acc: np.ndarray, b_mag: np.ndarray, noi
         graph.add(gtsam.PriorFactorVector(keys.bias(i), b_i, prior))
         if i > 0:
             graph.add(gtsam.BetweenFactorVector(keys.bias(i - 1), keys.bias(i), np.zeros(3), rw))
+    gblock = None
+    if gyro_map is not None:         # β_k = b_s(k) and e = 0 at the start of every solve (Ê is in `pre`)
+        gblock = GyroMapBlock(gyro_map.C, seg, keys.bias, np.asarray(gyro_map.e_now, float), gyro_map.sigma_e)
+        starts = [(beta_key(k), values.atVector(keys.bias(int(seg[k])))) for k in range(K - 1)]
+        for key, val in starts + [(E_KEY, np.zeros(9))]:
+            if values.exists(key):
+                values.update(key, val)
+            else:
+                values.insert(key, val)
     # interleave each bias segment after its keyframes: fill-in stays local
     vblock = None
     if velocity is not None:
@@ -159,11 +198,22 @@ def build_problem(pre: Preintegration, b_acc: np.ndarray, b_mag: np.ndarray, noi
         v0 = np.zeros((K, vblock.state_dim)) if velocity.v0 is None else velocity.v0
         for k in range(K if fill else 0):
             values.insert(keys.vel(k), np.asarray(v0[k], float))
+    fblock = None
+    if field is not None and theta0 is not None:
+        from imugraph.factors.field import field_key
+        from imugraph.graphs.field_block import FieldBlock
+        fblock = FieldBlock(pre.dt, field.sigma, field.tau)
+        for k in range(K if fill else 0):
+            values.insert(field_key(k), np.zeros(3) if field.d0 is None else np.asarray(field.d0[k], float))
     order = []
     for k in range(K):
         order.append(keys.rot(k))
         if vblock is not None:
             order.append(keys.vel(k))
+        if fblock is not None:
+            order.append(field_key(k))
+        if gblock is not None and k < K - 1:
+            order.append(beta_key(k))
         if k < K - 1 and (k == K - 2 or seg[k + 1] != seg[k]):
             order.append(keys.bias(seg[k]))
     if K == 1:
@@ -181,8 +231,10 @@ def build_problem(pre: Preintegration, b_acc: np.ndarray, b_mag: np.ndarray, noi
         n_keyframes=K,
         acc=channel(pre, b_acc, noise.acc, acc_kernel),
         mag=channel(pre, b_mag, noise.mag, mag_kernel, mag_weights) if theta0 is not None else None,
-        g=g, use_theta=use_theta, use_acc=vblock is None)
+        g=g, use_theta=use_theta, use_acc=vblock is None, with_field=fblock is not None)
     adapter = BlockAdapter(block, None if use_theta else (None if theta0 is None else np.asarray(theta0)))
+    if gblock is not None:
+        global_keys.append(E_KEY)
     ordering = chain_ordering(order, global_keys)
-    blocks = [adapter] + ([vblock] if vblock is not None else [])
+    blocks = [adapter] + [b for b in (vblock, fblock, gblock) if b is not None]
     return Problem(graph, blocks, values, ordering, block, order + global_keys, vblock)

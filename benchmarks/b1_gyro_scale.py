@@ -1,0 +1,73 @@
+"""B1 (issue 2c): does a gyro scale/misalignment error explain the gap? Fit ω_true = M·ω_meas − b against a
+reference orientation (relative rotations over h-sample windows, small-angle linear LS), correct the gyro
+with M and run the calibration again.
+
+    .venv/bin/python benchmarks/b1_gyro_scale.py 01,04 [opt|self] [--opt field=value ...]
+
+opt: M from the optical reference (known-good gyro calibration); self: M from our own estimate, iterated.
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from benchmarks.b1_try import parse_opts, vqf_cached  # noqa: E402
+from benchmarks.common import broad_trials, load_broad_trial  # noqa: E402
+from imugraph.calibration.ml import Options, calibrate  # noqa: E402
+from imugraph.evaluate import heading_error, inclination_error, orientation_error  # noqa: E402
+from dataclasses import replace  # noqa: E402
+
+
+def fit_gyro_map(gyr: np.ndarray, quat: np.ndarray, rate: float, h: int = 29, lag: int = 0):
+    """(M, c): log(R_aᵀR_{a+h}) ≈ M·Σω dt + c·h/rate over windows with a finite reference."""
+    from scipy.spatial.transform import Rotation as Rot
+    good = np.all(np.isfinite(quat), 1)
+    a = np.flatnonzero(good[:-h] & good[h:])
+    a = a[(a + h + lag < len(gyr)) & (a + lag >= 0)]
+    Ra = Rot.from_quat(np.c_[quat[a][:, 1:], quat[a][:, :1]])
+    Rb = Rot.from_quat(np.c_[quat[a + h][:, 1:], quat[a + h][:, :1]])
+    rel = (Ra.inv() * Rb).as_rotvec()
+    cs = np.cumsum(np.r_[np.zeros((1, 3)), gyr / rate], axis=0)
+    integ = cs[a + h + lag] - cs[a + lag]
+    X = np.c_[integ, np.full(len(a), h / rate)]
+    G, *_ = np.linalg.lstsq(X, rel, rcond=None)
+    return G[:3].T, G[3]
+
+
+def main(argv):
+    kw, argv = parse_opts(argv)
+    select = set(argv[0].split(",")) if argv else None
+    mode = argv[1] if len(argv) > 1 else "opt"
+    for path in broad_trials():
+        num = path.name[:2]
+        if select and num not in select:
+            continue
+        s = load_broad_trial(path)
+        mask = s.movement.astype(bool)
+        qv = vqf_cached(num, s)
+        M_total = np.eye(3)
+        rounds = 1 if mode == "opt" else 3
+        for r in range(rounds):
+            if mode == "opt":
+                M, _ = fit_gyro_map(s.gyr, s.quat, s.rate, lag=1)
+            else:
+                est = calibrate(replace(s, gyr=s.gyr @ M_total.T), Options(**kw), allow_weak=True)
+                M, _ = fit_gyro_map(s.gyr @ M_total.T, est.quat, s.rate)
+                o_ = [f(est.quat, s.quat, mask, s.rate).rms_deg for f in (orientation_error, inclination_error, heading_error)]
+                print(f"  {num} self round {r}: {o_[0]:.3f} (incl {o_[1]:.2f} head {o_[2]:.2f}); M diag {np.diag(M).round(4)}")
+            M_total = M @ M_total
+        est = calibrate(replace(s, gyr=s.gyr @ M_total.T), Options(**kw), allow_weak=True)
+        o_ = [f(est.quat, s.quat, mask, s.rate).rms_deg for f in (orientation_error, inclination_error, heading_error)]
+        v = [f(qv, s.quat, mask, s.rate).rms_deg for f in (orientation_error, inclination_error, heading_error)]
+        print(f"{num} gyro M from {mode}: ours {o_[0]:.3f} (incl {o_[1]:.2f} head {o_[2]:.2f})  offVQF {v[0]:.3f} "
+              f"(incl {v[1]:.2f} head {v[2]:.2f})  M {M_total.round(4).tolist()}", flush=True)
+        np.save(f"/tmp/b1/ours_{num}_gyroM_{mode}.npy", est.quat)
+
+
+if __name__ == "__main__":
+    main(sys.argv[1:])

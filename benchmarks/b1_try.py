@@ -1,0 +1,85 @@
+"""B1 (issue 2c): score one Options variant on chosen BROAD trials against cached offline VQF: total,
+inclination and heading RMS, the estimated dip and the mean nav-frame tilt error (deg).
+
+    .venv/bin/python benchmarks/b1_try.py 01,04 --opt velocity_sigma=0.1 [--opt ...]
+"""
+
+from __future__ import annotations
+
+import ast
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from benchmarks.common import broad_trials, load_broad_trial  # noqa: E402
+from benchmarks.peers import vqf_offline  # noqa: E402
+from imugraph.calibration.ml import Options, calibrate  # noqa: E402
+from imugraph.evaluate import _align, heading_error, inclination_error, orientation_error  # noqa: E402
+
+CACHE = Path("/tmp/b1")
+TAG = "last"
+
+
+def parse_opts(argv):
+    kw = {}
+    while "--opt" in argv:
+        i = argv.index("--opt")
+        k, v = argv[i + 1].split("=", 1)
+        kw[k] = ast.literal_eval(v)
+        argv = argv[:i] + argv[i + 2:]
+    return kw, argv
+
+
+def nav_tilt_mean(q, s, mask):
+    from scipy.spatial.transform import Rotation as Rot
+    al = _align(q, s.quat, mask, 3.0, 0.25, True)
+    e = Rot.from_quat(np.c_[al.q_err.T[:, 1:], al.q_err.T[:, :1]]).as_rotvec()
+    return np.rad2deg(e.mean(0)[:2]), np.rad2deg(e.std(0)[:2])
+
+
+def vqf_cached(num, s):
+    f = CACHE / f"vqf_{num}.npy"
+    if f.is_file():
+        return np.load(f)
+    q = vqf_offline(s)
+    CACHE.mkdir(exist_ok=True)
+    np.save(f, q)
+    return q
+
+
+def main(argv):
+    global TAG
+    kw, argv = parse_opts(argv)
+    if "--tag" in argv:
+        i = argv.index("--tag"); TAG = argv[i + 1]; argv = argv[:i] + argv[i + 2:]
+    select = set(argv[0].split(",")) if argv else None
+    tot = []
+    for path in broad_trials():
+        num = path.name[:2]
+        if select and num not in select:
+            continue
+        s = load_broad_trial(path)
+        mask = s.movement.astype(bool)
+        t0 = time.perf_counter()
+        est = calibrate(s, Options(**kw), allow_weak=True)
+        dt = time.perf_counter() - t0
+        qv = vqf_cached(num, s)
+        o = [f(est.quat, s.quat, mask, s.rate).rms_deg for f in (orientation_error, inclination_error, heading_error)]
+        v = [f(qv, s.quat, mask, s.rate).rms_deg for f in (orientation_error, inclination_error, heading_error)]
+        m, sd = nav_tilt_mean(est.quat, s, mask)
+        tot.append((o[0], v[0]))
+        print(f"{num} ours {o[0]:.3f} (incl {o[1]:.2f} head {o[2]:.2f})  offVQF {v[0]:.3f} (incl {v[1]:.2f} head "
+              f"{v[2]:.2f})  dip {est.calibration.dip_deg:.2f}  tiltE/N mean {m.round(2)} std {sd.round(2)} "
+              f"g {est.info['g']:.4f} {dt:.1f}s", flush=True)
+        np.save(CACHE / f"ours_{num}_{TAG}.npy", est.quat)
+    a = np.array(tot)
+    print(f"mean ours {a[:, 0].mean():.3f} offVQF {a[:, 1].mean():.3f} ratio {a[:, 0].mean() / a[:, 1].mean():.3f} "
+          f"worse {int(np.sum(a[:, 0] > a[:, 1]))}/{len(a)}  opts {kw}")
+
+
+if __name__ == "__main__":
+    main(sys.argv[1:])

@@ -1,0 +1,95 @@
+"""Gyroscope scale factor and axis misalignment E, estimated jointly with the orientations.
+
+Model: the corrected rate is ω = (I + E)·b_gyr − b (E: 3×3, small; e = vec E row-major). The ML loop
+preintegrates the gyro corrected by its current Ê; within a solve, a change δe moves every preintegrated
+rotation to first order as (same recursion as the bias Jacobian, Forster et al. 2017 eq. 44, with the
+rate error δω_j = δE·b_gyr,j = W_j δe, W_j = I₃ ⊗ b_gyr,jᵀ):
+
+    ΔR_k(δb, δe) ≈ ΔR_k · Exp(∂ΔR_k/∂b · δb + ∂ΔR_k/∂e · δe),
+    ∂ΔR_k/∂e = ΔR_kᵀ Σ_j kRb_j Exp(θ_j) J_r(θ_j) Δt_j W_j      (θ_j = (ω_j − b̂) Δt_j; the bias Jacobian is
+                                                                 the same sum with −I in place of W_j)
+
+So a change of E acts on interval k exactly like a bias change β_k − b = C_k δe, C_k = (∂ΔR_k/∂b)⁻¹ ∂ΔR_k/∂e.
+The graph gives each gyro factor its own bias key β_k tied to the segment bias and E by the linear
+constraint β_k = b_s(k) + C_k e (σ_c tiny): the C++ AHRSFactor stays, and E is estimated jointly
+(graphs/gyro_map_block.py), not by alternation (which converged at ~0.8 per round on BROAD).
+
+Why (BROAD, measured): fitting ω_opt = M·ω_meas against the optical orientation on the slow rotation
+trials gives M − I of 0.2–0.7 % (trial 04: M_zz = 1.0031, M_zy = −0.0070) with 7–11 net turns about the
+vertical: 8–12° of heading the gyro gets wrong. A strongly weighted magnetometer hides it by bending the
+gyro bias (segments spanning 0.9 °/s on trial 01, against ≈ 0.07 °/s from the optical fit). Correcting the
+gyro with the optical M: heading RMS 1.34 → 0.94° (01), 1.15 → 0.38° (04).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from imugraph.factors.gyro import Preintegration, exp_and_right_jacobian, preintegrate
+
+
+def map_jacobian(b_gyr: np.ndarray, dt: np.ndarray, pre: Preintegration, bias_rows: np.ndarray) -> np.ndarray:
+    """∂Log(ΔR_k)/∂e (K−1, 3, 9) of each keyframe interval (formula in the module docstring).
+
+    Args:
+        b_gyr: (N, 3) the gyro as preintegrated (already corrected by Ê), rad/s; dt: (N,) steps, s;
+        pre: the preintegration of b_gyr; bias_rows: (N, 3) bias used for each sample.
+    """
+    theta = (b_gyr - bias_rows) * dt[:, None]
+    exp, jr = exp_and_right_jacobian(theta)
+    P = pre.kRb @ exp @ jr * dt[:, None, None]                     # kRb_j Exp(θ_j) J_r(θ_j) Δt_j
+    PW = (P[:, :, :, None] * b_gyr[:, None, None, :]).reshape(-1, 3, 9)   # · (I₃ ⊗ ωᵀ)
+    K = len(pre.kf_samples)
+    S = np.zeros((K, 3, 9))
+    np.add.at(S, pre.sample_kf, PW)
+    return np.transpose(pre.delta_R, (0, 2, 1)) @ S[:-1]
+
+
+def map_jacobian_numeric(b_gyr: np.ndarray, dt: np.ndarray, pre: Preintegration, bias_rows: np.ndarray,
+                         eps: float = 1e-6) -> np.ndarray:
+    """Central differences of the preintegration w.r.t. e (reference for tests)."""
+    from scipy.spatial.transform import Rotation
+
+    out = np.zeros((len(pre.delta_R), 3, 9))
+    zero = np.zeros(3)
+    for i in range(9):
+        Em = np.zeros(9)
+        Em[i] = eps
+        Em = Em.reshape(3, 3)
+        plus = preintegrate(b_gyr + b_gyr @ Em.T, dt, pre.kf_samples, pre.sample_kf, bias_rows, zero).delta_R
+        minus = preintegrate(b_gyr - b_gyr @ Em.T, dt, pre.kf_samples, pre.sample_kf, bias_rows, zero).delta_R
+        out[:, :, i] = Rotation.from_matrix(np.einsum("kji,kjl->kil", minus, plus)).as_rotvec() / (2 * eps)
+    return out
+
+
+def equivalent_bias_map(pre: Preintegration, dR_de: np.ndarray) -> np.ndarray:
+    """C_k = (∂ΔR_k/∂b)⁻¹ ∂ΔR_k/∂e (K−1, 3, 9): the bias change that moves ΔR_k as δe does."""
+    return np.linalg.solve(pre.dR_db, dR_de)
+
+
+class GyroMapState:
+    """The Ê applied to the gyro between the rounds of the ML loop (calibration/ml.py), and its last step."""
+
+    def __init__(self, sigma_e: float):
+        self.E = np.zeros((3, 3))
+        self.step = 0.0
+        self.sigma_e = sigma_e
+
+    def corrected(self, b_gyr: np.ndarray) -> np.ndarray:
+        """(I + Ê) b_gyr."""
+        return b_gyr + b_gyr @ self.E.T
+
+    def model(self, g_c: np.ndarray, dt: np.ndarray, pre: Preintegration, bias_rows: np.ndarray):
+        """The graph's GyroMapModel at this preintegration (g_c: the corrected gyro it integrated)."""
+        from imugraph.graphs.single_imu import GyroMapModel
+
+        return GyroMapModel(equivalent_bias_map(pre, map_jacobian(g_c, dt, pre, bias_rows)), self.E.ravel(),
+                            self.sigma_e)
+
+    def fold(self, values) -> None:
+        """Ê ← Ê + δE from a solution (the next preintegration applies it; the graph restarts at δE = 0)."""
+        from imugraph.graphs.gyro_map_block import E_KEY
+
+        d_e = values.atVector(E_KEY)
+        self.E = self.E + d_e.reshape(3, 3)
+        self.step = float(np.max(np.abs(d_e)))
