@@ -76,7 +76,7 @@ def test_fixed_lag_close_to_batch(case):
     """A 2 s window sees the next 2 s of data for every keyframe (> the 2 s velocity correlation time):
     its smoothed output is within a fraction of a degree of the full batch solution."""
     session, cal, batch, batch_err = case
-    r = stream_session(session, cal, StreamOptions(lag_s=2.0, online_calibration=False))
+    r = stream_session(session, cal, StreamOptions(lag_s=2.0, online_calibration=False, fixed_lag_solver="batch"))
     assert _err(r.smoothed, batch, align=False) < 0.5
     assert _err(r.smoothed, session.quat) < batch_err + 0.2
     assert r.counts["failed_updates"] == 0

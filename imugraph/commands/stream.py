@@ -1,6 +1,7 @@
 """`imugraph stream SESSION`: the session fed sample by sample, in arrival order, to iSAM2 (or a fixed-lag
 smoother with --lag), starting from a short batch bootstrap calibration (or --calibration FILE) that is
-re-estimated online (held fixed with `--fixed-calibration` when the parser offers it).
+re-estimated online (held fixed with `--fixed-calibration` when the parser offers it; `--lag-solver
+batch` selects gtsam's BatchFixedLagSmoother instead of the IncrementalFixedLagSmoother for --lag, likewise).
 
 Writes (DESIGN.md): orientation.npz (smoothed, at the end), orientation_filtered.npz (the estimate available
 when each sample arrived), calibration.json (the calibration at the end), calibration_history.json (the
@@ -31,7 +32,8 @@ def run_stream(args: argparse.Namespace) -> int:
     path = common.resolve_session_path(args.session, args.data_dir)
     session = common.load(path, progress)
     out = common.out_dir_for(args.out, Path(path).stem)
-    options = StreamOptions(keyframe_hz=args.keyframe_hz, lag_s=args.lag,
+    lag_solver = getattr(args, "lag_solver", None) or "incremental"   # `--lag-solver` when the parser offers it
+    options = StreamOptions(keyframe_hz=args.keyframe_hz, lag_s=args.lag, fixed_lag_solver=lag_solver,
                             online_calibration=not getattr(args, "fixed_calibration", False))
     with progress.library_output():
         result = stream_session(session, cal, options, bootstrap_s=args.bootstrap_s, say=progress.say)
@@ -41,7 +43,7 @@ def run_stream(args: argparse.Namespace) -> int:
     history = {"start": result.start_calibration.to_dict(), "calibration_history": result.calibration_history}
     atomic_write_text(out / "calibration_history.json", json.dumps(json_ready(history), indent=2))
     timing = dict(result.timing, bootstrap_samples=result.bootstrap_samples, counts=result.counts,
-                  solver="isam2" if args.lag is None else f"fixed_lag {args.lag:g} s")
+                  solver="isam2" if args.lag is None else f"fixed_lag {args.lag:g} s ({lag_solver})")
     atomic_write_text(out / "timing.json", json.dumps(timing, indent=2))
     progress.say(f"wrote {out}/orientation.npz, orientation_filtered.npz, calibration.json, "
                  "calibration_history.json, timing.json")

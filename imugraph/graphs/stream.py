@@ -1,5 +1,6 @@
 """Incremental orientation with a known calibration: the graph of `cpp_smoother.smooth_fixed` ("velocity"),
-built keyframe by keyframe and solved by iSAM2 (or gtsam's BatchFixedLagSmoother with a lag).
+built keyframe by keyframe and solved by iSAM2 (or, with a lag, gtsam's IncrementalFixedLagSmoother or
+BatchFixedLagSmoother).
 
 One model, two solvers: every closed keyframe interval k → k+1 adds exactly the factors the batch graph
 holds for it (imugraph.graphs.cpp_velocity) — the two split super-sample `ImuFactor`s (gyro rows, Huber
@@ -27,7 +28,9 @@ estimated with the orientations.
 
 from __future__ import annotations
 
+import math
 import time
+from array import array
 from collections import deque
 from dataclasses import replace
 
@@ -37,12 +40,12 @@ import numpy as np
 from imugraph import keys
 from imugraph.calibration.result import Calibration
 from imugraph.errors import SessionError
-from imugraph.factors.gyro import Preintegration, preintegrate
-from imugraph.factors.velocity import velocity_increments
-from imugraph.geometry import rotmat_to_quat
+from imugraph.factors.gyro import Preintegration
 from imugraph.graphs.cpp_velocity import (G_KEY, SIGMA_ACC_BIAS_RW, SIGMA_G, SIGMA_POS, gauss_markov_factors,
                                           imu_bias_key, pose_key, split_noise, super_sample_pim,
                                           super_samples)
+from imugraph.graphs.stream_interval import (NAN3 as _NAN3, Q_ID, ArrivalMixin, gauss_markov_factor,
+                                             interval_preintegration, qmul, qpos, qstep, row3 as _row3)
 from imugraph.graphs.orientation_init import sample_orientations, triad
 from imugraph.graphs.stream_calib import OnlineMagCalibration
 from imugraph.graphs.stream_online import OnlineCalibrationMixin
@@ -58,7 +61,7 @@ def _quat(R: gtsam.Rot3) -> np.ndarray:
     return -out if out[0] < 0 else out
 
 
-class StreamSmoother(OnlineCalibrationMixin):
+class StreamSmoother(OnlineCalibrationMixin, ArrivalMixin):
     """Push samples in arrival order; get the filtered orientation of each at once, the smoothed ones at the end.
 
     Args:
@@ -95,6 +98,9 @@ class StreamSmoother(OnlineCalibrationMixin):
         self._g = float(options.g if options.g is not None else g0)
         self._pim_params = gtsam.PreintegrationParams.MakeSharedU(self._g)
         params = gtsam.ISAM2Params()
+        if options.factorization not in ("QR", "CHOLESKY"):
+            raise SessionError("stream", "factorization", repr(options.factorization), '"QR" or "CHOLESKY"')
+        params.setFactorization(options.factorization)        # QR: see StreamOptions.factorization
         params.setRelinearizeThreshold(isam2_thresholds(options.relinearize_threshold))
         params.relinearizeSkip = 1
         # check only the variables the update touches (and their ancestors) for relinearisation: the full
@@ -103,8 +109,9 @@ class StreamSmoother(OnlineCalibrationMixin):
         if options.lag_s is None:
             self._solver = gtsam.ISAM2(params)
         else:
-            # default BatchFixedLagSmoother: gtsam's IncrementalFixedLagSmoother fails to marginalise a key that sits
-            # inside a clique (borglab/gtsam #1638, #1680; seen here on BROAD 01: "key 'x0' has no clique")
+            # default IncrementalFixedLagSmoother (StreamOptions.fixed_lag_solver): no failed update on the 17 BROAD
+            # trials; gtsam issues #1638/#1680 (a key inside a clique not marginalised) were once seen on BROAD 01
+            # with an earlier graph: a failed update is counted and the prediction kept, never a crash
             self._solver = (gtsam.IncrementalFixedLagSmoother(float(options.lag_s), params)
                             if options.fixed_lag_solver == "incremental" else gtsam.BatchFixedLagSmoother(float(options.lag_s)))
         self._weak_pose = gtsam.noiseModel.Isotropic.Sigma(6, SIGMA_WEAK_POSE)
@@ -112,16 +119,18 @@ class StreamSmoother(OnlineCalibrationMixin):
         self._k = 0                          # index of the open interval's keyframe
         self._t0 = None                      # time of keyframe 0
         self._t_last = -np.inf
-        self._kf_t: list = []                # keyframe times
+        self._kf_t = array("d")              # keyframe times (8 bytes each)
         self._nRk = None                     # latest estimate of keyframe k's rotation
         self._v = self._p = np.zeros(3)      # latest estimates of keyframe k's velocity and position
         self._seg = -1                       # newest bias segment
-        self._kRb_open = gtsam.Rot3()        # gyro-integrated rotation of the newest sample in keyframe k
+        self._q_open = Q_ID                  # gyro-integrated kRb of the newest sample in keyframe k (floats)
+        self._q_nk = None                    # latest estimate of keyframe k's nRb as floats (w, x, y, z)
         self._hist_kRb: list = []            # per closed interval: (n, 3, 3) kRb, and ΔR
         self._hist_dR: list = []
         self._hist_t: list = []
         self._smoothed_kf: dict = {}         # fixed lag: keyframe → last estimate inside the window
         self._b_gyr_est = None               # latest gyro-bias estimate (None: the calibration's)
+        self._b_now = tuple(float(v) for v in self._b_hat)     # the same as floats, for the filtered output
         self._finished = False
 
     # ------------------------------------------------------------------ arrival
@@ -129,126 +138,94 @@ class StreamSmoother(OnlineCalibrationMixin):
         """Add one sample; returns the filtered orientation nRb (4,) w,x,y,z available now (for a dropped
         sample: that of the newest accepted one; NaN before any sample)."""
         t = float(t)
-        gyr, acc = np.asarray(gyr, float).reshape(3), np.asarray(acc, float).reshape(3)
-        mag = np.full(3, np.nan) if mag is None else np.asarray(mag, float).reshape(3)
-        if self._finished or not (np.isfinite(t) and np.all(np.isfinite(gyr)) and np.all(np.isfinite(acc))):
+        gx, gy, gz = _row3(gyr)
+        ax, ay, az = _row3(acc)
+        m = _NAN3 if mag is None else _row3(mag)
+        # one sum is finite iff all its terms are (an inf − inf is NaN)
+        if self._finished or not math.isfinite(t + gx + gy + gz + ax + ay + az):
             self.stats.invalid += 1
             return self._filtered()
         if t <= self._t_last:
-            return self._late(t, gyr, acc, mag)
-        if np.all(np.isfinite(mag)):
+            return self._late((t, gx, gy, gz, ax, ay, az) + m)
+        has_mag = math.isfinite(m[0] + m[1] + m[2])
+        if has_mag:
             self.stats.mag_samples += 1
+        else:
+            m = _NAN3
         self.stats.accepted += 1
+        row = (t, gx, gy, gz, ax, ay, az) + m
         if self._t0 is None:
             self._t0 = t
             self._kf_t.append(t)
         elif len(self._buf) >= self.stride:
-            self._close(t, gyr, acc)          # this sample is keyframe k+1
+            self._close(t)                    # this sample is keyframe k+1
             self._t_last = t
-            self._buf = [(t, gyr, acc, mag)]
-            self._kRb_open = gtsam.Rot3()
-            self._attach_delayed_mag(mag)
+            self._buf = [row]
+            self._q_open = Q_ID
+            self._attach_delayed_mag(m, has_mag)
             return self._filtered()
         else:
-            t_prev, w_prev = self._buf[-1][0], self._buf[-1][1]
-            self._kRb_open = self._kRb_open.compose(gtsam.Rot3.Expmap((w_prev - self._bias_now()) * (t - t_prev)))
+            prev = self._buf[-1]
+            bx, by, bz = self._b_now
+            self._q_open = qstep(self._q_open, prev[1] - bx, prev[2] - by, prev[3] - bz, t - prev[0])
         self._t_last = t
-        self._buf.append((t, gyr, acc, mag))
-        self._attach_delayed_mag(mag)
+        self._buf.append(row)
+        if self._mag_shift > 0:
+            self._attach_delayed_mag(m, has_mag)
         return self._filtered()
-
-    def _attach_delayed_mag(self, mag) -> None:
-        """A lagging magnetometer (cal.mag_delay_s) reports what the body saw `shift` samples earlier."""
-        if self._mag_shift <= 0:
-            return
-        t, w, a, _ = self._buf[-1]
-        self._buf[-1] = (t, w, a, np.full(3, np.nan))          # its own field arrives `shift` samples later
-        i = len(self._buf) - 1 - self._mag_shift
-        if np.all(np.isfinite(mag)):
-            if i >= 0:
-                ti, wi, ai, _ = self._buf[i]
-                self._buf[i] = (ti, wi, ai, mag)
-            else:
-                self.stats.mag_dropped += 1
-
-    def _late(self, t, gyr, acc, mag) -> np.ndarray:
-        times = [row[0] for row in self._buf]
-        if t in times or t == self._t_last:
-            self.stats.duplicates += 1
-        elif self._buf and t > times[0] and self._mag_shift <= 0:
-            i = int(np.searchsorted(times, t))
-            self._buf.insert(i, (t, gyr, acc, mag))
-            self.stats.late_inserted += 1
-            self.stats.accepted += 1
-            self.stats.mag_samples += int(np.all(np.isfinite(mag)))
-            self._kRb_open = self._integrate_open()
-        else:
-            self.stats.late_dropped += 1
-        return self._filtered()
-
-    def _integrate_open(self) -> np.ndarray:
-        R = gtsam.Rot3()
-        for (t0, w0, _, _), (t1, _, _, _) in zip(self._buf[:-1], self._buf[1:]):
-            R = R.compose(gtsam.Rot3.Expmap((w0 - self._bias_now()) * (t1 - t0)))
-        return R
-
-    def _bias_now(self) -> np.ndarray:
-        return self._b_hat if self._b_gyr_est is None else self._b_gyr_est
 
     def _filtered(self) -> np.ndarray:
-        if self._nRk is None:
+        if self._q_nk is None:
             if not self._buf:
                 return np.full(4, np.nan)
-            _, _, a, m = self._buf[0]
+            a, m = np.array(self._buf[0][4:7]), np.array(self._buf[0][7:10])
             m = self.cal.apply(m[None])[0] if np.all(np.isfinite(m)) else np.cross(a, [0.0, 1.0, 0.0])
-            return _quat(gtsam.Rot3(triad(a[None], m[None])[0]).compose(self._kRb_open))
-        return _quat(self._nRk.compose(self._kRb_open))
+            return _quat(gtsam.Rot3(triad(a[None], m[None])[0]).compose(gtsam.Rot3.Quaternion(*self._q_open)))
+        return qpos(qmul(self._q_nk, self._q_open))
 
     # ------------------------------------------------------------------ keyframes
-    def _close(self, t_next: float, gyr_next, acc_next) -> None:
+    def _close(self, t_next: float) -> None:
         """Interval k (the buffer) → keyframe k+1 (at t_next): its factors, then one solver update."""
-        start = time.perf_counter()
+        start, start_cpu = time.perf_counter(), time.thread_time()
         n, k = len(self._buf), self._k
-        t = np.array([r[0] for r in self._buf] + [t_next])
-        w = np.vstack([[r[1] for r in self._buf], gyr_next[None]])
-        a = np.vstack([[r[2] for r in self._buf], acc_next[None]])
-        m_raw = np.array([r[3] for r in self._buf])
+        rows = np.array(self._buf)
+        t = np.append(rows[:, 0], t_next)
+        w, a, m_raw = rows[:, 1:4], rows[:, 4:7], rows[:, 7:10]
         steps = np.diff(t)
-        dt = np.append(steps, np.median(steps))
         gap = steps > 1.5 / self.rate                  # counted on the interval as accepted (late rows in)
-        self.stats.gaps += int(gap.sum())
-        self.stats.missing += int(np.sum(np.round(steps[gap] * self.rate) - 1))
-        kf, skf = np.array([0, n]), np.r_[np.zeros(n, int), 1]
-        pre = preintegrate(w, dt, kf, skf, self._b_hat, self._sig_g, self.opt.gyro_rate_error)
-        dv, sig_dv = velocity_increments(pre.kRb, skf, a, dt, 2, self._sig_acc, self.opt.acc_rate_error)
+        if gap.any():
+            self.stats.gaps += int(gap.sum())
+            self.stats.missing += int(np.sum(np.round(steps[gap] * self.rate) - 1))
+        # the batch path's preintegration (factors.gyro.preintegrate, factors.velocity.velocity_increments)
+        # of this one interval, equal to it (stream_interval)
+        kRb, delta_R, cov, dt_k, dv, sig_dv, q_kRb = interval_preintegration(
+            t, w, a, self._b_hat, self._sig_g, self.opt.gyro_rate_error, self._sig_acc, self.opt.acc_rate_error)
         y = self._cal0.corrected(t[:-1], m_raw) if self._cal0.disturbances else m_raw
-        m_cal = (y - self.cal.o) @ self._D_inv.T
-        ok = np.all(np.isfinite(m_cal), axis=1)
-        kRb = pre.kRb[:n]
+        ok = ~np.isnan(y[:, 0])
         graph, values, stamps = gtsam.NonlinearFactorGraph(), gtsam.Values(), {}
         if k == 0:
-            self._start(graph, values, stamps, pre, a, m_cal, ok)
+            m_cal = (y - self.cal.o) @ self._D_inv.T
+            self._start(graph, values, stamps, kRb, a, m_cal, ok & np.all(np.isfinite(m_cal), axis=1))
         seg = int(np.floor((t[0] - self._t0) / self.opt.bias_segment_s)) if self.opt.bias_segment_s > 0 else 0
         if seg != self._seg:
             self._new_segment(graph, values, seg, t_next - self._t0)
         # gyro and velocity rows of the batch path's super-sample ImuFactor, Gauss–Markov, magnetometer
-        omega, acc_s = super_samples(pre.delta_R, dv, pre.dt, pre.bias_hat)
-        pim = super_sample_pim(self._pim_params, omega[0], acc_s[0], float(pre.dt[0]), pre.bias_hat[0])
+        omega, acc_s = super_samples(delta_R[None], dv[None], np.array([dt_k]), self._b_hat[None])
+        pim = super_sample_pim(self._pim_params, omega[0], acc_s[0], dt_k, self._b_hat)
         ends = (pose_key(k), keys.vel(k), pose_key(k + 1), keys.vel(k + 1), imu_bias_key(seg))
         f = gtsam.ImuFactorWithGravityVector(*ends, G_KEY, pim) if self._estimate_g else gtsam.ImuFactor(*ends, pim)
-        for model in split_noise(pre.cov, sig_dv, self.opt.acc_huber_k)[0]:
+        for model in split_noise(cov[None], np.array([sig_dv]), self.opt.acc_huber_k)[0]:
             graph.add(f.cloneWithNewNoiseModel(model))
-        gm = gauss_markov_factors(pre.dt, self.opt.velocity_sigma, self.opt.velocity_tau, key=lambda i: keys.vel(k + i))
-        for g_f in gm[1:]:
-            graph.add(g_f)
+        graph.add(gauss_markov_factor(keys.vel(k), keys.vel(k + 1), dt_k, self.opt.velocity_sigma, self.opt.velocity_tau))
         if ok.any():
-            self._mag_index[k] = self._n_factors + graph.size()
+            if self.opt.lag_s is None:               # for the final re-issue (iSAM2 keeps every factor)
+                self._mag_index[k] = self._n_factors + graph.size()
             graph.add(self._mag_factor(k, kRb, y))
         # prediction of keyframe k+1 from the latest estimate of keyframe k
         nRk = self._nRk.matrix()
-        c = np.array([0.0, 0.0, -self._g]) * pre.dt[0] + nRk @ dv[0]
-        R_next = nRk @ pre.delta_R[0]
-        values.insert(pose_key(k + 1), gtsam.Pose3(gtsam.Rot3(R_next), self._p + self._v * pre.dt[0] + 0.5 * c * pre.dt[0]))
+        c = np.array([0.0, 0.0, -self._g]) * dt_k + nRk @ dv
+        R_next = nRk @ delta_R
+        values.insert(pose_key(k + 1), gtsam.Pose3(gtsam.Rot3(R_next), self._p + self._v * dt_k + 0.5 * c * dt_k))
         values.insert(keys.vel(k + 1), self._v + c)
         if self.opt.lag_s is None or self.opt.fixed_lag_solver == "incremental":     # iSAM2 inside
             graph.add(gtsam.PriorFactorPose3(pose_key(k + 1), values.atPose3(pose_key(k + 1)), self._weak_pose))
@@ -258,8 +235,8 @@ class StreamSmoother(OnlineCalibrationMixin):
         self._update(graph, values, stamps, k + 1, seg, R_next)
         self._kf_t.append(t_next)
         if self.opt.keep_history:
-            self._hist_kRb.append(rotmat_to_quat(kRb))
-            self._hist_dR.append(pre.delta_R[0])
+            self._hist_kRb.append(q_kRb)
+            self._hist_dR.append(delta_R)
             self._hist_t.append(t[:-1])
             if self.opt.lag_s is None:
                 self._hist_y.append(y)
@@ -268,13 +245,15 @@ class StreamSmoother(OnlineCalibrationMixin):
             self._pending.append((k, self._kf_t[k] - self._t0, kRb, y))
             self._calibrate(t_next - self._t0)
         self.stats.update_s.append(time.perf_counter() - start)
+        self.stats.update_cpu_s.append(time.thread_time() - start_cpu)
 
-    def _start(self, graph, values, stamps, pre: Preintegration, a, m_cal, ok) -> None:
+    def _start(self, graph, values, stamps, kRb, a, m_cal, ok) -> None:
         """Keyframe 0: TRIAD of interval 0's mean accelerometer and field, gauges, gravity."""
         n = len(ok)
-        up = np.einsum("mij,mj->i", pre.kRb[:n], a[:n])
-        fld = np.einsum("mij,mj->i", pre.kRb[:n][ok], m_cal[ok]) if ok.any() else np.cross(up, [0.0, 1.0, 0.0])
+        up = np.einsum("mij,mj->i", kRb[:n], a[:n])
+        fld = np.einsum("mij,mj->i", kRb[:n][ok], m_cal[ok]) if ok.any() else np.cross(up, [0.0, 1.0, 0.0])
         self._nRk = gtsam.Rot3(triad(up[None], fld[None])[0])
+        self._q_nk = tuple(_quat(self._nRk))
         values.insert(pose_key(0), gtsam.Pose3(self._nRk, np.zeros(3)))
         values.insert(keys.vel(0), np.zeros(3))
         graph.add(gauss_markov_factors(np.array([1.0]), self.opt.velocity_sigma, self.opt.velocity_tau)[0])
@@ -290,7 +269,7 @@ class StreamSmoother(OnlineCalibrationMixin):
         o = self.opt
         b_hat = gtsam.imuBias.ConstantBias(np.zeros(3), self._b_hat)
         prior = gtsam.noiseModel.Diagonal.Sigmas(np.r_[np.full(3, o.acc_bias_sigma), np.full(3, o.bias_prior_sigma)])
-        values.insert(imu_bias_key(seg), gtsam.imuBias.ConstantBias(np.zeros(3), self._bias_now()))
+        values.insert(imu_bias_key(seg), gtsam.imuBias.ConstantBias(np.zeros(3), np.array(self._b_now)))
         graph.add(gtsam.PriorFactorConstantBias(imu_bias_key(seg), b_hat, prior))
         if self._seg >= 0:
             # the batch path spreads the walk over equal segments of the whole session; here: segment length
@@ -317,15 +296,25 @@ class StreamSmoother(OnlineCalibrationMixin):
                 first = k_new + 1 - poses.shape[0]
                 for i, row in enumerate(poses):
                     self._smoothed_kf[first + i] = row[:9].reshape(3, 3).copy()
+                if not self.opt.keep_history:        # constant memory: keep the window and what calibration awaits
+                    lo = min(first, self._pending[0][0]) if self._pending else first
+                    for old in [key for key in self._smoothed_kf if key < lo]:
+                        del self._smoothed_kf[old]
                 est_pose, est_v = est.atPose3(pose_key(k_new)), est.atVector(keys.vel(k_new))
                 est_b = est.atConstantBias(imu_bias_key(seg))
         except (RuntimeError, IndexError, ValueError):
             # an ill-conditioned or failed update (counted): keep the prediction
             self.stats.failed_updates += 1
+            if self.opt.lag_s is not None:       # the smoothed output of a lag: the prediction where none
+                self._smoothed_kf.setdefault(k_new - 1, self._nRk.matrix())
+                self._smoothed_kf.setdefault(k_new, np.asarray(R_pred))
             self._nRk = gtsam.Rot3(R_pred)
+            self._q_nk = tuple(_quat(self._nRk))
             return
         self._nRk, self._p, self._v = est_pose.rotation(), est_pose.translation(), est_v
         self._b_gyr_est = est_b.gyroscope()
+        self._b_now = tuple(float(v) for v in self._b_gyr_est)
+        self._q_nk = tuple(_quat(self._nRk))
 
     # ------------------------------------------------------------------ end
     def finish(self) -> None:
@@ -334,7 +323,7 @@ class StreamSmoother(OnlineCalibrationMixin):
             return
         if len(self._buf) >= 2:
             last = self._buf.pop()
-            self._close(last[0], last[1], last[2])
+            self._close(last[0])
             self._buf = [last]
         if self._online is not None and self._k > 0:
             self._calibrate(self._kf_t[-1] - self._t0, flush=True)
@@ -356,6 +345,8 @@ class StreamSmoother(OnlineCalibrationMixin):
             return (self._nRk.matrix() if self._nRk is not None else np.eye(3))[None]
         if self.opt.lag_s is None:
             return gtsam.utilities.extractPose3(self._final)[:, :9].reshape(-1, 3, 3)
+        if not self.opt.keep_history:
+            raise SessionError("stream", "keep_history", "False", "True to keep every keyframe of a fixed lag")
         return np.stack([self._smoothed_kf[k] for k in range(self._k + 1)])
 
     def smoothed(self) -> np.ndarray:
