@@ -19,26 +19,23 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from benchmarks.common import broad_trials, load_broad_trial, print_table  # noqa: E402
+from benchmarks.common import broad_trials, load_broad_trial, parse_options, print_table  # noqa: E402
 from benchmarks.peers import timed, vqf_offline, vqf_online  # noqa: E402
 from imugraph.calibration.ml import Options, calibrate  # noqa: E402
 from imugraph.evaluate import orientation_error  # noqa: E402
 
 
 def main(argv: list[str]) -> int:
-    import ast
-
-    fields = {}
+    kw, opts = {}, []
     if "--keyframe-hz" in argv:
         i = argv.index("--keyframe-hz")
-        fields["keyframe_hz"] = float(argv[i + 1])
+        kw["keyframe_hz"] = float(argv[i + 1])
         argv = argv[:i] + argv[i + 2:]
     while "--opt" in argv:
         i = argv.index("--opt")
-        name, value = argv[i + 1].split("=", 1)
-        fields[name] = ast.literal_eval(value)
+        opts.append(argv[i + 1])
         argv = argv[:i] + argv[i + 2:]
-    options = Options(**fields)
+    options = parse_options(opts, **kw)
     select = set(argv[0].split(",")) if argv else None
     rows = []
     for path in broad_trials():

@@ -157,3 +157,21 @@ def finite_mean(rows: Sequence[dict], key: str) -> float:
     """Mean of rows[i][key] over the rows that have a finite value (NaN when none has)."""
     vals = [r[key] for r in rows if key in r and np.isfinite(r[key])]
     return float(np.mean(vals)) if vals else float("nan")
+
+
+def parse_options(values: Sequence[str] | None, **fixed: Any):
+    """Options of imugraph.calibration.ml from `--opt FIELD=VALUE` strings (VALUE a Python literal), e.g.
+    `field_sigma=(0.015,0.003,0.015)`; unknown fields fail with the list of known ones."""
+    import ast
+    from dataclasses import fields as dc_fields
+
+    from imugraph.calibration.ml import Options
+
+    known = {f.name for f in dc_fields(Options)}
+    kw = dict(fixed)
+    for item in values or []:
+        name, sep, value = item.partition("=")
+        if not sep or name not in known:
+            raise SystemExit(f"--opt {item!r}: expected FIELD=VALUE with FIELD one of {sorted(known)}")
+        kw[name] = ast.literal_eval(value)
+    return Options(**kw)

@@ -19,7 +19,7 @@ VQF is called once on a short slice before timing (its first call imports the ex
 Peak memory: the process's peak resident set (ru_maxrss) after reading and after each stage; it only
 grows, so a stage's own peak is at most its figure (stages run in the order listed).
 
-    .venv/bin/python benchmarks/speed.py [TRIALS] [--repeat R] [--pin]
+    .venv/bin/python benchmarks/speed.py [TRIALS] [--repeat R] [--pin] [--opt FIELD=VALUE ...]
 
 TRIALS: comma-separated trial numbers; default 01 and the largest other trial file (04, 60 861 samples,
 the longest of the shared trials). Targets (issue 2e): calibrate + smooth ≤ 3 s for a whole trial
@@ -44,7 +44,7 @@ import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from benchmarks.common import (broad_trials, load_broad_trial, peak_memory_mb, print_table,  # noqa: E402
+from benchmarks.common import (broad_trials, load_broad_trial, parse_options, peak_memory_mb, print_table,  # noqa: E402
                                trial_number)
 from benchmarks.output import write_json  # noqa: E402
 from benchmarks.peers import vqf_offline  # noqa: E402
@@ -93,14 +93,14 @@ def thread_count() -> int | None:
     return None
 
 
-def time_trial(path: Path, repeat: int) -> dict:
+def time_trial(path: Path, repeat: int, options: Options | None = None) -> dict:
     s = load_broad_trial(path)
     vqf_offline(s.slice(0, min(s.n, 1000)))  # warm-up: the first call imports vqf
     row: dict = {"trial": path.stem, "n": s.n, "rate_hz": s.rate, "duration_s": float(s.t[-1] - s.t[0]),
                  "mem_after_read_mb": peak_memory_mb()}
     _, row["vqf_off_s"], row["vqf_off_cpu_s"] = best_of(repeat, vqf_offline, s)
     row["mem_after_vqf_mb"] = peak_memory_mb()
-    est, row["calib_smooth_s"], row["calib_smooth_cpu_s"] = best_of(repeat, calibrate, s, Options(),
+    est, row["calib_smooth_s"], row["calib_smooth_cpu_s"] = best_of(repeat, calibrate, s, options or Options(),
                                                                     allow_weak=True)
     row["mem_after_calibrate_mb"] = peak_memory_mb()
     _, row["smooth_known_s"], row["smooth_known_cpu_s"] = best_of(repeat, smooth_fixed, s, est.calibration)
@@ -116,7 +116,10 @@ def main(argv: list[str]) -> int:
     ap.add_argument("trials", nargs="?", help="comma-separated trial numbers (default: 01 and the longest)")
     ap.add_argument("--repeat", type=int, default=1, help="runs per stage; the fastest is kept")
     ap.add_argument("--pin", action="store_true", help="pin the process to one CPU")
+    ap.add_argument("--opt", action="append", metavar="FIELD=VALUE",
+                    help="set a field of imugraph.calibration.ml.Options (Python literal), repeatable")
     args = ap.parse_args(argv)
+    options = parse_options(args.opt)
     paths = broad_trials()
     if args.trials:
         want = {int(x) for x in args.trials.split(",")}
@@ -133,7 +136,7 @@ def main(argv: list[str]) -> int:
           f"load average at start {load[0]:.2f} {load[1]:.2f} {load[2]:.2f}", flush=True)
     rows = []
     for path in paths:
-        rows.append(time_trial(path, args.repeat))
+        rows.append(time_trial(path, args.repeat, options))
         r = rows[-1]
         print(f"{r['trial']} ({r['n']} samples): calibrate+smooth {r['calib_smooth_s']:.2f} s "
               f"({r['ratio_calib_smooth']:.0f}× offline VQF), smooth with known calibration "

@@ -18,7 +18,7 @@ import gtsam
 import numpy as np
 
 from imugraph import keys
-from imugraph.calibration.noise import reestimate
+from imugraph.calibration.noise import field_dof, reestimate
 from imugraph.calibration.result import Calibration
 from imugraph.factors.gyro import keyframe_layout, preintegrate
 from imugraph.factors.robust import QUADRATIC, Kernel
@@ -73,10 +73,12 @@ class Options:
     disturbance_windows: bool = True  # windowed hard-iron offsets (imugraph.calibration.disturbance)
     heading_only_orientation: bool = False  # final orientations with the field as heading only
     #                                        (graphs.heading_block): BROAD mean 1.13° vs 1.06° joint, off
-    field_sigma: float | tuple | None = None  # σ_d (scalar or per nav axis x, y, z), unit field: Gauss–Markov
-    #   nav-field perturbation (factors/field.py). (0.015, 0.003, 0.015) with τ_d = 1 s: BROAD 17-trial mean
-    #   0.99° → 0.83°, 10 → 7 trials behind offline VQF, but worse on 16, 26, 32 (0.61 → 0.84°); left off
-    field_tau: float = 10.0           # τ_d, s: its correlation time
+    field_sigma: float | tuple | None = (0.015, 0.003, 0.015)  # σ_d per nav axis (x along the horizontal
+    #   field, y across it, z up), unit field; None: no perturbation. Gauss–Markov nav-field perturbation
+    #   (factors/field.py): the indoor field varies with position (BROAD 01: 0.5–0.9° per axis at 10 s).
+    #   BROAD 17-trial mean 0.99° → 0.83° (10 → 7 trials behind offline VQF); worse on 16, 26, 32 (0.61 →
+    #   0.84°). Across the field 0.003: looser lets heading follow the gyro (01: 0.015 on y → 3.60°)
+    field_tau: float = 1.0            # τ_d, s: its correlation time (2 s: mean 0.839°)
     gyro_map: bool = False            # gyro scale/misalignment E estimated jointly (calibration/gyro_map.py):
     #   recovers E in simulation; on BROAD with field_sigma 0.015/τ 1 s: 04 1.74 → 0.48°, 01 1.60 → 0.82°,
     #   but fast trials worse (06 → 1.62°, 16 → 16°; E pulled to −1 % on 06, cause not found); off
@@ -223,7 +225,11 @@ def calibrate(session: Session, options: Options | None = None, initial=None,
             bias = bias_new
             converged = info.converged
             break
-        new = reestimate(prob.block, nRk, theta, pre.cov, values, noise.gyr)   # cov = the AHRS factors' Σ
+        extra = None
+        if prob.block.with_field and prob.block.mag is not None:   # d_k absorbs part of the field residuals
+            G_dd = prob.block._field_blocks(*prob.block.channel_gram("mag", nRk, theta, False), nRk)[2]
+            extra = {"mag": field_dof(G_dd, pre.dt, opt.field_sigma, opt.field_tau)}
+        new = reestimate(prob.block, nRk, theta, pre.cov, values, noise.gyr, extra)   # cov: AHRS factors' Σ
         taus = {c: new.pop(c + "_tau") for c in ("acc", "mag") if c + "_tau" in new}
         if opt.correlated_noise:
             # τ from the first (white-noise) solution only: later solutions lean on the gyro and their

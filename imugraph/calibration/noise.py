@@ -29,14 +29,59 @@ def _channel_info_trace(block: MeasurementBlock, name: str, nRk: np.ndarray, the
     return e, np.trace(G11, axis1=1, axis2=2)
 
 
+def tridiagonal_inverse_diagonal(diag: np.ndarray, off: np.ndarray) -> np.ndarray:
+    """Diagonal of A⁻¹ for a symmetric positive definite tridiagonal A (diagonal (n,), off-diagonal (n−1,)).
+
+    Forward pivots d_i = a_i − b_{i−1}²/d_{i−1}, backward pivots e_i = a_i − b_i²/e_{i+1}; then
+    (A⁻¹)_ii = 1/(d_i + e_i − a_i) (both eliminations meet at i). O(n), no overflow."""
+    a = np.asarray(diag, float)
+    b2 = np.asarray(off, float) ** 2
+    n = a.size
+    d = np.empty(n)
+    e = np.empty(n)
+    d[0] = a[0]
+    for i in range(1, n):
+        d[i] = a[i] - b2[i - 1] / d[i - 1]
+    e[-1] = a[-1]
+    for i in range(n - 2, -1, -1):
+        e[i] = a[i] - b2[i] / e[i + 1]
+    return 1.0 / (d + e - a)
+
+
+def field_dof(G_dd: np.ndarray, dt_k: np.ndarray, sigma_d, tau_d: float) -> float:
+    """Degrees of freedom of the magnetometer residuals absorbed by the field perturbation d_k
+    (imugraph.factors.field), per nav axis the trace of the smoother's hat matrix:
+
+        p_d = Σ_axes tr(H_a (H_a + Q_a)⁻¹),   H_a = diag_k (G_dd,k)_aa,   Q_a the Gauss–Markov chain precision
+
+    (tridiagonal: d_0/σ_d and (d_{k+1} − φ_k d_k)/σ_w,k). Cross-axis and rotation couplings are neglected.
+    G_dd: (K, 3, 3) whitened data information of d_k; dt_k (K−1,) keyframe intervals, s."""
+    from imugraph.factors.field import field_prior_terms
+
+    K = G_dd.shape[0]
+    _, _, phi, sigma_w = field_prior_terms(np.zeros((K, 3)), np.asarray(dt_k, float), sigma_d, tau_d)
+    sig = np.broadcast_to(np.asarray(sigma_d, float), (3,))
+    total = 0.0
+    for a in range(3):
+        h = np.clip(G_dd[:, a, a], 0.0, None)
+        s2 = sigma_w[:, a] ** 2
+        q = np.zeros(K)
+        q[0] += 1.0 / sig[a] ** 2
+        q[:-1] += phi**2 / s2
+        q[1:] += 1.0 / s2
+        total += float(np.sum(h * tridiagonal_inverse_diagonal(h + q, -phi / s2)))
+    return total
+
+
 def reestimate(block: MeasurementBlock, nRk: np.ndarray, theta: np.ndarray, gyro_factors: list,
-               values: gtsam.Values, sigma_gyr: np.ndarray) -> dict:
+               values: gtsam.Values, sigma_gyr: np.ndarray, extra_dof: dict | None = None) -> dict:
     """New per-axis standard deviations {"gyr", "acc", "mag"} (unchanged channels keep their value).
 
     Args:
         block: the measurement block at the current noise levels; nRk (K,3,3) and theta (13,) the solution;
         gyro_factors: the AHRSFactors of the graph, or their covariances (K−1, 3, 3) (Preintegration.cov);
-        values: the solution; sigma_gyr (3,) current gyro σ.
+        values: the solution; sigma_gyr (3,) current gyro σ;
+        extra_dof: channel → further degrees of freedom the fit absorbs (e.g. field_dof for "mag").
     """
     K = block.n_keyframes
     traces, raw = {}, {}
@@ -60,7 +105,7 @@ def reestimate(block: MeasurementBlock, nRk: np.ndarray, theta: np.ndarray, gyro
     for name, e in raw.items():
         ch = getattr(block, name)
         share = traces[name] / total
-        p = 3.0 * share.sum() + (13.0 if name == "mag" and block.use_theta else 0.0)
+        p = 3.0 * share.sum() + (13.0 if name == "mag" and block.use_theta else 0.0) + (extra_dof or {}).get(name, 0.0)
         r = e / ch.sigma
         w = ch.kernel.weight(np.linalg.norm(r, axis=1))
         n_eff = max(w.sum() - p / 3.0, 1.0)
