@@ -19,9 +19,26 @@ null_c is the gap of an independent simulation against the reference simulation 
 statistic's own sampling noise, its expected value when the data come from the model): gaps are reported
 as the excess over it, so the gap of model data is ≈ 0 and a perfect correction shrinks it by 100 %.
 Each parameter costs a fraction of the noise floor (BIC-like, logarithmic), and an effect that makes
-another channel worse pays for it. Ranking is by (A2). The verdict is the best effect when its (A2) ≥
-`margin` and its channel's raw gap is well above the noise floor (before_c ≥ `min_gap_ratio` · null_c);
-otherwise "none".
+another channel worse pays for it. Ranking is by (A2).
+
+Localised effects (A3). An effect that claims part of the recording only — a window (magnetic_disturbance,
+vibration) or the samples around a rail (saturation): `effect_support` — is scored on the held-out samples
+of its support S only, and its "before" is measured against the recording's own gap outside S:
+
+    floor_c = max(null_c(fold ∩ S), gap_c(real, sim; fold ∩ ¬S))                                    (A3)
+
+in place of null_c in (A1)–(A2) (the parameter cost keeps the noise floor null_c(fold ∩ S)). A real
+recording is never the base model: its gap is far above the noise floor everywhere (hand-held linear
+acceleration, a magnetometer lag), so a localised effect's shrink over the whole recording — or over S
+against the noise floor — measures how much of THAT misfit it removes, which it does not claim. (A3)
+asks what it does claim: that S differs from the rest of the same recording, and that the correction
+removes the difference. Significance compares the raw gap on S with the noise floor on S.
+
+Verdict (V): of the significant and relevant effects, a localised one (support < half the recording)
+comes first, then the best (A2) global one: the localised effect explains what sets part of the
+recording apart, beyond the misfit it shares with the rest (which a global effect may explain as well).
+
+An effect is significant when its (A2) ≥ `margin` and its channel's raw gap is well above the noise floor (before_c ≥ `min_gap_ratio` · null_c).
 """
 
 from __future__ import annotations
@@ -87,6 +104,9 @@ class EffectResult:
     screen: dict | None = None
     significant: bool = False
     refit: tuple | None = field(default=None, repr=False, compare=False)   # (θ*, info) of stage 2, reused
+    floor: float = float("nan")           # noise floor of the channel on the samples scored (support)
+    decisive: bool = False                # the effect's own evidence is conclusive (saturation (C2))
+    support_fraction: float = 1.0         # fraction of the samples the effect claims (1: whole recording)
 
     @property
     def relevant(self) -> bool:
@@ -100,7 +120,8 @@ class EffectResult:
                 "penalised_shrink": self.penalised, "n_params": self.n_params,
                 "params": self.params or {}, "gap_after_per_channel": self.per_channel_after or {},
                 "size": self.size or {}, "relevant": self.relevant, "significant": self.significant,
-                "stage": self.stage, **({"screen": self.screen} if self.screen else {}),
+                "stage": self.stage, "support_fraction": self.support_fraction, "decisive": self.decisive,
+                **({"screen": self.screen} if self.screen else {}),
                 **({"error": self.error} if self.error else {})}
 
 
@@ -116,28 +137,77 @@ def fold_gaps(real, sim, folds: list, gap_opt: GapOptions = GapOptions()) -> lis
             for f in folds]
 
 
+SUPPORT_PAD_S = 1.0        # a claimed window is scored with this margin (ramps, edge error)
+MIN_SUPPORT_S = 4.0        # a support shorter than this (summed over the folds) is not scored apart
+
+
+def effect_support(corr, t: np.ndarray) -> np.ndarray | None:
+    """(N,) bool: the samples a fitted effect claims (module doc, (A3)), or None for a global effect.
+
+    `Correction.deltas["support"]` when the effect sets it (saturation: its clipped runs), else the
+    union of its `params["windows"]` widened by SUPPORT_PAD_S (magnetic_disturbance, vibration)."""
+    sup = corr.deltas.get("support") if getattr(corr, "deltas", None) else None
+    if sup is not None:
+        return np.asarray(sup, bool)
+    wins = (corr.params or {}).get("windows") if isinstance(corr.params, dict) else None
+    if not wins:
+        return None
+    m = np.zeros(len(t), bool)
+    for w in wins:
+        m |= (t >= w["t_start"] - SUPPORT_PAD_S) & (t <= w["t_end"] + SUPPORT_PAD_S)
+    return m
+
+
+def null_gaps(null, sim, sigma: dict, folds: list, gap_opt: GapOptions = GapOptions()) -> dict:
+    """channel → sample-weighted mean over the folds of (G1) of the independent simulation B against A
+    (the noise floor at the size of these folds)."""
+    rate = null.session.rate
+    out = {c: 0.0 for c in CHANNELS}
+    total = sum(float(f.sum()) for f in folds if f.sum() >= 10) or 1.0
+    for f in folds:
+        if f.sum() < 10:
+            continue
+        g = gap(null.residuals, sim.residuals, sigma, rate, f, gap_opt)
+        for c in CHANNELS:
+            out[c] += g[c] * float(f.sum()) / total
+    return out
+
+
 def evaluate_effect(effect, real, sim, null_gap: dict, folds: list, opt: AttributionOptions,
                     gap_opt: GapOptions = GapOptions(), window=None, base: list | None = None,
-                    ext=None) -> EffectResult:
+                    ext=None, null=None) -> EffectResult:
     """Cross-validated gap before/after one effect ((A1), (A2)); the effect's parameters, window, channel
     (`Correction.channel`: time_offset and saturation choose theirs) and size are those of a final fit on
     all samples. base: `fold_gaps` (computed when not given). ext: the refitted extended model's θ* on
     the original measurements (imugraph.diagnose.refit); the effect is then fitted on it and the "after"
-    residuals are rescaled by `refit.rescale`; None: the first-order fit on the base fit (screening)."""
+    residuals are rescaled by `refit.rescale`; None: the first-order fit on the base fit (screening).
+    null: the fit of simulation B; with it, an effect that claims part of the recording (`effect_support`)
+    is scored on the held-out samples of that part only, against the floor of the same samples (A3)."""
     from imugraph.diagnose.refit import rescale
 
     rate = real.session.rate
-    base = fold_gaps(real, sim, folds, gap_opt) if base is None else base
     fitted = real if ext is None else ext
     full = effect.fit(fitted, np.ones(real.n, bool), window=window)
+    support = effect_support(full, real.session.t) if null is not None else None
+    frac = 1.0
+    scored = folds                                   # held-out samples scored (training: outside the fold)
+    rest = None                                      # (A3): the recording's own gap outside the support
+    if (support is not None and support.sum() >= MIN_SUPPORT_S * rate
+            and (~support).sum() >= max(MIN_SUPPORT_S * rate, 0.2 * real.n)):
+        scored = [f & support for f in folds]                                                    # (A3)
+        base = fold_gaps(real, sim, scored, gap_opt)
+        null_gap = null_gaps(null, sim, real.sigma, scored, gap_opt)
+        rest = null_gaps(real, sim, real.sigma, [f & ~support for f in folds], gap_opt)
+        frac = float(support.mean())
+    base = fold_gaps(real, sim, folds, gap_opt) if base is None else base
     before = {c: [] for c in CHANNELS}
     after = {c: [] for c in CHANNELS}
     weights = []
-    for test, b in zip(folds, base):
+    for fold, test, b in zip(folds, scored, base):
         if b is None:
             continue
-        corr = effect.fit(fitted, ~test, window=window)
-        r_after = corr.residuals(real) if ext is None else rescale(corr.raw_residuals(ext), real, ~test)
+        corr = effect.fit(fitted, ~fold, window=window)
+        r_after = corr.residuals(real) if ext is None else rescale(corr.raw_residuals(ext), real, ~fold)
         a = gap({c: r_after.get(c, real.residuals[c]) for c in CHANNELS}, sim.residuals, real.sigma, rate,
                 test, gap_opt)
         for c in CHANNELS:
@@ -148,17 +218,19 @@ def evaluate_effect(effect, real, sim, null_gap: dict, folds: list, opt: Attribu
     n_params = int(getattr(full, "n_params", 0))
     bef = {c: _weighted(before[c], weights) for c in CHANNELS}
     aft = {c: _weighted(after[c], weights) for c in CHANNELS}
-    floor = {c: float(null_gap.get(c, 0.0)) for c in CHANNELS}
+    noise = {c: float(null_gap.get(c, 0.0)) for c in CHANNELS}
+    floor = dict(noise) if rest is None else {c: max(noise[c], float(rest[c])) for c in CHANNELS}   # (A3)
     g0, g1 = max(0.0, bef[ch] - floor[ch]), max(0.0, aft[ch] - floor[ch])
     shrink = 1.0 - g1 / g0 if g0 > 0 else 0.0                                                    # (A1)
-    cost = opt.param_penalty * floor[ch] * np.log1p(max(n_params, 0))
+    cost = opt.param_penalty * noise[ch] * np.log1p(max(n_params, 0))
     worse = sum(max(0.0, aft[c] - bef[c] - floor[c]) / max(bef[c] - floor[c], floor[c], 1e-12)
                 for c in CHANNELS if c != ch)                  # a change within the noise floor is not worse
     penalised = (1.0 - (g1 + cost) / g0 if g0 > 0 else 0.0) - worse                              # (A2)
     size = effect.size(full, fitted) if hasattr(effect, "size") else {"value": np.inf, "threshold": 0.0}
     return EffectResult(effect.name, ch, g0, g1, float(shrink), float(penalised), n_params,
                         full.t_start, full.t_end, dict(full.params), aft, bef[ch], size=size,
-                        stage="screen" if ext is None else "refit")
+                        stage="screen" if ext is None else "refit", floor=noise[ch], support_fraction=frac,
+                        decisive=bool((getattr(full, "deltas", None) or {}).get("decisive", False)))
 
 
 def _failed(name, effect, exc) -> EffectResult:
@@ -180,7 +252,8 @@ def candidates(results: list, null_gap: dict, n_top: int, effects: dict | None =
     * the `n_top` best screened effects that improved the held-out gap ((A2) > 0) and found something
       (size ≠ 0: a window, a rail, ...);
     * for every channel whose raw held-out gap is significant (≥ `min_gap_ratio` · null), the two best
-      screened effects of that home channel (`Effect.channel`) whose screened size reaches half their
+      screened effects of that home channel (`Effect.channel`, or the channel the effect's own fit chose,
+      `Correction.channel`: an accelerometer delay is time_offset on acc) whose screened size reaches half their
       relevance threshold — a distorted base fit hides an effect from the screening (negative (A2)) and
       makes its first-order size an underestimate, so the screening cannot be the judge there.
     """
@@ -191,7 +264,7 @@ def candidates(results: list, null_gap: dict, n_top: int, effects: dict | None =
         raw = next((r.raw_before for r in ok if r.channel == ch and np.isfinite(r.raw_before)), np.nan)
         if not raw >= opt.min_gap_ratio * null_gap.get(ch, 0.0):
             continue
-        home = [r.name for r in ok if getattr((effects or {}).get(r.name), "channel", r.channel) == ch
+        home = [r.name for r in ok if ch in (getattr((effects or {}).get(r.name), "channel", r.channel), r.channel)
                 and (r.size or {}).get("value", np.inf) >= 0.5 * (r.size or {}).get("threshold", 0.0)][:2]
         names += [n for n in home if n not in names]
     return names
@@ -199,7 +272,7 @@ def candidates(results: list, null_gap: dict, n_top: int, effects: dict | None =
 
 def attribute(real, sim, null_gap: dict, effects: dict, opt: AttributionOptions = AttributionOptions(),
               gap_opt: GapOptions = GapOptions(), windows: dict | None = None, progress=None,
-              gap_excess: dict | None = None) -> list:
+              gap_excess: dict | None = None, null=None) -> list:
     """Screen every effect, refit the candidates; returns EffectResults best first (failed effects last,
     with `error`), `significant` set (`significant`).
 
@@ -211,6 +284,8 @@ def attribute(real, sim, null_gap: dict, effects: dict, opt: AttributionOptions 
             as a hint (they may refine it); None: each effect finds its own window.
         progress: optional callable(str) for progress lines.
         gap_excess: unused (kept for callers; the candidates come from the held-out gaps, `candidates`).
+        null: the fit of simulation B (enables the support-restricted scoring (A3)); None: every effect
+            is scored on the whole recording.
     """
     from imugraph.diagnose.refit import refit_effect
 
@@ -221,7 +296,7 @@ def attribute(real, sim, null_gap: dict, effects: dict, opt: AttributionOptions 
     for name, effect in effects.items():                                   # stage 1: screening
         window = (windows or {}).get(effect.channel) if getattr(effect, "windowed", False) else None
         try:
-            res = evaluate_effect(effect, real, sim, null_gap, folds, opt, gap_opt, window, base)
+            res = evaluate_effect(effect, real, sim, null_gap, folds, opt, gap_opt, window, base, null=null)
         except Exception as exc:   # one broken effect must not stop the diagnosis: reported, ranked last
             res = _failed(name, effect, exc)
         say(_line(res))
@@ -236,7 +311,7 @@ def attribute(real, sim, null_gap: dict, effects: dict, opt: AttributionOptions 
                 if not info["changed"]:
                     continue                                               # nothing to refit: screening stands
                 res = evaluate_effect(effect, real, sim, null_gap, folds, opt, gap_opt, info["window"], base,
-                                      ext=ext)
+                                      ext=ext, null=null)
                 res.refit = (ext, info)
                 res.screen = {"shrink": results[name].shrink, "penalised_shrink": results[name].penalised,
                               "size": results[name].size}
@@ -258,15 +333,22 @@ def _rank(results: list) -> list:
 def significant(res: EffectResult, null_gap: dict, opt: AttributionOptions = AttributionOptions()) -> bool:
     """Significance: the penalised held-out shrink (A2) clears `margin` on a channel whose raw gap is
     well above the noise floor (`min_gap_ratio` · null)."""
+    if res.decisive:                  # conclusive evidence of its own (saturation's exact rail, (C2))
+        return True
     if not np.isfinite(res.penalised):
         return False
-    return bool(res.penalised >= opt.margin and res.raw_before >= opt.min_gap_ratio * null_gap.get(res.channel, 0.0))
+    floor = res.floor if np.isfinite(res.floor) else null_gap.get(res.channel, 0.0)
+    return bool(res.penalised >= opt.margin and res.raw_before >= opt.min_gap_ratio * floor)
+
+
+LOCAL_FRACTION = 0.5        # an effect claiming less than this fraction of the recording is "localised"
 
 
 def verdict(results: list, null_gap: dict, opt: AttributionOptions = AttributionOptions()) -> str:
-    """The best-ranked effect that is both significant (`significant`) and relevant (its fitted size
-    reaches the effect's physical threshold, `EffectResult.relevant`); "none" when there is none."""
-    for r in results:
-        if significant(r, null_gap, opt) and r.relevant:
-            return r.name
-    return NONE
+    """The effect that is both significant (`significant`) and relevant (its fitted size reaches the
+    effect's physical threshold, `EffectResult.relevant`); "none" when there is none. Among several, a
+    localised one (scored by (A3) on its support: it explains what sets part of the recording apart from
+    the rest of the same recording) comes first, then the best-ranked (A2) global one (V)."""
+    ok = [r for r in results if significant(r, null_gap, opt) and r.relevant]
+    local = [r for r in ok if r.support_fraction < LOCAL_FRACTION]
+    return (local or ok or [None])[0].name if ok else NONE

@@ -150,7 +150,7 @@ def diagnose(session: Session, options: DiagnoseOptions = DiagnoseOptions(), eff
         for loc in locations:                     # best score first: keep the first per channel
             hints.setdefault(loc["channel"], (loc["t_start"], loc["t_end"]))
     excess = {c: (g_real[c] - g_null[c]) / max(g_null[c], 1e-12) for c in CHANNELS}
-    results = attribute(real, sim, g_null_fold, lib, options.attribution, gap_opt, hints, say, excess)
+    results = attribute(real, sim, g_null_fold, lib, options.attribution, gap_opt, hints, say, excess, null=null)
     v = verdict(results, g_null_fold, options.attribution)
     timing["attribution"] = time.perf_counter() - t3
     after = None

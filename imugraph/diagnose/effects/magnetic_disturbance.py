@@ -16,7 +16,14 @@ each edge refined to the step in the residual's mean (base.refine_edge). Only th
 held-out samples (localisation); the fields are estimated on training samples only.
 
 Refit (imugraph.diagnose.refit): `corrected` leaves the windows' field samples out, so the refitted D, o,
-dip and heading come from undisturbed samples. Relevance (`size`): the window's extra field ≥ 10 % of |m|.
+dip and heading come from undisturbed samples.
+
+Relevance (`size`): the window's extra field ≥ 10 % of |m| (M2). The heading comes from the horizontal
+field |m| cos(dip), so at BROAD's dip (≈ 69°) 10 % of |m| can turn it by up to asin(0.1 / cos 69°) ≈ 16°
+(not "~6°", which holds at dip 0). A heading-based threshold, sin 6° · cos(dip) (3.7 % of |m| on BROAD),
+was tried: it flagged the clean BROAD 04 (a 0.061 |m| field over 31–38 s of its full length, (A2) 0.35 on
+that window) and did not help 36 (its magnet is not significant: the joint refit makes the mag gap worse
+there, docs/diagnose.md §5), so the 10 % rule stays.
 
 Injection ranges (RANGES): field 10–60 µT-equivalent (≥ 20 % of a 50 µT field: above relevance) (scaled by the session's field magnitude / 50 µT),
 uniformly random direction; window 15–40 % of the session; raised-cosine ramps 0.2–1.0 s (a magnet brought
@@ -37,7 +44,7 @@ from imugraph.geometry import quat_to_rotmat
 RANGES = {"field_uT": (10.0, 60.0), "window_frac": (0.15, 0.4), "ramp_s": (0.2, 1.0), "p_attached": 1.0}
 MAX_WINDOWS = 3
 PAD_S = 1.0                  # windows widened by this for the refit (the ramps of a magnet brought by hand)
-RELEVANT_FRACTION = 0.10     # relevance: extra field ≥ 10 % of |m| (a ≥ ~6° heading error when across it)
+RELEVANT_FRACTION = 0.10     # relevance: extra field ≥ 10 % of |m| (M2)
 
 
 class MagneticCorrection(Correction):

@@ -11,10 +11,22 @@ acc rows are dropped (NaN: censored, (C1)); gyro peaks are reconstructed from a 
 `CONTEXT` unclipped samples on either side (never inside the rail), and the change Δω enters the first-
 order refit (base (E1)–(E3)). One parameter (the level) per rail.
 
+Significance (C2): a measurement with continuous-valued noise (the base model's white noise) repeats
+its extreme EXACTLY in two separate episodes, each a run of ≥ 2 samples, with probability zero; a clipped
+channel does it every time the motion exceeds the range. So the rail itself is the evidence
+(`Correction.deltas["decisive"]`: the attribution counts it significant without a gap shrink): a clipped
+gyro bends the fitted orientation only over the few keyframe intervals around each clipped peak, where
+hand-held motion is fastest and the base model's misfit largest anyway, so the held-out gap shrink (even
+on the support, attribution (A3)) was measured at 0.13–0.45 on BROAD 06 (2–3 % clipped). A sensor
+quantised so coarsely that its peak value repeats in separate episodes would defeat (C2): not seen on
+the floating-point outputs of BROAD (no rail found on the clean crops and trials diagnosed here).
+
 Relevance (`size`): ≥ 5 samples on a rail.
 
-Injection ranges (RANGES): the channel (gyr or acc, p = 0.5 each) clips on all axes at ±L, L = 70–90 %
-of the largest |value| the channel reaches in the session; the rail value is held exactly. The
+Injection ranges (RANGES): the channel (gyr or acc, p = 0.5 each) clips on all axes at ±L, L chosen so
+that 0.5–5 % of the samples exceed it on some axis (a range exceeded now and then by the fastest moves;
+a level set as a fraction of the session's peak instead clipped a single 1-sample spike of BROAD 07's
+accelerometer — 2 samples, nothing any diagnosis can see); the rail value is held exactly. The
 accelerometer is only clipped when that level is ≥ 2 g (`acc_min_level`: no accelerometer's range is near
 1 g), else the gyroscope is.
 """
@@ -27,9 +39,11 @@ from imugraph.diagnose.effects.base import (Correction, Effect, check_train, gyr
                                              replace_session)
 from imugraph.io.validate import runs
 
-RANGES = {"level_frac": (0.7, 0.9), "channel_p": {"gyr": 0.5, "acc": 0.5}, "acc_min_level": 2.0 * 9.81}
+RANGES = {"clipped_frac": (0.005, 0.05), "channel_p": {"gyr": 0.5, "acc": 0.5}, "acc_min_level": 2.0 * 9.81}
 CONTEXT = 6
 MIN_RUN, MIN_COUNT = 2, 3
+SUPPORT_S = 0.5             # the support of the attribution (A3): clipped samples ± 0.5 s (2.5 keyframe intervals)
+MIN_EPISODES = 2             # (C2): the rail is reached in ≥ 2 separate episodes
 MIN_CLIPPED = 5              # relevance: ≥ 5 samples on a rail (fewer is a chance repeat of a maximum)
 
 
@@ -69,6 +83,31 @@ def reconstruct_peaks(t: np.ndarray, y: np.ndarray, rails: list) -> np.ndarray:
     return out
 
 
+def separate_runs(y: np.ndarray, level: float, t: np.ndarray, gap_s: float = 0.1) -> int:
+    """Number of separate episodes (runs of ≥ MIN_RUN samples at exactly `level`, more than `gap_s`
+    apart) of one axis."""
+    a0, a1 = runs(np.abs(y - level) <= 1e-9 * max(1.0, abs(level)))
+    keep = [(i0, i1) for i0, i1 in zip(a0, a1) if i1 - i0 >= MIN_RUN]
+    n, last = 0, -np.inf
+    for i0, i1 in keep:
+        if t[i0] - last > gap_s:
+            n += 1
+        last = t[i1 - 1]
+    return n
+
+
+def clipped_support(s, rails: dict) -> np.ndarray:
+    """(N,) bool: samples within SUPPORT_S of a sample on a rail — what the effect claims (attribution
+    (A3)): a clipped gyro bends the fitted orientation over the keyframe intervals around it."""
+    hit = np.zeros(s.n, bool)
+    for c, rr in rails.items():
+        y = getattr(s, c)
+        for a, _sign, level in rr:
+            hit |= np.abs(y[:, a] - level) <= 1e-9 * max(1.0, abs(level))
+    half = max(1, int(round(SUPPORT_S * s.rate)))
+    return np.convolve(hit.astype(float), np.ones(2 * half + 1), "same") > 0
+
+
 class SaturationCorrection(Correction):
     def raw_residuals(self, fit) -> dict:
         s = fit.session
@@ -89,16 +128,18 @@ class Saturation(Effect):
     ranges = RANGES
 
     def inject(self, session, rng, *, window=None, strength=None):
-        """Clip one channel at ±L. strength: L as a fraction of the channel's peak |value|."""
-        frac = float(strength) if strength is not None else float(rng.uniform(*RANGES["level_frac"]))
+        """Clip one channel at ±L. strength: the fraction of samples beyond the rail (default random in
+        RANGES["clipped_frac"]); L is the matching quantile of the channel's largest |axis value|."""
+        frac = float(strength) if strength is not None else float(rng.uniform(*RANGES["clipped_frac"]))
         names, p = zip(*RANGES["channel_p"].items())
         c = str(rng.choice(names, p=p))
-        if c == "acc" and frac * float(np.nanmax(np.abs(session.acc))) < RANGES["acc_min_level"]:
+        peak = np.nanmax(np.abs(session.acc), axis=1)
+        if c == "acc" and np.nanquantile(peak, 1.0 - frac) < RANGES["acc_min_level"]:
             c = "gyr"                                                           # no accelerometer clips at 1 g
         y = getattr(session, c)
-        level = frac * float(np.nanmax(np.abs(y)))
+        level = float(np.nanquantile(np.nanmax(np.abs(y), axis=1), 1.0 - frac))
         clipped = np.clip(y, -level, level)
-        truth = {"params": {"channel": c, "level": level, "level_frac": frac,
+        truth = {"params": {"channel": c, "level": level, "level_frac": level / float(np.nanmax(np.abs(y))),
                             "clipped_fraction": float(np.mean(np.any(np.abs(y) > level, axis=1)))},
                  "t_start": None, "t_end": None}
         return replace_session(session, **{c: clipped}, name_suffix="+saturation",
@@ -116,6 +157,9 @@ class Saturation(Effect):
         if rails["gyr"]:
             corr.deltas["d_omega"] = reconstruct_peaks(s.t, s.gyr, rails["gyr"]) - s.gyr
         if n_rails:
+            corr.deltas["support"] = clipped_support(s, rails)
+            corr.deltas["decisive"] = any(separate_runs(getattr(s, c)[:, a], lv, s.t) >= MIN_EPISODES
+                                          for c, rr in rails.items() for a, _sg, lv in rr)          # (C2)
             changed = ["gyr", "acc", "mag"] if rails["gyr"] else ["acc"]
             corr.deltas["noise_scale"] = noise_scale(fit, corr.raw_residuals(fit), train, changed)
         return corr

@@ -4,19 +4,27 @@ phone on the sensor's mount).
 Model, in window w: b_acc,j = bRn,j (0, 0, g) + v_j + e_a, v a narrow-band process around f₀ with
 per-axis spectrum S_v,a(f) (zero outside the band f₀ ± Δf).                                          (V1)
 
-Fit: windows from the high-pass accelerometer residual (residual minus its 0.2 s moving mean) of all
-samples — moving mean of its squared whitened norm well above its quiet level (base.detect_windows; the
-window edges are the localisation, like magnetic_disturbance's) or the `window` argument. Spectra over the
+Fit: windows from the accelerometer residual of all samples above the motion band: human movement,
+physiological tremor (8–12 Hz) included, puts (almost) no acceleration above MOTION_BAND_HZ = 15 Hz, a
+motor's or a vehicle's vibration does (V2); the residual is high-passed there (zero phase, FFT) and the
+moving mean (0.5 s) of its squared norm is flagged well above its quiet level (base.detect_windows; the
+window edges are the localisation, like magnetic_disturbance's), or the `window` argument. (A 0.2 s
+moving-mean high-pass let enough hand-motion energy of the fast-rotation crops through that no window
+stood out.) Spectra over the
 training samples only: S_in inside the windows, S_out outside (Welch, ≈ 1 s segments); f₀ = the peak of
-S_in/S_out above 5 Hz, the band = the contiguous bins where that ratio exceeds a quarter of its peak (one
-bin of margin), S_v = max(S_in − S_out, 0) in the band.
+S_in/S_out above MOTION_BAND_HZ, the band = the contiguous bins where that ratio exceeds a quarter of its peak (one
+bin of margin), S_v,w = max(S_w − S_out, 0) in the band, per window w (S_w: the
+window's own training spectrum); a window whose band RMS is below half the relevance threshold holds no
+vibration and is dropped (kept when it is the only one).
 
 Residuals (base rule 2): inside the windows, the accelerometer residual passed through the extended
-model's whitening filter |H(f)| = √(S_out / (S_out + S_v)) (zero phase); unchanged outside.
+model's whitening filter |H_w(f)| = √(S_out / (S_out + S_v,w)) (zero phase); unchanged outside.
+The reported window (t_start, t_end) and amplitude are those of the window with the largest band RMS.
 
 Relevance (`size`): band RMS ≥ 0.3 m/s².
 
-Injection ranges (RANGES): f₀ = 20–80 Hz (at most 0.4 × the sampling rate), amplitude 0.6–3 m/s², random
+Injection ranges (RANGES): f₀ = 20–80 Hz (above the motion band; motors, hand tools and engines vibrate at tens
+of Hz) (at most 0.4 × the sampling rate), amplitude 0.6–3 m/s², random
 direction, slow frequency wander ±2 %, window 15–40 % of the session, raised-cosine ramps 0.1–0.5 s.
 """
 
@@ -25,13 +33,22 @@ from __future__ import annotations
 import numpy as np
 
 from imugraph.diagnose.effects.base import (Correction, Effect, check_train, detect_windows, envelope,
-                                             noise_scale, psd_filter, random_window, replace_session, smooth,
+                                             noise_scale, psd_filter, random_window, replace_session,
                                              train_psd, window_mask)
 from imugraph.io.validate import runs
 
 RANGES = {"freq_hz": (20.0, 80.0), "amp_ms2": (0.6, 3.0), "window_frac": (0.15, 0.4), "ramp_s": (0.1, 0.5)}
 MAX_WINDOWS = 3
+MOTION_BAND_HZ = 15.0        # human movement (incl. physiological tremor, 8–12 Hz) stays below this (V2)
 RELEVANT_RMS = 0.3           # relevance: band RMS ≥ 0.3 m/s² (≈ 10× a MEMS accelerometer's white noise)
+
+
+def above_motion_band(x: np.ndarray, rate: float) -> np.ndarray:
+    """x (N, d) high-passed (zero phase) above MOTION_BAND_HZ, with a raised-cosine transition of
+    1 Hz: what hand and body motion do not reach (V2)."""
+    f_hz = np.fft.rfftfreq(len(x), 1.0 / rate)
+    ramp = np.clip((f_hz - MOTION_BAND_HZ) / 1.0 + 0.5, 0.0, 1.0)
+    return psd_filter(x, 0.5 * (1.0 - np.cos(np.pi * ramp)))
 
 
 class VibrationCorrection(Correction):
@@ -40,14 +57,14 @@ class VibrationCorrection(Correction):
         wins = self.params["windows"]
         if not wins:
             return out
-        f_w, s_out, s_v = self.deltas["f"], self.deltas["s_out"], self.deltas["s_v"]
+        f_w, s_out = self.deltas["f"], self.deltas["s_out"]
         f_full = np.fft.rfftfreq(fit.n)
-        gain = np.stack([np.sqrt(np.interp(f_full, f_w, s_out[:, a]) /
-                                 (np.interp(f_full, f_w, s_out[:, a]) + np.interp(f_full, f_w, s_v[:, a])))
-                         for a in range(3)], axis=1)
-        filt = psd_filter(fit.residuals["acc"], gain)
-        inside = window_mask(fit.session.t, [(w["t_start"], w["t_end"]) for w in wins])
-        out["acc"][inside] = filt[inside]
+        so = np.stack([np.interp(f_full, f_w, s_out[:, a]) for a in range(3)], axis=1)
+        for w, s_v in zip(wins, self.deltas["s_v"]):                   # each window its own S_v (V1)
+            sv = np.stack([np.interp(f_full, f_w, s_v[:, a]) for a in range(3)], axis=1)
+            filt = psd_filter(fit.residuals["acc"], np.sqrt(so / np.maximum(so + sv, 1e-30)))
+            inside = window_mask(fit.session.t, [(w["t_start"], w["t_end"])])
+            out["acc"][inside] = filt[inside]
         return out
 
 
@@ -89,7 +106,7 @@ class Vibration(Effect):
         if not wins or not np.all(np.isfinite(s_in)) or not np.all(np.isfinite(s_out)):
             return VibrationCorrection(self.name, {"windows": []}, n_params=0, channel=self.channel)
         ratio = s_in.sum(axis=1) / np.maximum(s_out.sum(axis=1), 1e-30)
-        ratio[f * rate < 5.0] = 0.0
+        ratio[f * rate < MOTION_BAND_HZ] = 0.0
         k0 = int(np.argmax(ratio))
         band = ratio > ratio[k0] / 4.0
         lo = hi = k0
@@ -98,24 +115,34 @@ class Vibration(Effect):
         while hi < len(f) - 1 and band[hi + 1]:
             hi += 1
         lo, hi = max(lo - 1, 0), min(hi + 1, len(f) - 1)
-        s_v = np.zeros_like(s_in)
-        s_v[lo:hi + 1] = np.maximum(s_in[lo:hi + 1] - s_out[lo:hi + 1], 0.0)
-        params = {"windows": [{"t_start": a, "t_end": b} for a, b in wins], "freq_hz": float(f[k0] * rate),
-                  "band_hz": [float(f[lo] * rate), float(f[hi] * rate)],
-                  "amp_ms2": np.sqrt(2 * np.sum(s_v, axis=0) / nper).tolist()}
-        corr = VibrationCorrection(self.name, params, n_params=2 * len(wins) + 5,
-                                   t_start=wins[0][0], t_end=wins[0][1], channel=self.channel,
-                                   deltas={"f": f, "s_out": s_out, "s_v": s_v})
+        s_vs, amps = [], []
+        for a, b in wins:                       # per window: a spurious window gets S_v ≈ 0 (no change)
+            _, s_w = train_psd(r, train & window_mask(s.t, [(a, b)]), nper)
+            s_v = np.zeros_like(s_in)
+            if np.all(np.isfinite(s_w)):
+                s_v[lo:hi + 1] = np.maximum(s_w[lo:hi + 1] - s_out[lo:hi + 1], 0.0)
+            s_vs.append(s_v)
+            amps.append(np.sqrt(2 * np.sum(s_v, axis=0) / nper))
+        keep = [i for i, amp in enumerate(amps) if np.linalg.norm(amp) / np.sqrt(2) >= 0.5 * RELEVANT_RMS]
+        if not keep:                                       # no window holds a band excess: nothing found
+            keep = [int(np.argmax([np.linalg.norm(a) for a in amps]))]
+        wins, s_vs, amps = [wins[i] for i in keep], [s_vs[i] for i in keep], [amps[i] for i in keep]
+        best = int(np.argmax([np.linalg.norm(a) for a in amps]))
+        params = {"windows": [{"t_start": a, "t_end": b, "amp_ms2": amp.tolist()} for (a, b), amp in zip(wins, amps)],
+                  "freq_hz": float(f[k0] * rate), "band_hz": [float(f[lo] * rate), float(f[hi] * rate)],
+                  "amp_ms2": amps[best].tolist()}
+        corr = VibrationCorrection(self.name, params, n_params=5 + 5 * len(wins),
+                                   t_start=wins[best][0], t_end=wins[best][1], channel=self.channel,
+                                   deltas={"f": f, "s_out": s_out, "s_v": s_vs})
         corr.deltas["noise_scale"] = noise_scale(fit, corr.raw_residuals(fit), train, ["acc"])
         return corr
 
     @staticmethod
     def find_windows(fit) -> list:
-        """Vibration windows (t_start, t_end) from the high-pass accelerometer residual of all samples."""
+        """Vibration windows (t_start, t_end) from the accelerometer residual of all samples above the
+        motion band (V2): its power, moving mean over 0.5 s, well above its quiet level."""
         s = fit.session
-        r = fit.residuals["acc"]
-        hp = r - smooth(r, int(round(0.2 * s.rate)))
-        z2 = np.sum((hp / fit.sigma["acc"]) ** 2, axis=1) / 3.0
+        z2 = np.sum(above_motion_band(fit.residuals["acc"], s.rate) ** 2, axis=1)
         found = detect_windows(s.t, z2, smooth_s=0.5, factor=4.0, min_s=2.0, merge_s=1.0)[:MAX_WINDOWS]
         return [(float(s.t[a]), float(s.t[b - 1])) for a, b in found]
 
