@@ -6,7 +6,6 @@ heading, overall and per time window, and compare gyro biases.
 
 from __future__ import annotations
 
-import ast
 import sys
 from pathlib import Path
 
@@ -14,43 +13,22 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from benchmarks.common import broad_trials, load_broad_trial  # noqa: E402
+from benchmarks.b1_try import CACHE, parse_opts  # noqa: E402
+from benchmarks.common import error_parts, iter_broad  # noqa: E402
 from benchmarks.peers import vqf_offline  # noqa: E402
-from imugraph.calibration.ml import Options, calibrate  # noqa: E402
-from imugraph.evaluate import heading_error, inclination_error, orientation_error  # noqa: E402
-
-
-def parse_opts(argv):
-    kw = {}
-    while "--opt" in argv:
-        i = argv.index("--opt")
-        k, v = argv[i + 1].split("=")
-        kw[k] = ast.literal_eval(v)
-        argv = argv[:i] + argv[i + 2:]
-    return Options(**kw), argv
-
-
-def scores(q, s, mask):
-    return (orientation_error(q, s.quat, mask, s.rate).rms_deg,
-            inclination_error(q, s.quat, mask, s.rate).rms_deg,
-            heading_error(q, s.quat, mask, s.rate).rms_deg)
+from imugraph.calibration.ml import calibrate  # noqa: E402
 
 
 def main(argv):
     opts, argv = parse_opts(argv)
     select = set(argv[0].split(",")) if argv else None
-    for path in broad_trials():
-        num = path.name[:2]
-        if select and num not in select:
-            continue
-        s = load_broad_trial(path)
-        mask = s.movement.astype(bool)
+    for num, s, mask in iter_broad(select):
         est = calibrate(s, opts, allow_weak=True)
         import vqf
         out = vqf.offlineVQF(np.ascontiguousarray(s.gyr), np.ascontiguousarray(s.acc),
                              np.ascontiguousarray(s.mag), 1.0 / s.rate)
         q_v = vqf_offline(s)
-        a, b = scores(est.quat, s, mask), scores(q_v, s, mask)
+        a, b = error_parts(est.quat, s, mask), error_parts(q_v, s, mask)
         print(f"{num}: ours tot/incl/head {a[0]:.2f}/{a[1]:.2f}/{a[2]:.2f}  "
               f"offVQF {b[0]:.2f}/{b[1]:.2f}/{b[2]:.2f}")
         print(f"   bias ours {np.rad2deg(est.calibration.gyro_bias).round(3)} °/s  "
@@ -58,7 +36,8 @@ def main(argv):
         seg = est.info["gyro_bias_segments"]
         print(f"   our bias segments range (°/s): {np.rad2deg(seg.min(0)).round(3)} .. {np.rad2deg(seg.max(0)).round(3)}")
         print(f"   dip {est.calibration.dip_deg:.2f} noise {est.calibration.noise} g {est.info['g']:.4f}")
-        np.savez(f"/tmp/b1/{num}.npz", q_ours=est.quat, q_vqf=q_v, vqf_bias=out["bias"],
+        CACHE.mkdir(parents=True, exist_ok=True)
+        np.savez(CACHE / f"{num}.npz", q_ours=est.quat, q_vqf=q_v, vqf_bias=out["bias"],
                  bias_seg=seg, kf=est.info["keyframe_samples"])
         # per 20 s window
         n = s.n
@@ -69,8 +48,8 @@ def main(argv):
             if m.sum() < 200:
                 continue
             try:
-                line_o.append(f"{scores(est.quat, s, m)[1]:.2f}/{scores(est.quat, s, m)[2]:.2f}")
-                line_v.append(f"{scores(q_v, s, m)[1]:.2f}/{scores(q_v, s, m)[2]:.2f}")
+                line_o.append(f"{error_parts(est.quat, s, m)[1]:.2f}/{error_parts(est.quat, s, m)[2]:.2f}")
+                line_v.append(f"{error_parts(q_v, s, m)[1]:.2f}/{error_parts(q_v, s, m)[2]:.2f}")
             except Exception as exc:
                 pass
         print("   20s windows incl/head ours:", " ".join(line_o))

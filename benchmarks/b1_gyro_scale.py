@@ -16,10 +16,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from benchmarks.b1_try import parse_opts, vqf_cached  # noqa: E402
-from benchmarks.common import broad_trials, load_broad_trial  # noqa: E402
-from imugraph.calibration.ml import Options, calibrate  # noqa: E402
-from imugraph.evaluate import heading_error, inclination_error, orientation_error  # noqa: E402
+from benchmarks.b1_try import CACHE, parse_opts, vqf_cached  # noqa: E402
+from benchmarks.common import error_parts, iter_broad  # noqa: E402
+from imugraph.calibration.ml import calibrate  # noqa: E402
 from dataclasses import replace  # noqa: E402
 
 
@@ -40,15 +39,10 @@ def fit_gyro_map(gyr: np.ndarray, quat: np.ndarray, rate: float, h: int = 29, la
 
 
 def main(argv):
-    kw, argv = parse_opts(argv)
+    options, argv = parse_opts(argv)
     select = set(argv[0].split(",")) if argv else None
     mode = argv[1] if len(argv) > 1 else "opt"
-    for path in broad_trials():
-        num = path.name[:2]
-        if select and num not in select:
-            continue
-        s = load_broad_trial(path)
-        mask = s.movement.astype(bool)
+    for num, s, mask in iter_broad(select):
         qv = vqf_cached(num, s)
         M_total = np.eye(3)
         rounds = 1 if mode == "opt" else 3
@@ -56,17 +50,17 @@ def main(argv):
             if mode == "opt":
                 M, _ = fit_gyro_map(s.gyr, s.quat, s.rate, lag=1)
             else:
-                est = calibrate(replace(s, gyr=s.gyr @ M_total.T), Options(**kw), allow_weak=True)
+                est = calibrate(replace(s, gyr=s.gyr @ M_total.T), options, allow_weak=True)
                 M, _ = fit_gyro_map(s.gyr @ M_total.T, est.quat, s.rate)
-                o_ = [f(est.quat, s.quat, mask, s.rate).rms_deg for f in (orientation_error, inclination_error, heading_error)]
+                o_ = list(error_parts(est.quat, s, mask))
                 print(f"  {num} self round {r}: {o_[0]:.3f} (incl {o_[1]:.2f} head {o_[2]:.2f}); M diag {np.diag(M).round(4)}")
             M_total = M @ M_total
-        est = calibrate(replace(s, gyr=s.gyr @ M_total.T), Options(**kw), allow_weak=True)
-        o_ = [f(est.quat, s.quat, mask, s.rate).rms_deg for f in (orientation_error, inclination_error, heading_error)]
-        v = [f(qv, s.quat, mask, s.rate).rms_deg for f in (orientation_error, inclination_error, heading_error)]
+        est = calibrate(replace(s, gyr=s.gyr @ M_total.T), options, allow_weak=True)
+        o_ = list(error_parts(est.quat, s, mask))
+        v = list(error_parts(qv, s, mask))
         print(f"{num} gyro M from {mode}: ours {o_[0]:.3f} (incl {o_[1]:.2f} head {o_[2]:.2f})  offVQF {v[0]:.3f} "
               f"(incl {v[1]:.2f} head {v[2]:.2f})  M {M_total.round(4).tolist()}", flush=True)
-        np.save(f"/tmp/b1/ours_{num}_gyroM_{mode}.npy", est.quat)
+        np.save(CACHE / f"ours_{num}_gyroM_{mode}.npy", est.quat)
 
 
 if __name__ == "__main__":

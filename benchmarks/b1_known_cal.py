@@ -17,11 +17,10 @@ from scipy.optimize import minimize
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import imugraph.calibration.ml as ml  # noqa: E402
-from benchmarks.b1_try import parse_opts, vqf_cached  # noqa: E402
-from benchmarks.common import broad_trials, load_broad_trial  # noqa: E402
+from benchmarks.b1_try import CACHE, parse_opts, vqf_cached  # noqa: E402
+from benchmarks.common import error_parts, iter_broad  # noqa: E402
 from imugraph.calibration.alignment import undelay_magnetometer  # noqa: E402
 from imugraph.calibration.initial import initial_calibration  # noqa: E402
-from imugraph.evaluate import heading_error, inclination_error, orientation_error  # noqa: E402
 from imugraph.geometry import quat_to_rotmat  # noqa: E402
 
 
@@ -47,16 +46,11 @@ def fit_field_model(y: np.ndarray, nRb: np.ndarray) -> tuple[np.ndarray, np.ndar
 
 
 def main(argv):
-    kw, argv = parse_opts(argv)
+    options, argv = parse_opts(argv)
     select = set(argv[0].split(",")) if argv else None
     ref = argv[1] if len(argv) > 1 else "opt"
     orig = ml._theta_prior_sigma
-    for path in broad_trials():
-        num = path.name[:2]
-        if select and num not in select:
-            continue
-        s = load_broad_trial(path)
-        mask = s.movement.astype(bool)
+    for num, s, mask in iter_broad(select):
         init = initial_calibration(s)
         y = undelay_magnetometer(s.t, s.mag, init.mag_delay_s) if getattr(init, "mag_delay_s", 0) else s.mag
         q_ref = s.quat if ref == "opt" else vqf_cached(num, s)
@@ -69,15 +63,15 @@ def main(argv):
         init = replace(init, D=D, o=o, dip_rad=dip)
         ml._theta_prior_sigma = lambda th, tight=False: 1e-6 * orig(th, False)
         try:
-            est = ml.calibrate(s, ml.Options(**kw), initial=init, allow_weak=True)
+            est = ml.calibrate(s, options, initial=init, allow_weak=True)
         finally:
             ml._theta_prior_sigma = orig
         qv = vqf_cached(num, s)
-        o_ = [f(est.quat, s.quat, mask, s.rate).rms_deg for f in (orientation_error, inclination_error, heading_error)]
-        v = [f(qv, s.quat, mask, s.rate).rms_deg for f in (orientation_error, inclination_error, heading_error)]
+        o_ = list(error_parts(est.quat, s, mask))
+        v = list(error_parts(qv, s, mask))
         print(f"{num} fixed θ: ours {o_[0]:.3f} (incl {o_[1]:.2f} head {o_[2]:.2f})  offVQF {v[0]:.3f} "
               f"(incl {v[1]:.2f} head {v[2]:.2f})", flush=True)
-        np.save(f"/tmp/b1/ours_{num}_known_{ref}.npy", est.quat)
+        np.save(CACHE / f"ours_{num}_known_{ref}.npy", est.quat)
 
 
 if __name__ == "__main__":

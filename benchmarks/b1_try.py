@@ -6,7 +6,6 @@ inclination and heading RMS, the estimated dip and the mean nav-frame tilt error
 
 from __future__ import annotations
 
-import ast
 import sys
 import time
 from pathlib import Path
@@ -15,23 +14,20 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from benchmarks.common import broad_trials, load_broad_trial  # noqa: E402
+from benchmarks.common import error_parts, iter_broad, parse_options, pop_opts  # noqa: E402
+from benchmarks.output import OUT_DIR  # noqa: E402
 from benchmarks.peers import vqf_offline  # noqa: E402
-from imugraph.calibration.ml import Options, calibrate  # noqa: E402
-from imugraph.evaluate import _align, heading_error, inclination_error, orientation_error  # noqa: E402
+from imugraph.calibration.ml import calibrate  # noqa: E402
+from imugraph.evaluate import _align  # noqa: E402
 
-CACHE = Path("/tmp/b1")
+CACHE = OUT_DIR / "b1"     # offline VQF and our quaternions per trial, reused by the b1 scripts
 TAG = "last"
 
 
 def parse_opts(argv):
-    kw = {}
-    while "--opt" in argv:
-        i = argv.index("--opt")
-        k, v = argv[i + 1].split("=", 1)
-        kw[k] = ast.literal_eval(v)
-        argv = argv[:i] + argv[i + 2:]
-    return kw, argv
+    """(ml.Options from the `--opt FIELD=VALUE` pairs, the rest of argv)."""
+    opts, rest = pop_opts(argv)
+    return parse_options(opts), rest
 
 
 def nav_tilt_mean(q, s, mask):
@@ -46,30 +42,25 @@ def vqf_cached(num, s):
     if f.is_file():
         return np.load(f)
     q = vqf_offline(s)
-    CACHE.mkdir(exist_ok=True)
+    CACHE.mkdir(parents=True, exist_ok=True)
     np.save(f, q)
     return q
 
 
 def main(argv):
     global TAG
-    kw, argv = parse_opts(argv)
+    options, argv = parse_opts(argv)
     if "--tag" in argv:
         i = argv.index("--tag"); TAG = argv[i + 1]; argv = argv[:i] + argv[i + 2:]
     select = set(argv[0].split(",")) if argv else None
     tot = []
-    for path in broad_trials():
-        num = path.name[:2]
-        if select and num not in select:
-            continue
-        s = load_broad_trial(path)
-        mask = s.movement.astype(bool)
+    for num, s, mask in iter_broad(select):
         t0 = time.perf_counter()
-        est = calibrate(s, Options(**kw), allow_weak=True)
+        est = calibrate(s, options, allow_weak=True)
         dt = time.perf_counter() - t0
         qv = vqf_cached(num, s)
-        o = [f(est.quat, s.quat, mask, s.rate).rms_deg for f in (orientation_error, inclination_error, heading_error)]
-        v = [f(qv, s.quat, mask, s.rate).rms_deg for f in (orientation_error, inclination_error, heading_error)]
+        o = list(error_parts(est.quat, s, mask))
+        v = list(error_parts(qv, s, mask))
         m, sd = nav_tilt_mean(est.quat, s, mask)
         tot.append((o[0], v[0]))
         print(f"{num} ours {o[0]:.3f} (incl {o[1]:.2f} head {o[2]:.2f})  offVQF {v[0]:.3f} (incl {v[1]:.2f} head "
@@ -78,7 +69,7 @@ def main(argv):
         np.save(CACHE / f"ours_{num}_{TAG}.npy", est.quat)
     a = np.array(tot)
     print(f"mean ours {a[:, 0].mean():.3f} offVQF {a[:, 1].mean():.3f} ratio {a[:, 0].mean() / a[:, 1].mean():.3f} "
-          f"worse {int(np.sum(a[:, 0] > a[:, 1]))}/{len(a)}  opts {kw}")
+          f"worse {int(np.sum(a[:, 0] > a[:, 1]))}/{len(a)}  opts {options}")
 
 
 if __name__ == "__main__":

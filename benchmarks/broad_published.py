@@ -19,37 +19,29 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from benchmarks.common import broad_trials, load_broad_trial, parse_options, print_table  # noqa: E402
+from benchmarks.common import iter_broad, parse_options, pop_opts, print_table  # noqa: E402
 from benchmarks.peers import timed, vqf_offline, vqf_online  # noqa: E402
 from imugraph.calibration.ml import Options, calibrate  # noqa: E402
 from imugraph.evaluate import orientation_error  # noqa: E402
 
 
 def main(argv: list[str]) -> int:
-    kw, opts = {}, []
+    kw = {}
     if "--keyframe-hz" in argv:
         i = argv.index("--keyframe-hz")
         kw["keyframe_hz"] = float(argv[i + 1])
         argv = argv[:i] + argv[i + 2:]
-    while "--opt" in argv:
-        i = argv.index("--opt")
-        opts.append(argv[i + 1])
-        argv = argv[:i] + argv[i + 2:]
+    opts, argv = pop_opts(argv)
     options = parse_options(opts, **kw)
     select = set(argv[0].split(",")) if argv else None
     rows = []
-    for path in broad_trials():
-        num = path.name[:2]
-        if select and num not in select:
-            continue
-        s = load_broad_trial(path)
-        mask = s.movement.astype(bool)
+    for num, s, mask in iter_broad(select):
         est, t_ig = timed(calibrate, s, options, allow_weak=True)
         q_off, t_off = timed(vqf_offline, s)
         q_on, _ = timed(vqf_online, s)
         score = {name: orientation_error(q, s.quat, mask, s.rate).rms_deg
                  for name, q in (("imugraph", est.quat), ("offline_vqf", q_off), ("vqf", q_on))}
-        rows.append({"trial": path.stem, **{k: round(v, 3) for k, v in score.items()},
+        rows.append({"trial": s.name, **{k: round(v, 3) for k, v in score.items()},
                      "ratio": round(score["imugraph"] / score["offline_vqf"], 2),
                      "identifiable": bool(est.calibration.coverage.get("identifiable", True)),
                      "t_imugraph_s": round(t_ig, 2), "t_offline_vqf_s": round(t_off, 3)})

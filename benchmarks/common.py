@@ -175,3 +175,33 @@ def parse_options(values: Sequence[str] | None, **fixed: Any):
             raise SystemExit(f"--opt {item!r}: expected FIELD=VALUE with FIELD one of {sorted(known)}")
         kw[name] = ast.literal_eval(value)
     return Options(**kw)
+
+
+def pop_opts(argv: list[str]) -> tuple[list[str], list[str]]:
+    """Split `--opt FIELD=VALUE` pairs out of argv: (the FIELD=VALUE strings, the rest of argv)."""
+    opts, rest, i = [], [], 0
+    while i < len(argv):
+        if argv[i] == "--opt" and i + 1 < len(argv):
+            opts.append(argv[i + 1])
+            i += 2
+        else:
+            rest.append(argv[i])
+            i += 1
+    return opts, rest
+
+
+def iter_broad(select: set[str] | None = None):
+    """(two-digit trial number, session, movement mask) of every BROAD trial, or of those in select."""
+    for path in broad_trials():
+        num = path.name[:2]
+        if select and num not in select:
+            continue
+        s = load_broad_trial(path)
+        yield num, s, s.movement.astype(bool)
+
+
+def error_parts(q, s: Session, mask) -> tuple[float, float, float]:
+    """Total, inclination and heading RMS error (deg) of q against the session's reference quat."""
+    from imugraph.evaluate import heading_error, inclination_error, orientation_error
+
+    return tuple(f(q, s.quat, mask, s.rate).rms_deg for f in (orientation_error, inclination_error, heading_error))
