@@ -149,7 +149,7 @@ def test_gyro_map_recovers_known_scale_and_misalignment():
     s, _ = distorted_session(1, 60.0, 100.0)
     scaled = replace(s, gyr=s.gyr @ np.linalg.inv(np.eye(3) + E_true).T)
     plain = calibrate(scaled, Options())
-    est = calibrate(scaled, Options(gyro_map=True))
+    est = calibrate(scaled, Options(gyro_map=True, gyro_map_min_turns=0.0))   # 60 s: below the gate
     err_plain = orientation_error(plain.quat, s.quat, None, s.rate).rms_deg
     err_map = orientation_error(est.quat, s.quat, None, s.rate).rms_deg
     sym = 0.5 * (est.info["gyro_map"] + est.info["gyro_map"].T)
@@ -196,3 +196,48 @@ def test_fit_offsets_per_sample_field_equals_constant(rng):
     fit_offsets([w1], t, y2, nRb, D, o, const, 0.5)
     fit_offsets([w2], t, y2, nRb, D, o, n_k.mean(0), 0.5)
     np.testing.assert_allclose(w1.offset, w2.offset, atol=1e-12)
+
+
+def test_clean_intervals_and_turns_known_answer():
+    """Intervals with a specific force off g by more than the tolerance do not inform E; the clean
+    rotation is counted in full turns (constant 2π rad/s about z for 1 s of clean data = 1 turn)."""
+    from imugraph.calibration.gyro_map import clean_intervals, clean_turns
+
+    g, n, stride = 9.81, 400, 100                     # 4 intervals of 100 samples at 100 Hz
+    sample_kf = np.arange(n) // stride
+    acc = np.tile([0.0, 0.0, g], (n, 1))
+    acc[150] = [0.0, 0.0, g + 2.5]                    # one jolt in interval 1
+    acc[320] = [1.0, 0.0, g]                          # |a| − g ≈ 0.05: still clean
+    clean = clean_intervals(acc, g, sample_kf, 3, acc_tol=2.0)
+    assert clean.tolist() == [True, False, True]
+    gyr = np.tile([0.0, 0.0, 2 * np.pi], (n, 1))
+    dt = np.full(n, 0.01)
+    assert np.isclose(clean_turns(gyr, dt, sample_kf, clean), 2.0)   # intervals 0 and 2, 1 s each
+
+
+def test_gyro_map_gate_leaves_e_at_zero():
+    """Too few clean turns: E is not estimated (stays exactly 0) and the gate says so."""
+    from imugraph.calibration.ml import Options, calibrate
+    from imugraph.sim.scenario import distorted_session
+
+    s, _ = distorted_session(1, 20.0, 100.0)
+    est = calibrate(s, Options(gyro_map=True, gyro_map_min_turns=1e6, max_outer=2))
+    assert est.info["gyro_map_gate"]["estimated"] is False
+    assert est.info["gyro_map_gate"]["clean_turns"] > 0
+    assert np.all(est.info["gyro_map"] == 0.0)
+
+
+def test_gyro_map_unsettled_falls_back_to_plain_model():
+    """E still moving when the ML rounds stop (here: one round allowed): the result is the plain model's,
+    orientation identical to a run without E, and the gate records why."""
+    from imugraph.calibration.ml import Options, calibrate
+    from imugraph.sim.scenario import distorted_session
+
+    s, _ = distorted_session(2, 20.0, 100.0)
+    base = dict(max_outer=1, gyro_map_min_turns=0.0)
+    est = calibrate(s, Options(gyro_map=True, **base))
+    plain = calibrate(s, Options(gyro_map=False, **base))
+    gate = est.info["gyro_map_gate"]
+    assert gate["estimated"] is False and "settle" in gate["reason"]
+    assert np.all(est.info["gyro_map"] == 0.0)
+    np.testing.assert_allclose(est.quat, plain.quat, atol=1e-9)

@@ -19,6 +19,14 @@ trials gives M − I of 0.2–0.7 % (trial 04: M_zz = 1.0031, M_zy = −0.0070) 
 vertical: 8–12° of heading the gyro gets wrong. A strongly weighted magnetometer hides it by bending the
 gyro bias (segments spanning 0.9 °/s on trial 01, against ≈ 0.07 °/s from the optical fit). Correcting the
 gyro with the optical M: heading RMS 1.34 → 0.94° (01), 1.15 → 0.38° (04).
+
+Safety (B5, measured on BROAD): estimated from every interval, E ran away on fast trials (16: +7 % per
+ML round to +40 %, 16.8°; κ = 0 changes nothing; with the accelerometer as gravity-plus-noise −88 % in
+round 1): E's regressor is the rate, which correlates with the unmodelled linear/centripetal acceleration
+of fast motion, and E soaked it up. So (1) only intervals whose specific force stays within acc_tol of g
+inform E (clean_intervals: 16 → 0.97°, 06 → 0.82°, still worse than without E), and (2) a coverage gate:
+E is estimated only when those intervals hold enough rotation (clean_turns; BROAD 01/02/04/24 have
+20–29 turns, 06/07 11/9, translation trials < 8), else E stays 0.
 """
 
 from __future__ import annotations
@@ -41,7 +49,8 @@ def map_jacobian(b_gyr: np.ndarray, dt: np.ndarray, pre: Preintegration, bias_ro
     PW = (P[:, :, :, None] * b_gyr[:, None, None, :]).reshape(-1, 3, 9)   # · (I₃ ⊗ ωᵀ)
     K = len(pre.kf_samples)
     S = np.zeros((K, 3, 9))
-    np.add.at(S, pre.sample_kf, PW)
+    first = np.r_[0, np.flatnonzero(np.diff(pre.sample_kf)) + 1]         # samples are grouped by keyframe
+    S[pre.sample_kf[first]] = np.add.reduceat(PW, first, axis=0)
     return np.transpose(pre.delta_R, (0, 2, 1)) @ S[:-1]
 
 
@@ -67,13 +76,45 @@ def equivalent_bias_map(pre: Preintegration, dR_de: np.ndarray) -> np.ndarray:
     return np.linalg.solve(pre.dR_db, dR_de)
 
 
-class GyroMapState:
-    """The Ê applied to the gyro between the rounds of the ML loop (calibration/ml.py), and its last step."""
+def clean_intervals(b_acc: np.ndarray, g: float, sample_kf: np.ndarray, n_intervals: int,
+                    acc_tol: float) -> np.ndarray:
+    """(K−1,) bool: keyframe intervals whose every sample has | |b_acc| − g | < acc_tol (m/s²).
 
-    def __init__(self, sigma_e: float):
+    Why: on fast trials E ran away (BROAD 16: Ê_xx, Ê_yy +7 % per ML round, to +40 %; with the
+    accelerometer as gravity-plus-noise −88 % in one round) — not κ (same with κ = 0), not the
+    linearisation (steps did not shrink). E's regressor is the rate ω, and fast motion brings specific
+    forces far from g (linear and centripetal acceleration) that the velocity model only partly explains:
+    E absorbed those residuals. Only intervals where the accelerometer sees gravity alone inform E.
+    """
+    dev = np.abs(np.linalg.norm(b_acc, axis=1) - g)
+    dev = np.where(np.isfinite(dev), dev, np.inf)
+    worst = np.zeros(n_intervals + 1)
+    np.maximum.at(worst, sample_kf, dev)
+    return worst[:n_intervals] < acc_tol
+
+
+def clean_turns(b_gyr: np.ndarray, dt: np.ndarray, sample_kf: np.ndarray, clean: np.ndarray) -> float:
+    """Rotation (full turns, ∫|ω|dt / 2π) inside the clean intervals: E's coverage gate.
+
+    A rate error of ε over n turns is 2πnε of rotation; with few clean turns E is not determined by the
+    gyro/gravity data and stays 0 (BROAD 15/16: 0.3/0.6 clean turns; 01/04: 26/20).
+    """
+    ok = np.r_[clean, False][sample_kf]
+    return float(np.sum(np.linalg.norm(b_gyr[ok], axis=1) * dt[ok]) / (2 * np.pi))
+
+
+class GyroMapState:
+    """The Ê applied to the gyro between the rounds of the ML loop (calibration/ml.py), and its last step.
+
+    clean: (K−1,) intervals allowed to inform E (clean_intervals); the others keep C_k = 0, i.e. their
+    gyro factors see Ê (applied to every sample by the preintegration) but do not pull on it.
+    """
+
+    def __init__(self, sigma_e: float, clean: np.ndarray | None = None):
         self.E = np.zeros((3, 3))
         self.step = 0.0
         self.sigma_e = sigma_e
+        self.clean = clean
 
     def corrected(self, b_gyr: np.ndarray) -> np.ndarray:
         """(I + Ê) b_gyr."""
@@ -83,8 +124,10 @@ class GyroMapState:
         """The graph's GyroMapModel at this preintegration (g_c: the corrected gyro it integrated)."""
         from imugraph.graphs.single_imu import GyroMapModel
 
-        return GyroMapModel(equivalent_bias_map(pre, map_jacobian(g_c, dt, pre, bias_rows)), self.E.ravel(),
-                            self.sigma_e)
+        C = equivalent_bias_map(pre, map_jacobian(g_c, dt, pre, bias_rows))
+        if self.clean is not None:
+            C = np.where(self.clean[:, None, None], C, 0.0)
+        return GyroMapModel(C, self.E.ravel(), self.sigma_e)
 
     def fold(self, values) -> None:
         """Ê ← Ê + δE from a solution (the next preintegration applies it; the graph restarts at δE = 0)."""

@@ -28,7 +28,7 @@ from imugraph.factors.velocity import gravity_from_velocity
 from imugraph.geometry import quat_to_rotmat
 from imugraph.factors.theta import THETA_DIM, pack_theta, unpack_theta
 from imugraph.graphs.orientation_init import complementary_keyframes, sample_orientations
-from imugraph.calibration.gyro_map import GyroMapState
+from imugraph.calibration.gyro_map import GyroMapState, clean_intervals, clean_turns
 from imugraph.calibration.initial import weak_initial  # noqa: F401  (re-exported: diagnose.fit uses it)
 from imugraph.factors.field import field_key
 from imugraph.graphs.single_imu import (FieldModel, Noise, Problem, VelocityModel, build_problem,
@@ -79,10 +79,21 @@ class Options:
     #   BROAD 17-trial mean 0.99° → 0.83° (10 → 7 trials behind offline VQF); worse on 16, 26, 32 (0.61 →
     #   0.84°). Across the field 0.003: looser lets heading follow the gyro (01: 0.015 on y → 3.60°)
     field_tau: float = 1.0            # τ_d, s: its correlation time (2 s: mean 0.839°)
-    gyro_map: bool = False            # gyro scale/misalignment E estimated jointly (calibration/gyro_map.py):
-    #   recovers E in simulation; on BROAD with field_sigma 0.015/τ 1 s: 04 1.74 → 0.48°, 01 1.60 → 0.82°,
-    #   but fast trials worse (06 → 1.62°, 16 → 16°; E pulled to −1 % on 06, cause not found); off
+    gyro_map: bool = False            # gyro scale/misalignment E estimated jointly (calibration/gyro_map.py)
+    #   from the intervals where the accelerometer sees gravity only, behind a coverage gate and a settling
+    #   gate (else the plain model's result). Ungated, E ran to +40 % on BROAD 16 (16.8°): it absorbed
+    #   unmodelled linear acceleration. Gated: BROAD 17-trial mean 0.83° → 0.77° (01 1.23 → 0.79°,
+    #   04 1.17 → 0.52°, 02 0.42 → 0.44°, others unchanged); calibrate+smooth on 01 ≈ 1.7× slower
     gyro_map_sigma: float = 0.02      # prior std of the entries of E
+    gyro_map_acc_tol: float | None = 2.0   # m/s²: only keyframe intervals with | |b_acc| − g | below this
+    #   inform E (calibration/gyro_map.clean_intervals; None: all intervals)
+    gyro_map_final: bool = False      # False: the final (all-sample) solve keeps the rounds' Ê (freeing it there:
+    #   BROAD 02 0.44 → 0.52°, 01 0.79 → 0.73°, 04 0.53 → 0.58°; the rounds set noise levels and E)
+    gyro_map_tol: float = 3e-4        # E settled when no entry moves more than this in a round
+    gyro_map_max_contraction: float = 0.5   # E kept only if its last step ≤ this × the one before
+    #   (BROAD 01/02/04: fast settling; 24: 0.65 per round, E off-diagonal to −0.8 %, 0.51 → 0.73°)
+    gyro_map_min_turns: float = 15.0  # coverage gate: E estimated only with this many turns of rotation in
+    #   those intervals (gyro_map.clean_turns), else left at 0 (info["gyro_map_gate"])
     round_min_samples: int = 8        # ML rounds see every n-th field sample, keeping at least this many
     #                                   per keyframe (the dof correction needs them); the final solve sees all
     round_relative_tol: float | None = 1e-4   # LM stopping tolerance of the ML rounds (None: solver's);
@@ -129,6 +140,7 @@ def calibrate(session: Session, options: Options | None = None, initial=None,
 
     opt = options or Options()
     weak_reason = None
+    session_in = session
     if initial is None:
         from imugraph.calibration.initial import initial_calibration
         try:
@@ -180,14 +192,22 @@ def calibrate(session: Session, options: Options | None = None, initial=None,
     round_solver = opt.solver if opt.round_relative_tol is None else replace(
         opt.solver, relative_tol=opt.round_relative_tol)
 
-    gyro = GyroMapState(opt.gyro_map_sigma)
+    gate = {"estimated": False}
+    if opt.gyro_map:
+        clean = (np.ones(len(kf) - 1, bool) if opt.gyro_map_acc_tol is None else
+                 clean_intervals(session.acc, g, skf, len(kf) - 1, opt.gyro_map_acc_tol))
+        turns = clean_turns(session.gyr, session.dt, skf, clean)
+        gate = {"estimated": turns >= opt.gyro_map_min_turns, "clean_turns": turns,
+                "clean_fraction": float(clean.mean()) if len(clean) else 0.0}
+    gyro = GyroMapState(opt.gyro_map_sigma, clean if gate["estimated"] else None)
 
     def solve_round(bias, noise, nRk, theta, every=1, final=False, values0=None):
         """Preintegrate at the current bias, build the graph, solve it (one round of the ML loop);
         values0: the previous round's solution, which holds exactly nRk, bias, θ and the velocities."""
         g_c, b_rows = gyro.corrected(session.gyr), _per_sample_bias(bias, seg, skf)
         pre = preintegrate(g_c, session.dt, kf, skf, b_rows, noise.gyr, opt.gyro_rate_error)
-        gmap = gyro.model(g_c, session.dt, pre, b_rows) if opt.gyro_map else None
+        gmap = (gyro.model(g_c, session.dt, pre, b_rows)
+                if gate["estimated"] and (opt.gyro_map_final or not final) else None)
         start = complementary_keyframes(pre, session.acc, m_cal0) if nRk is None else nRk
         velocity = _velocity_model(opt, vel_state)
         g_round = vel_state["g"] or g
@@ -259,9 +279,10 @@ def calibrate(session: Session, options: Options | None = None, initial=None,
                         float(np.sqrt(np.mean(noise.mag ** 2))))
             mag_state["y"], mag_state["w"] = apply_windows(windows, session.mag)
             history[-1]["windows"] = [w.as_dict(session.t) for w in windows]
-        if opt.gyro_map:
+        if gate["estimated"]:
             history[-1]["gyro_map"] = gyro.E.tolist()
-            change = max(change, gyro.step / 1e-4 * opt.noise_tol)     # E settled to 1e-4
+            change = max(change, gyro.step / opt.gyro_map_tol * opt.noise_tol)     # E settled
+            gate.setdefault("steps", []).append(gyro.step)
         bias_change = float(np.max(np.linalg.norm(bias_new - bias, axis=1)))
         noise = Noise(new.get("gyr", noise.gyr), new.get("acc", noise.acc), new.get("mag", noise.mag))
         bias = bias_new
@@ -271,6 +292,20 @@ def calibrate(session: Session, options: Options | None = None, initial=None,
         if change < opt.noise_tol and bias_change < 1e-4:
             converged = True
             break
+    steps = gate.get("steps", [])
+    gate["contraction"] = steps[-1] / steps[-2] if len(steps) > 1 and steps[-2] > 0 else None
+    if gate["estimated"] and (not converged or gate["contraction"] is None
+                              or gate["contraction"] > opt.gyro_map_max_contraction):
+        # Ê still moving after max_outer rounds, or creeping (each round's step ≥ half the previous): E
+        # is set by what a round freezes (intra-interval rotations, velocity increments, windows), not
+        # determined by the joint solve (BROAD 24, tapping: an off-diagonal crept to −0.8 %, 0.51 → 0.73°;
+        # zeroing Ê for the final solve alone still gave 0.72°): the plain model's result instead
+        plain = calibrate(session_in, replace(opt, gyro_map=False), initial=None if weak_reason else init,
+                          allow_weak=allow_weak)
+        plain.info["gyro_map_gate"] = {**gate, "estimated": False, "reason": "E did not settle in the ML rounds"
+                                       f" (contraction {gate['contraction']})",
+                                       "E_unsettled": gyro.E.copy()}
+        return plain
     # final solve at the converged noise levels and bias, then marginals
     pre, prob, values, info = solve_round(bias, noise, nRk, theta, final=True, values0=values)
     nRk = keyframe_rotations(values, len(kf))
@@ -304,7 +339,8 @@ def calibrate(session: Session, options: Options | None = None, initial=None,
                                   else vel_state["s"][:, 3:].mean(axis=0)),
                      "velocity_sigma": vel_state["sigma"],
                      "disturbance_windows": [w.as_dict(session.t) for w in windows], "keyframe_samples": kf,
-                     "field_offsets": prob.block.field_offsets, "gyro_map": gyro.E})
+                     "field_offsets": prob.block.field_offsets, "gyro_map": gyro.E,
+                     "gyro_map_gate": gate})
 
 
 def _velocity_model(opt: Options, vel: dict) -> VelocityModel | None:

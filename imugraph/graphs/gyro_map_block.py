@@ -20,6 +20,8 @@ from dataclasses import dataclass
 import gtsam
 import numpy as np
 
+from imugraph.graphs.solver import keyframe_vectors
+
 E_KEY = gtsam.symbol("e", 0)
 # S: e = vec E (row-major) → the axial vector of (E − Eᵀ)/2: ((E21 − E12), (E02 − E20), (E10 − E01))/2
 _ANTI = np.zeros((3, 9))
@@ -48,9 +50,9 @@ class GyroMapBlock:
 
     def _state(self, values: gtsam.Values):
         n = len(self.C)
-        beta = np.array([values.atVector(beta_key(k)) for k in range(n)]).reshape(n, 3)
         n_seg = int(self.seg.max()) + 1 if n else 1
-        b = np.array([values.atVector(self.bias_key(i)) for i in range(n_seg)]).reshape(n_seg, 3)
+        beta = keyframe_vectors(values, beta_key, n).reshape(n, 3)       # cached per Values
+        b = keyframe_vectors(values, self.bias_key, n_seg).reshape(n_seg, 3)
         return beta, b, values.atVector(E_KEY)
 
     def residuals(self, values: gtsam.Values):
