@@ -12,16 +12,16 @@
 from __future__ import annotations
 
 import sys
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 
 import gtsam
 import numpy as np
 
 from imugraph import keys
 from imugraph.calibration.noise import field_dof, reestimate
+from imugraph.calibration.options import Options  # noqa: F401  (public here: ml.Options)
 from imugraph.calibration.result import Calibration
 from imugraph.factors.gyro import keyframe_layout, preintegrate
-from imugraph.factors.robust import QUADRATIC, Kernel
 from imugraph.calibration.disturbance import apply_windows, detect_windows, fit_offsets
 from imugraph.calibration.result import n_mag_from_dip
 from imugraph.factors.velocity import gravity_from_velocity
@@ -33,73 +33,8 @@ from imugraph.calibration.initial import weak_initial  # noqa: F401  (re-exporte
 from imugraph.factors.field import field_key
 from imugraph.graphs.single_imu import (FieldModel, Noise, Problem, VelocityModel, build_problem,
                                         keyframe_rotations)
-from imugraph.graphs.solver import SolverParams, keyframe_vectors, optimize
+from imugraph.graphs.solver import keyframe_vectors, optimize
 from imugraph.io.session import Session
-
-
-@dataclass
-class Options:
-    """Settings of the calibration and smoothing graphs.
-
-    keyframe_hz: keyframe rate (one orientation state per rate/keyframe_hz samples; every sample is used).
-    acc_kernel / mag_kernel: per-sample robust kernels (whitened units).
-    """
-
-    keyframe_hz: float = 5.0
-    max_outer: int = 8
-    noise_tol: float = 0.02
-    reestimate_noise: bool = True
-    acc_kernel: Kernel = field(default_factory=lambda: Kernel("huber", 2.0))
-    mag_kernel: Kernel = field(default_factory=lambda: Kernel("huber", 2.0))
-    solver: SolverParams = field(default_factory=lambda: SolverParams(max_iterations=30, relative_tol=1e-7))
-    bias_prior_sigma: float = 0.05
-    bias_segment_s: float = 5.0       # gyro bias: one value per segment, joined by a random walk
-    bias_rw: float = 2e-4             # bias random-walk density, rad/s/√s (MEMS bias instability)
-    gyro_rate_error: float = 0.01     # κ: gyro error growing with rate (scale factor, misalignment)
-    progress: bool = False
-    max_corr_s: float = 0.5           # cap on the residual correlation time used for σ inflation
-    correlated_noise: bool = False    # inflate σ by √τ (integrated autocorrelation time of residuals)
-    linear_acceleration: str = "velocity"   # "velocity": keyframe velocities with a bounded-velocity
-    #                                         prior (imugraph.factors.velocity); "noise": per-sample gravity factor
-    velocity_sigma: float = 0.5       # σ_v, m/s: stationary std of the sensor's velocity (start value)
-    estimate_velocity_sigma: bool = False  # re-estimate σ_v from the velocity states in the ML loop
-    velocity_tau: float = 2.0         # τ_v, s: its correlation time
-    acc_rate_error: float = 0.01      # κ_a: accelerometer error growing with the specific force
-    zero_velocity_at_rest: bool = False  # v = 0 ± 0.02 m/s at detected rest: BROAD 04 1.79 → 0.92°,
-    #                                      but 01 1.59 → 1.99°, 30 1.11 → 2.01° (acc errors then tilt)
-    acc_bias: bool = False            # a slowly varying accelerometer bias in the velocity state: off,
-    #                                   on BROAD it absorbed the linear acceleration of the translation trials
-    compensate_mag_delay: bool = True # pair each field sample with the orientation when it was sensed
-    disturbance_windows: bool = True  # windowed hard-iron offsets (imugraph.calibration.disturbance)
-    heading_only_orientation: bool = False  # final orientations with the field as heading only
-    #                                        (graphs.heading_block): BROAD mean 1.13° vs 1.06° joint, off
-    field_sigma: float | tuple | None = (0.015, 0.003, 0.015)  # σ_d per nav axis (x along the horizontal
-    #   field, y across it, z up), unit field; None: no perturbation. Gauss–Markov nav-field perturbation
-    #   (factors/field.py): the indoor field varies with position (BROAD 01: 0.5–0.9° per axis at 10 s).
-    #   BROAD 17-trial mean 0.99° → 0.83° (10 → 7 trials behind offline VQF); worse on 16, 26, 32 (0.61 →
-    #   0.84°). Across the field 0.003: looser lets heading follow the gyro (01: 0.015 on y → 3.60°)
-    field_tau: float = 1.0            # τ_d, s: its correlation time (2 s: mean 0.839°)
-    gyro_map: bool = False            # gyro scale/misalignment E estimated jointly (calibration/gyro_map.py)
-    #   from the intervals where the accelerometer sees gravity only, behind a coverage gate and a settling
-    #   gate (else the plain model's result). Ungated, E ran to +40 % on BROAD 16 (16.8°): it absorbed
-    #   unmodelled linear acceleration. Gated: BROAD 17-trial mean 0.83° → 0.77° (01 1.23 → 0.79°,
-    #   04 1.17 → 0.52°, 02 0.42 → 0.44°, others unchanged); calibrate+smooth on 01 ≈ 1.7× slower
-    gyro_map_sigma: float = 0.02      # prior std of the entries of E
-    gyro_map_acc_tol: float | None = 2.0   # m/s²: only keyframe intervals with | |b_acc| − g | below this
-    #   inform E (calibration/gyro_map.clean_intervals; None: all intervals)
-    gyro_map_final: bool = False      # False: the final (all-sample) solve keeps the rounds' Ê (freeing it there:
-    #   BROAD 02 0.44 → 0.52°, 01 0.79 → 0.73°, 04 0.53 → 0.58°; the rounds set noise levels and E)
-    gyro_map_tol: float = 3e-4        # E settled when no entry moves more than this in a round
-    gyro_map_max_contraction: float = 0.5   # E kept only if its last step ≤ this × the one before
-    #   (BROAD 01/02/04: fast settling; 24: 0.65 per round, E off-diagonal to −0.8 %, 0.51 → 0.73°)
-    gyro_map_min_turns: float = 15.0  # coverage gate: E estimated only with this many turns of rotation in
-    #   those intervals (gyro_map.clean_turns), else left at 0 (info["gyro_map_gate"])
-    round_min_samples: int = 8        # ML rounds see every n-th field sample, keeping at least this many
-    #                                   per keyframe (the dof correction needs them); the final solve sees all
-    round_relative_tol: float | None = 1e-4   # LM stopping tolerance of the ML rounds (None: solver's);
-    #   the rounds only steer noise levels and bias (σ from Σr², which moves ~1e-4 × less than noise_tol)
-    #   and warm-start the final solve (solver tolerance): BROAD 17-trial mean 0.9937° → 0.9917°, largest
-    #   change 0.036° (trial 10, whose rounds never converge), LM iterations −30 % (trial 01: 23 → 15)
 
 
 @dataclass
