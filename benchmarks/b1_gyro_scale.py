@@ -16,7 +16,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from benchmarks.b1_try import CACHE, parse_opts, vqf_cached  # noqa: E402
+from benchmarks.b1_try import CACHE, compare_line, parse_opts, vqf_cached  # noqa: E402
 from benchmarks.common import error_parts, iter_broad  # noqa: E402
 from imugraph.calibration.ml import calibrate  # noqa: E402
 from dataclasses import replace  # noqa: E402
@@ -56,10 +56,8 @@ def main(argv):
                 print(f"  {num} self round {r}: {o_[0]:.3f} (incl {o_[1]:.2f} head {o_[2]:.2f}); M diag {np.diag(M).round(4)}")
             M_total = M @ M_total
         est = calibrate(replace(s, gyr=s.gyr @ M_total.T), options, allow_weak=True)
-        o_ = list(error_parts(est.quat, s, mask))
-        v = list(error_parts(qv, s, mask))
-        print(f"{num} gyro M from {mode}: ours {o_[0]:.3f} (incl {o_[1]:.2f} head {o_[2]:.2f})  offVQF {v[0]:.3f} "
-              f"(incl {v[1]:.2f} head {v[2]:.2f})  M {M_total.round(4).tolist()}", flush=True)
+        print(compare_line(f"{num} gyro M from {mode}", est.quat, qv, s, mask) + f"  M {M_total.round(4).tolist()}",
+              flush=True)
         np.save(CACHE / f"ours_{num}_gyroM_{mode}.npy", est.quat)
 
 

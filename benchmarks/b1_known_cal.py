@@ -17,8 +17,8 @@ from scipy.optimize import minimize
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import imugraph.calibration.ml as ml  # noqa: E402
-from benchmarks.b1_try import CACHE, parse_opts, vqf_cached  # noqa: E402
-from benchmarks.common import error_parts, iter_broad  # noqa: E402
+from benchmarks.b1_try import CACHE, compare_line, parse_opts, vqf_cached  # noqa: E402
+from benchmarks.common import iter_broad  # noqa: E402
 from imugraph.calibration.alignment import undelay_magnetometer  # noqa: E402
 from imugraph.calibration.initial import initial_calibration  # noqa: E402
 from imugraph.geometry import quat_to_rotmat  # noqa: E402
@@ -67,10 +67,7 @@ def main(argv):
         finally:
             ml._theta_prior_sigma = orig
         qv = vqf_cached(num, s)
-        o_ = list(error_parts(est.quat, s, mask))
-        v = list(error_parts(qv, s, mask))
-        print(f"{num} fixed θ: ours {o_[0]:.3f} (incl {o_[1]:.2f} head {o_[2]:.2f})  offVQF {v[0]:.3f} "
-              f"(incl {v[1]:.2f} head {v[2]:.2f})", flush=True)
+        print(compare_line(f"{num} fixed θ", est.quat, qv, s, mask), flush=True)
         np.save(CACHE / f"ours_{num}_known_{ref}.npy", est.quat)
 
 

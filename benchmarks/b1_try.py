@@ -37,6 +37,13 @@ def nav_tilt_mean(q, s, mask):
     return np.rad2deg(e.mean(0)[:2]), np.rad2deg(e.std(0)[:2])
 
 
+def compare_line(label: str, q, q_vqf, s, mask) -> str:
+    """'label: ours total (incl, head)  offVQF total (incl, head)' in degrees."""
+    o, v = error_parts(q, s, mask), error_parts(q_vqf, s, mask)
+    return (f"{label}: ours {o[0]:.3f} (incl {o[1]:.2f} head {o[2]:.2f})  offVQF {v[0]:.3f} "
+            f"(incl {v[1]:.2f} head {v[2]:.2f})")
+
+
 def vqf_cached(num, s):
     f = CACHE / f"vqf_{num}.npy"
     if f.is_file():
