@@ -7,9 +7,11 @@
     speed.py             calibrate+smooth / smooth with known calibration vs offline VQF   (issue 2e)
     peer_table.py        the peers alone (checks the metric against the data README)
     batch_scaling.py     `imugraph batch` on the BROAD trials, 1 vs 2 worker processes (issue 3)
-    stream_speed.py      `imugraph stream` on BROAD 01: real-time factor, latency, filtered vs online VQF (issue 3)
+    stream_speed.py      `imugraph stream` on the 17 BROAD trials: real-time factor, latency, filtered vs online VQF (issue 3)
+    stream_memory.py     30 simulated minutes through the fixed lag: memory growth per minute      (issue 3)
     body_sim_accuracy.py 17-IMU simulations from CMU / Xsens BVH: joint and position errors     (issue 4a)
     gaittoolbox_walk.py  real lower-body walk vs Vicon, beside Xsens MVN; ablation; fixed lag  (issue 4b, 4c)
+    body_walk_diagnosis.py  where the real walk's left-hip error comes from                    (issue 4b)
     body_ablation.py     simulation ablation with a drifting gyro bias                          (issue 4c)
     body_speed.py        17 IMUs x 60 s at 60 Hz: batch and fixed lag, time and memory          (issue 4d)
     diagnose_broad.py    diagnosis of disturbed and undisturbed BROAD trials, no labels         (issue 5)
@@ -30,8 +32,11 @@ def main() -> int:
     for script, args in (("peer_table.py", []), ("sim_coverage.py", ["50", "60", "100"]),
                          ("broad_published.py", []), ("broad_known_distortion.py", []),
                          ("rasteiro.py", []), ("speed.py", []), ("batch_scaling.py", []),
-                         ("stream_speed.py", ["01", "--no-lag", "--calibration", "both"]),
-                         ("body_sim_accuracy.py", []), ("gaittoolbox_walk.py", ["--ablation", "--lag", "1"]),
+                         ("stream_speed.py", ["all", "--lag", "2", "--lag-solver", "incremental", "--lag-only",
+                                              "--no-batch", "--no-cal-compare"]),
+                         ("stream_memory.py", ["--minutes", "30"]),
+                         ("body_sim_accuracy.py", ["--seeds", "0,1,2,3,4"]),
+                         ("gaittoolbox_walk.py", ["--ablation", "--lag", "1"]), ("body_walk_diagnosis.py", []),
                          ("body_ablation.py", ["--motions", "cmu131_02,xsens", "--bias-walk", "0.002"]),
                          ("body_speed.py", ["--duration", "60", "--modes", "batch,lag"]),
                          ("diagnose_broad.py", []), ("diagnose_harness.py", ["--n", "2", "--duration", "60"])):
