@@ -67,13 +67,19 @@ def _common(p: argparse.ArgumentParser, out_help: str, data_dir: bool = False) -
 
 def _keyframes(p: argparse.ArgumentParser) -> None:
     p.add_argument("--keyframe-hz", type=_positive(float), default=5.0, metavar="HZ",
-                   help="orientation states per second (every sample is still used; default 10)")
+                   help="orientation states per second (every sample is still used; default 5)")
 
 
 def _allow_weak(p: argparse.ArgumentParser) -> None:
     p.add_argument("--allow-weak", action="store_true",
                    help="when the data do not identify the calibration (too little rotation), write a "
                         "regularised estimate marked identifiable: false instead of failing")
+
+
+def _gyro_scale(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--gyro-scale", action="store_true",
+                   help="also estimate the gyro scale/misalignment (from gravity-only stretches, only when the "
+                        "data hold enough turns; slower)")
 
 
 def _simulation(p: argparse.ArgumentParser) -> None:
@@ -98,6 +104,7 @@ def build_parser() -> argparse.ArgumentParser:
     _common(p, default_out, data_dir=True)
     _keyframes(p)
     _allow_weak(p)
+    _gyro_scale(p)
 
     p = sub.add_parser("smooth", help="smoothed orientation (with a known or estimated calibration)",
                        description="Writes orientation.npz (and calibration.json when it is estimated).")
@@ -142,6 +149,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="worker processes of the local cluster (default: CPU count, at most one per session)")
     _keyframes(p)
     _allow_weak(p)
+    _gyro_scale(p)
 
     p = sub.add_parser("demo", help="calibrate a simulated distorted magnetometer and compare with the truth",
                        description="Writes the same files as calibrate and prints true vs estimated values.")

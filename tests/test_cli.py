@@ -151,3 +151,27 @@ def test_usage_errors_and_module_entry_point(tmp_path):
     helped = subprocess.run([sys.executable, "-m", "imugraph.cli", "--help"], capture_output=True, text=True,
                             timeout=120)
     assert helped.returncode == 0 and "calibrate" in helped.stdout and "simulate" in helped.stdout
+
+
+def test_calibrate_gyro_scale_flag_reaches_the_calibration(monkeypatch, tmp_path):
+    """`--gyro-scale` turns on ml.Options.gyro_map (and only then)."""
+    import imugraph.calibration.ml as ml
+    from imugraph.cli import build_parser
+    from imugraph.commands import calibrate as cmd
+
+    seen = []
+
+    def fake_calibrate(session, options, allow_weak=False):
+        seen.append(options.gyro_map)
+        raise RuntimeError("stop here")
+
+    monkeypatch.setattr(ml, "calibrate", fake_calibrate)
+    args = build_parser().parse_args(["calibrate", "x.npz", "--gyro-scale"])
+    assert args.gyro_scale is True
+    progress = cmd.common.Progress(True)
+    for flag in (True, False):
+        try:
+            cmd.estimate_calibration(None, 5.0, progress, gyro_scale=flag)
+        except RuntimeError:
+            pass
+    assert seen == [True, False]

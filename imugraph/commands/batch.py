@@ -33,7 +33,7 @@ def run_batch_command(args: argparse.Namespace) -> int:
     from imugraph.commands.calibrate import CalibrateOptions
 
     paths = [common.resolve_session_path(s, args.data_dir) for s in args.sessions]
-    options = CalibrateOptions(args.keyframe_hz, args.allow_weak)
+    options = CalibrateOptions(args.keyframe_hz, args.allow_weak, getattr(args, "gyro_scale", False))
     if args.scheduler and args.workers and not args.quiet:
         print("imugraph: note: --workers applies to the local cluster only; ignored with --scheduler",
               file=sys.stderr)

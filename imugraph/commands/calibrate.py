@@ -31,14 +31,17 @@ class CalibrateOptions:
         keyframe_hz: orientation states per second (every sample is still used).
         allow_weak: when the data do not identify D and o, return a regularised estimate (coverage
             "identifiable": false) instead of raising CalibrationError.
+        gyro_scale: also estimate the gyro scale/misalignment matrix (ml.Options.gyro_map, gated; BROAD
+            mean 0.83° → 0.77°, calibrate ≈ 1.7× slower).
     """
 
     keyframe_hz: float = 5.0
     allow_weak: bool = False
+    gyro_scale: bool = False
 
 
 def estimate_calibration(session: Session, keyframe_hz: float, progress: common.Progress,
-                         allow_weak: bool = False) -> "Estimate":
+                         allow_weak: bool = False, gyro_scale: bool = False) -> "Estimate":
     """Run the ML calibration (`imugraph.calibration.ml.calibrate`), its per-round lines on stderr.
 
     Args:
@@ -46,6 +49,7 @@ def estimate_calibration(session: Session, keyframe_hz: float, progress: common.
         keyframe_hz: orientation states per second.
         progress: progress stream (quiet: the ML loop prints nothing either).
         allow_weak: see `CalibrateOptions.allow_weak`.
+        gyro_scale: see `CalibrateOptions.gyro_scale`.
 
     Returns:
         Estimate: calibration, t (N,), quat (N, 4) nRb w,x,y,z, whitened residuals per channel.
@@ -57,8 +61,8 @@ def estimate_calibration(session: Session, keyframe_hz: float, progress: common.
 
     progress.say(f"calibrating (keyframes at {keyframe_hz:g} Hz)")
     with progress.library_output():
-        estimate = calibrate(session, Options(keyframe_hz=keyframe_hz, progress=not progress.quiet),
-                             allow_weak=allow_weak)
+        estimate = calibrate(session, Options(keyframe_hz=keyframe_hz, progress=not progress.quiet,
+                                              gyro_map=gyro_scale), allow_weak=allow_weak)
     progress.say("calibration done")
     return estimate
 
@@ -89,7 +93,8 @@ def calibrate_path(path: Union[str, Path], out_dir: Optional[Union[str, Path]],
     path = Path(path)
     session = common.load(path, progress)
     out = common.out_dir_for(None if out_dir is None else str(out_dir), path.stem)
-    estimate = estimate_calibration(session, options.keyframe_hz, progress, options.allow_weak)
+    estimate = estimate_calibration(session, options.keyframe_hz, progress, options.allow_weak,
+                                    options.gyro_scale)
     common.write_estimate(out, session, estimate, progress)
     cal = estimate.calibration
     scores = common.score(session, cal, estimate.quat)
@@ -111,7 +116,8 @@ def run_calibrate(args: argparse.Namespace) -> int:
     """
     progress = common.Progress(args.quiet)
     path = common.resolve_session_path(args.session, args.data_dir)
-    options = CalibrateOptions(args.keyframe_hz, getattr(args, "allow_weak", False))
+    options = CalibrateOptions(args.keyframe_hz, getattr(args, "allow_weak", False),
+                               getattr(args, "gyro_scale", False))
     print(calibrate_path(path, args.out, options, progress)["table"])
     return 0
 
