@@ -16,21 +16,17 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from benchmarks.common import broad_trials, load_broad_trial, parse_options  # noqa: E402
+from benchmarks.common import iter_broad, parse_options  # noqa: E402
 from imugraph.calibration.ml import calibrate  # noqa: E402
 from imugraph.evaluate import orientation_error  # noqa: E402
 
 
 def main(argv: list[str]) -> int:
     opts = parse_options(argv[1:])
-    for path in broad_trials():
-        num = path.name[:2]
-        if num not in argv[0].split(","):
-            continue
-        s = load_broad_trial(path)
+    for num, s, mask in iter_broad(set(argv[0].split(","))):
         t0 = time.perf_counter()
         est = calibrate(s, opts, allow_weak=True)
-        err = orientation_error(est.quat, s.quat, s.movement.astype(bool), s.rate).rms_deg
+        err = orientation_error(est.quat, s.quat, mask, s.rate).rms_deg
         print(f"{num} RMS {err:.3f}°  {time.perf_counter() - t0:.1f} s  rounds {len(est.info['history'])}")
         for h in est.info["history"]:
             if "gyro_map" in h:

@@ -64,7 +64,6 @@ import numpy as np  # noqa: E402
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks.output import write_json  # noqa: E402
-from imugraph.config import data_dir  # noqa: E402
 
 BANDS_HZ = ((0.0, 0.4), (0.4, 1.0), (1.0, 2.5), (2.5, 50.0))
 SEGMENTS = ("Pelvis", "LeftUpperLeg", "RightUpperLeg", "LeftLowerLeg", "RightLowerLeg", "LeftFoot", "RightFoot")
@@ -199,21 +198,20 @@ def oracle(vicon: dict, q: dict, shift: int, segments: tuple, joints: tuple) -> 
 
 
 def main(argv=None) -> int:
-    from benchmarks.gaittoolbox_walk import xsens_mvn
+    from benchmarks.gaittoolbox_walk import walk_data, xsens_mvn
     from imugraph.body.evaluate import compare_with_vicon
     from imugraph.graphs.body import solve_body_batch
     from imugraph.graphs.body_model import BodyOptions
-    from imugraph.io.gaittoolbox import read_gaittoolbox, read_gaittoolbox_vicon
+    from imugraph.io.gaittoolbox import read_gaittoolbox
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--joints", default="LeftHip,RightHip", help="joints for the time/oracle sections")
     ap.add_argument("--out", default="body_walk_diagnosis.json", help="file name in bench_out/")
     a = ap.parse_args(argv)
-    root = data_dir() / "gaittoolbox"
-    if not (root / "rawimu").is_dir():
-        print(f"{root} absent")
+    data = walk_data()
+    if data is None:
         return 1
-    vicon = read_gaittoolbox_vicon(root / "vicon" / "S02-Trial-Walk-1.csv")
+    root, vicon = data
     fs = float(vicon["fs"])
     session = read_gaittoolbox(root / "rawimu")
     res = solve_body_batch(session, BodyOptions())

@@ -21,7 +21,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks.common import iter_broad, parse_options, pop_opts, print_table  # noqa: E402
 from benchmarks.peers import timed, vqf_offline, vqf_online  # noqa: E402
-from imugraph.calibration.ml import Options, calibrate  # noqa: E402
+from imugraph.calibration.ml import calibrate  # noqa: E402
 from imugraph.evaluate import orientation_error  # noqa: E402
 
 

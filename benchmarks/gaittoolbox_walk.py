@@ -76,6 +76,18 @@ def ours(root: Path, use_mag: bool, hinges: tuple, lag: float | None = None, var
     return {n: res.n_quat[:, i] for i, n in enumerate(res.names)}, info
 
 
+def walk_data() -> tuple[Path, dict] | None:
+    """(gaittoolbox root, Vicon of S02-Trial-Walk-1) from the data directory; None (message printed) when
+    the recordings are absent."""
+    from imugraph.io.gaittoolbox import read_gaittoolbox_vicon
+
+    root = data_dir() / "gaittoolbox"
+    if not (root / "rawimu").is_dir():
+        print(f"{root} absent")
+        return None
+    return root, read_gaittoolbox_vicon(root / "vicon" / "S02-Trial-Walk-1.csv")
+
+
 def xsens_mvn(root: Path) -> dict:
     """{segment: (F, 4)} of Xsens MVN's BVH (all frames, frame k = IMU sample k)."""
     from imugraph.body.bvh_map import segment_motion
@@ -114,7 +126,6 @@ def figure(path: Path, vicon: dict, systems: dict, shifts: dict) -> None:
 
 def main(argv=None) -> int:
     from imugraph.body.evaluate import compare_with_vicon
-    from imugraph.io.gaittoolbox import read_gaittoolbox_vicon
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--mag", action="store_true", help="our estimator with magnetometers")
@@ -124,12 +135,11 @@ def main(argv=None) -> int:
     ap.add_argument("--figure", action="store_true")
     ap.add_argument("--out", default="gaittoolbox_walk.json", help="file name in bench_out/")
     a = ap.parse_args(argv)
-    root = data_dir() / "gaittoolbox"
-    if not (root / "rawimu").is_dir():
-        print(f"{root} absent")
+    data = walk_data()
+    if data is None:
         return 1
+    root, vicon = data
     hinges = ("RightLowerLeg", "LeftLowerLeg") if a.hinges == "knees" else tuple(h for h in a.hinges.split(",") if h)
-    vicon = read_gaittoolbox_vicon(root / "vicon" / "S02-Trial-Walk-1.csv")
     q_ours, info = ours(root, a.mag, hinges)
     print(f"ours: {info['samples']} samples solved in {info['seconds']:.1f} s (npose {info['npose']}, "
           f"LM iterations {info['iterations']})")
