@@ -186,8 +186,8 @@ def calibrate(session: Session, options: Options | None = None, initial=None,
             break
         extra = None
         if prob.block.with_field and prob.block.mag is not None:   # d_k absorbs part of the field residuals
-            G_dd = prob.block._field_blocks(*prob.block.channel_gram("mag", nRk, theta, False), nRk)[2]
-            extra = {"mag": field_dof(G_dd, pre.dt, opt.field_sigma, opt.field_tau)}
+            extra = {"mag": field_dof(prob.block.field_information(nRk, theta), pre.dt, opt.field_sigma,
+                                      opt.field_tau)}
         new = reestimate(prob.block, nRk, theta, pre.cov, values, noise.gyr, extra)   # cov: AHRS factors' Σ
         taus = {c: new.pop(c + "_tau") for c in ("acc", "mag") if c + "_tau" in new}
         if opt.correlated_noise:

@@ -174,6 +174,10 @@ class MeasurementBlock:
                 self._last["field"] = self._field_blocks(Gm, V, nRk)
         return G11, G12, G22, g1, g2, f
 
+    def field_information(self, nRk: np.ndarray, theta: np.ndarray) -> np.ndarray:
+        """(K, 3, 3) whitened magnetometer information of each keyframe's field perturbation d_k (G_dd)."""
+        return self._field_blocks(*self.channel_gram("mag", nRk, theta, with_theta=False), nRk)[2]
+
     @staticmethod
     def _field_blocks(G: np.ndarray, V: np.ndarray, nRk: np.ndarray):
         """Normal-equation blocks of the field perturbation d_k from the magnetometer Gram (J_d = J' R_kᵀ,
