@@ -22,7 +22,7 @@ from imugraph.calibration.noise import field_dof, reestimate
 from imugraph.calibration.options import Options  # noqa: F401  (public here: ml.Options)
 from imugraph.calibration.result import Calibration
 from imugraph.factors.gyro import keyframe_layout, preintegrate
-from imugraph.calibration.disturbance import Window, apply_windows, detect_windows, fit_offsets
+from imugraph.calibration.disturbance import apply_windows, detect_windows, fit_offsets
 from imugraph.calibration.result import n_mag_from_dip
 from imugraph.factors.velocity import gravity_from_velocity
 from imugraph.geometry import quat_to_rotmat
@@ -111,11 +111,7 @@ def calibrate(session: Session, options: Options | None = None, initial=None,
     rest_mask = getattr(init, "rest", None) if opt.zero_velocity_at_rest else None
 
     vel_state = {"v": None, "s": None, "sigma": opt.velocity_sigma, "g": None, "rest": rest_mask}
-    if opt.disturbance_windows and opt.disturbance_preset:
-        windows = [Window(int(np.searchsorted(session.t, a)), int(np.searchsorted(session.t, b, side="right")))
-                   for a, b in opt.disturbance_preset]
-    else:
-        windows = detect_windows(session.t, m_cal0) if opt.disturbance_windows else []
+    windows = detect_windows(session.t, m_cal0) if opt.disturbance_windows else []
     mag_state = {"y": session.mag, "w": apply_windows(windows, session.mag)[1] if windows else None}
 
     def thinned(y: np.ndarray, every: int) -> np.ndarray:

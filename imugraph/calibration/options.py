@@ -46,8 +46,6 @@ class Options:
     #                                   on BROAD it absorbed the linear acceleration of the translation trials
     compensate_mag_delay: bool = True # pair each field sample with the orientation when it was sensed
     disturbance_windows: bool = True  # windowed hard-iron offsets (imugraph.calibration.disturbance)
-    disturbance_preset: tuple | None = None  # ((t_start, t_end), ...) s: use these windows instead of
-    #   detecting them from the field norm (the diagnosis hands over the window it localised)
     heading_only_orientation: bool = False  # final orientations with the field as heading only
     #                                        (graphs.heading_block): BROAD mean 1.13° vs 1.06° joint, off
     field_sigma: float | tuple | None = (0.015, 0.003, 0.015)  # σ_d per nav axis (x along the horizontal
