@@ -25,10 +25,11 @@ Rotation trials: those in the group "rotation" of BROAD's trials.json (01–09 o
 name containing "_rotation" / "undisturbed". Targets (issue 2b): imugraph ≤ 0.8° mean on the rotation trials,
 and no undisturbed trial worse than offline VQF fed the undistorted field.
 
-    .venv/bin/python benchmarks/broad_known_distortion.py [TRIALS] [--seconds S] [--seed K]
+    .venv/bin/python benchmarks/broad_known_distortion.py [TRIALS] [--seconds S] [--seed K] [--opt FIELD=VALUE ...]
 
 TRIALS: comma-separated trial numbers (e.g. 01,06); --seconds keeps only the first S seconds of each trial
-(plumbing checks only); --seed: base seed (trial k uses default_rng([seed, k])). Writes
+(plumbing checks only); --seed: base seed (trial k uses default_rng([seed, k])); --opt sets a field of
+imugraph.calibration.ml.Options for imugraph's calibrate (Python literal, e.g. --opt gyro_map=True). Writes
 bench_out/broad_known_distortion.json.
 """
 
@@ -42,8 +43,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from benchmarks.common import (broad_trials, load_broad_trial, peak_memory_mb, print_table,  # noqa: E402
-                               finite_mean, trial_groups, trial_number)
+from benchmarks.common import (broad_trials, load_broad_trial, parse_options, peak_memory_mb, pop_opts,  # noqa: E402
+                               print_table, finite_mean, trial_groups, trial_number)
 from benchmarks.output import write_json  # noqa: E402
 from benchmarks.peers import fit_ellipsoid, timed, vqf_offline  # noqa: E402
 from imugraph.calibration.ml import Options, calibrate  # noqa: E402
@@ -84,7 +85,7 @@ def recovery(b_cal: np.ndarray, b_ref: np.ndarray, D_hat: np.ndarray, o_hat: np.
             "do": 100.0 * float(np.linalg.norm(o_hat - o_true) / scale)}
 
 
-def run_trial(path: Path, seed: int, seconds: float | None) -> dict:
+def run_trial(path: Path, seed: int, seconds: float | None, options: Options | None = None) -> dict:
     """Distort, calibrate and score one trial; failures of one method are recorded, not raised."""
     s = load_broad_trial(path)
     if seconds:
@@ -99,7 +100,7 @@ def run_trial(path: Path, seed: int, seconds: float | None) -> dict:
     row: dict = {"trial": path.stem, "n": s.n, "errors": {}}
     quats: dict = {}
     try:
-        est, row["t_imugraph_s"] = timed(calibrate, sd, Options(), allow_weak=True)
+        est, row["t_imugraph_s"] = timed(calibrate, sd, options or Options(), allow_weak=True)
         cal = est.calibration
         quats["imugraph"] = est.quat
         row["identifiable"] = bool(cal.coverage.get("identifiable", True))
@@ -132,6 +133,8 @@ def run_trial(path: Path, seed: int, seconds: float | None) -> dict:
 
 
 def main(argv: list[str]) -> int:
+    opts, argv = pop_opts(list(argv))
+    options = parse_options(opts)
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("trials", nargs="?", help="comma-separated trial numbers, e.g. 01,06 (default: all)")
     ap.add_argument("--seconds", type=float, default=None, help="keep only the first S s of each trial")
@@ -145,7 +148,7 @@ def main(argv: list[str]) -> int:
     rot, und, rule = groups_for(broad_trials())
     rows = []
     for path in paths:
-        rows.append(run_trial(path, args.seed, args.seconds))
+        rows.append(run_trial(path, args.seed, args.seconds, options))
         r = rows[-1]
         print(f"{r['trial']}: imugraph {r['imugraph']:.3f}°, ig_fixed {r['ig_fixed']:.3f}°, offline VQF "
               f"(undistorted) {r['vqf_undist']:.3f}°, ellipsoid+offline VQF {r['vqf_ell']:.3f}°; "

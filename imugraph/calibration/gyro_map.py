@@ -27,6 +27,24 @@ of fast motion, and E soaked it up. So (1) only intervals whose specific force s
 inform E (clean_intervals: 16 → 0.97°, 06 → 0.82°, still worse than without E), and (2) a coverage gate:
 E is estimated only when those intervals hold enough rotation (clean_turns; BROAD 01/02/04/24 have
 20–29 turns, 06/07 11/9, translation trials < 8), else E stays 0.
+
+Why the gates are physical, not fitted (B6, measured with benchmarks/b6_gyro_coverage.py and
+b5_gyro_map_trace.py):
+  * clean intervals: E's regressor is ω; the unmodelled part of the specific force (centripetal ω²r,
+    tangential ω̇r, velocity-model errors) grows with the same motion, so only where |b_acc| ≈ g is the
+    accelerometer a clean tilt reference for E to be checked against;
+  * coverage: column i of E is excited only by rotation about body axis i, and a rate error ε over n turns
+    is 2πnε of rotation — the signal grows with turns while the orientation references' errors do not. The
+    trials that pass (01/02/04/24: 20–29 clean turns) have ≥ 7 turns about every axis; the next ones
+    (32: 14.9, 06: 10.9, 07: 9.6) are below 15;
+  * settling: a jointly determined E converges geometrically fast across ML rounds (step ratio 0.12–0.39 on
+    01/02/04), since a round only updates noise levels and the frozen intra-interval quantities; a ratio
+    > gyro_map_max_contraction means E follows what the rounds freeze. It also catches the trials the
+    coverage gate keeps out: with that gate lowered (9 or 0 turns), 06, 07, 16, 21, 30 and 32 all fail the
+    settling gate (ratios 0.62–6.9, E up to 22 % on 21) and get the plain model's result.
+Fallback (calibration.ml): E is estimated from the first ML round; the plain model's starting state is
+kept, and if the settling gate fails (checked after every round) the plain rounds run from it — the
+result is exactly the run without E, without redoing the initial calibration.
 """
 
 from __future__ import annotations
@@ -43,9 +61,11 @@ def map_jacobian(b_gyr: np.ndarray, dt: np.ndarray, pre: Preintegration, bias_ro
         b_gyr: (N, 3) the gyro as preintegrated (already corrected by Ê), rad/s; dt: (N,) steps, s;
         pre: the preintegration of b_gyr; bias_rows: (N, 3) bias used for each sample.
     """
-    theta = (b_gyr - bias_rows) * dt[:, None]
-    exp, jr = exp_and_right_jacobian(theta)
-    P = pre.kRb @ exp @ jr * dt[:, None, None]                     # kRb_j Exp(θ_j) J_r(θ_j) Δt_j
+    if pre.steps is not None:                                       # kept by preintegrate(keep_steps=True)
+        P = pre.kRb @ pre.steps[0] @ pre.steps[1]                   # kRb_j Exp(θ_j) J_r(θ_j) Δt_j
+    else:
+        exp, jr = exp_and_right_jacobian((b_gyr - bias_rows) * dt[:, None])
+        P = pre.kRb @ exp @ jr * dt[:, None, None]
     PW = (P[:, :, :, None] * b_gyr[:, None, None, :]).reshape(-1, 3, 9)   # · (I₃ ⊗ ωᵀ)
     K = len(pre.kf_samples)
     S = np.zeros((K, 3, 9))
@@ -101,6 +121,18 @@ def clean_turns(b_gyr: np.ndarray, dt: np.ndarray, sample_kf: np.ndarray, clean:
     """
     ok = np.r_[clean, False][sample_kf]
     return float(np.sum(np.linalg.norm(b_gyr[ok], axis=1) * dt[ok]) / (2 * np.pi))
+
+
+def coverage_gate(session, g: float, sample_kf: np.ndarray, n_intervals: int, opt) -> tuple[dict, np.ndarray]:
+    """The coverage gate of calibration.ml: ({"estimated", "clean_turns", "clean_fraction"}, clean mask).
+
+    E is estimated only when the intervals where the accelerometer sees gravity alone (clean_intervals,
+    all intervals when opt.gyro_map_acc_tol is None) hold at least opt.gyro_map_min_turns turns."""
+    clean = (np.ones(n_intervals, bool) if opt.gyro_map_acc_tol is None else
+             clean_intervals(session.acc, g, sample_kf, n_intervals, opt.gyro_map_acc_tol))
+    turns = clean_turns(session.gyr, session.dt, sample_kf, clean)
+    return ({"estimated": turns >= opt.gyro_map_min_turns, "clean_turns": turns,
+             "clean_fraction": float(clean.mean()) if len(clean) else 0.0}, clean)
 
 
 class GyroMapState:

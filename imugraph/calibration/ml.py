@@ -12,6 +12,7 @@
 from __future__ import annotations
 
 import sys
+from copy import deepcopy
 from dataclasses import dataclass, replace
 
 import gtsam
@@ -28,11 +29,12 @@ from imugraph.factors.velocity import gravity_from_velocity
 from imugraph.geometry import quat_to_rotmat
 from imugraph.factors.theta import THETA_DIM, pack_theta, unpack_theta
 from imugraph.graphs.orientation_init import complementary_keyframes, sample_orientations
-from imugraph.calibration.gyro_map import GyroMapState, clean_intervals, clean_turns
+from imugraph.calibration.gyro_map import GyroMapState, coverage_gate
 from imugraph.calibration.initial import weak_initial  # noqa: F401  (re-exported: diagnose.fit uses it)
 from imugraph.factors.field import field_key
 from imugraph.graphs.single_imu import (FieldModel, Noise, Problem, VelocityModel, build_problem,
                                         keyframe_rotations)
+from imugraph.graphs.gyro_map_block import without_map_keys
 from imugraph.graphs.solver import keyframe_vectors, optimize
 from imugraph.io.session import Session
 
@@ -75,7 +77,6 @@ def calibrate(session: Session, options: Options | None = None, initial=None,
 
     opt = options or Options()
     weak_reason = None
-    session_in = session
     if initial is None:
         from imugraph.calibration.initial import initial_calibration
         try:
@@ -114,39 +115,25 @@ def calibrate(session: Session, options: Options | None = None, initial=None,
     windows = detect_windows(session.t, m_cal0) if opt.disturbance_windows else []
     mag_state = {"y": session.mag, "w": apply_windows(windows, session.mag)[1] if windows else None}
 
-    def thinned(y: np.ndarray, every: int) -> np.ndarray:
-        """Every `every`-th field sample kept (NaN elsewhere): the ML rounds only steer the noise levels,
-        bias and θ toward the final solve, which uses every sample."""
-        if every <= 1:
-            return y
-        out = np.full_like(y, np.nan)
-        idx = np.flatnonzero(np.all(np.isfinite(y), axis=1))[::every]
-        out[idx] = y[idx]
-        return out
-
     round_solver = opt.solver if opt.round_relative_tol is None else replace(
         opt.solver, relative_tol=opt.round_relative_tol)
 
-    gate = {"estimated": False}
-    if opt.gyro_map:
-        clean = (np.ones(len(kf) - 1, bool) if opt.gyro_map_acc_tol is None else
-                 clean_intervals(session.acc, g, skf, len(kf) - 1, opt.gyro_map_acc_tol))
-        turns = clean_turns(session.gyr, session.dt, skf, clean)
-        gate = {"estimated": turns >= opt.gyro_map_min_turns, "clean_turns": turns,
-                "clean_fraction": float(clean.mean()) if len(clean) else 0.0}
+    gate, clean = coverage_gate(session, g, skf, len(kf) - 1, opt) if opt.gyro_map else ({"estimated": False}, None)
     gyro = GyroMapState(opt.gyro_map_sigma, clean if gate["estimated"] else None)
 
     def solve_round(bias, noise, nRk, theta, every=1, final=False, values0=None):
         """Preintegrate at the current bias, build the graph, solve it (one round of the ML loop);
         values0: the previous round's solution, which holds exactly nRk, bias, θ and the velocities."""
         g_c, b_rows = gyro.corrected(session.gyr), _per_sample_bias(bias, seg, skf)
-        pre = preintegrate(g_c, session.dt, kf, skf, b_rows, noise.gyr, opt.gyro_rate_error)
-        gmap = (gyro.model(g_c, session.dt, pre, b_rows)
-                if gate["estimated"] and (opt.gyro_map_final or not final) else None)
+        with_map = phase["map"] and (opt.gyro_map_final or not final)
+        pre = preintegrate(g_c, session.dt, kf, skf, b_rows, noise.gyr, opt.gyro_rate_error, keep_steps=with_map)
+        gmap = gyro.model(g_c, session.dt, pre, b_rows) if with_map else None
+        if gmap is None and values0 is not None:       # the rounds' β_k and e are not in this graph
+            values0 = without_map_keys(values0)
         start = complementary_keyframes(pre, session.acc, m_cal0) if nRk is None else nRk
         velocity = _velocity_model(opt, vel_state)
         g_round = vel_state["g"] or g
-        prob = build_problem(pre, session.acc, thinned(mag_state["y"], every), noise, g_round, start,
+        prob = build_problem(pre, session.acc, _thinned(mag_state["y"], every), noise, g_round, start,
                              bias, theta,
                              theta_prior_sigma=theta_sigma, bias_prior_sigma=opt.bias_prior_sigma,
                              acc_kernel=opt.acc_kernel, mag_kernel=opt.mag_kernel,
@@ -168,79 +155,100 @@ def calibrate(session: Session, options: Options | None = None, initial=None,
             vel_state["g"] = gravity_from_velocity(keyframe_rotations(values, len(kf)), dv, pre.dt)
         return pre, prob, values, info
 
-    for outer in range(1, opt.max_outer + 1):
-        pre, prob, values, info = solve_round(bias, noise, nRk, theta, max(1, stride // opt.round_min_samples),
-                                              values0=None if outer == 1 else values)
-        nRk = keyframe_rotations(values, len(kf))
-        theta = values.atVector(keys.CALIB)
-        bias_new = _bias_values(values, n_seg)
-        history.append({"outer": outer, "lm_iterations": info.iterations, "cost": info.cost_final,
-                        "noise": {k: np.asarray(v).tolist() for k, v in noise.as_dict().items()}})
-        if not opt.reestimate_noise:
+    phase = {"map": False}      # True while Ê is estimated (the rounds' graphs get the gyro-map block)
+
+    def ml_rounds(bias, noise, nRk, theta, values):
+        """Step 2 until the noise levels and bias (and Ê, in the gyro-map phase) settle, from a state
+        (values None: no previous solution). Returns bias, noise, nRk, θ, values, converged."""
+        nonlocal tau_fixed
+        converged = False
+        for outer in range(1, opt.max_outer + 1):
+            pre, prob, values, info = solve_round(bias, noise, nRk, theta, max(1, stride // opt.round_min_samples),
+                                                  values0=values)
+            nRk = keyframe_rotations(values, len(kf))
+            theta = values.atVector(keys.CALIB)
+            bias_new = _bias_values(values, n_seg)
+            history.append({"outer": len(history) + 1, "lm_iterations": info.iterations, "cost": info.cost_final,
+                            "noise": {k: np.asarray(v).tolist() for k, v in noise.as_dict().items()}})
+            if not opt.reestimate_noise:
+                bias = bias_new
+                converged = info.converged
+                break
+            extra = None
+            if prob.block.with_field and prob.block.mag is not None:   # d_k absorbs part of the field residuals
+                extra = {"mag": field_dof(prob.block.field_information(nRk, theta), pre.dt, opt.field_sigma,
+                                          opt.field_tau)}
+            new = reestimate(prob.block, nRk, theta, pre.cov, values, noise.gyr, extra)   # cov: AHRS factors' Σ
+            taus = {c: new.pop(c + "_tau") for c in ("acc", "mag") if c + "_tau" in new}
+            if opt.correlated_noise:
+                # τ from the first (white-noise) solution only: later solutions lean on the gyro and their
+                # residuals inherit its drift, which would feed back into τ. Capped at max_corr_s.
+                if tau_fixed is None:
+                    cap = max(1.0, opt.max_corr_s * session.rate)
+                    tau_fixed = {c: min(t, cap) for c, t in taus.items()}
+                for c, tau in tau_fixed.items():
+                    new[c] = new[c] * np.sqrt(tau)
+            history[-1]["tau"] = taus
+            taus = tau_fixed or taus
+            change = max(float(np.max(np.abs(np.log(new[c] / getattr(noise, c))))) for c in new)
+            if vel_state["v"] is not None and opt.estimate_velocity_sigma:
+                # ML of the stationary std given the smoothed velocities: σ_v² = mean |v_k|² / 3
+                sig_new = float(np.clip(np.sqrt(np.mean(vel_state["v"] ** 2)), 0.01, 5.0))
+                change = max(change, abs(np.log(sig_new / vel_state["sigma"])))
+                vel_state["sigma"] = sig_new
+                history[-1]["velocity_sigma"] = sig_new
+            if windows:
+                # windowed hard iron at the current orientations (linear given them), Kok's o + Δo_w
+                D_, o_, dip_ = unpack_theta(theta)
+                nRb = _window_rotations(windows, nRk, pre)
+                n_nav = n_mag_from_dip(dip_)
+                if prob.block.field_offsets is not None:          # n + d_k of each sample's keyframe
+                    n_nav = n_nav + prob.block.field_offsets[pre.sample_kf]
+                fit_offsets(windows, session.t, session.mag, nRb, D_, o_, n_nav,
+                            float(np.sqrt(np.mean(noise.mag ** 2))))
+                mag_state["y"], mag_state["w"] = apply_windows(windows, session.mag)
+                history[-1]["windows"] = [w.as_dict(session.t) for w in windows]
+            if phase["map"]:
+                history[-1]["gyro_map"] = gyro.E.tolist()
+                change = max(change, gyro.step / opt.gyro_map_tol * opt.noise_tol)     # E settled
+                steps = gate.setdefault("steps", [])
+                steps.append(gyro.step)
+                if len(steps) > 1 and steps[-1] > opt.gyro_map_max_contraction * steps[-2]:
+                    break                  # creeping: the settling gate fails whatever follows (BROAD 24)
+            bias_change = float(np.max(np.linalg.norm(bias_new - bias, axis=1)))
+            noise = Noise(new.get("gyr", noise.gyr), new.get("acc", noise.acc), new.get("mag", noise.mag))
             bias = bias_new
-            converged = info.converged
-            break
-        extra = None
-        if prob.block.with_field and prob.block.mag is not None:   # d_k absorbs part of the field residuals
-            extra = {"mag": field_dof(prob.block.field_information(nRk, theta), pre.dt, opt.field_sigma,
-                                      opt.field_tau)}
-        new = reestimate(prob.block, nRk, theta, pre.cov, values, noise.gyr, extra)   # cov: AHRS factors' Σ
-        taus = {c: new.pop(c + "_tau") for c in ("acc", "mag") if c + "_tau" in new}
-        if opt.correlated_noise:
-            # τ from the first (white-noise) solution only: later solutions lean on the gyro and their
-            # residuals inherit its drift, which would feed back into τ. Capped at max_corr_s.
-            if tau_fixed is None:
-                cap = max(1.0, opt.max_corr_s * session.rate)
-                tau_fixed = {c: min(t, cap) for c, t in taus.items()}
-            for c, tau in tau_fixed.items():
-                new[c] = new[c] * np.sqrt(tau)
-        history[-1]["tau"] = taus
-        taus = tau_fixed or taus
-        change = max(float(np.max(np.abs(np.log(new[c] / getattr(noise, c))))) for c in new)
-        if vel_state["v"] is not None and opt.estimate_velocity_sigma:
-            # ML of the stationary std given the smoothed velocities: σ_v² = mean |v_k|² / 3
-            sig_new = float(np.clip(np.sqrt(np.mean(vel_state["v"] ** 2)), 0.01, 5.0))
-            change = max(change, abs(np.log(sig_new / vel_state["sigma"])))
-            vel_state["sigma"] = sig_new
-            history[-1]["velocity_sigma"] = sig_new
-        if windows:
-            # windowed hard iron at the current orientations (linear given them), Kok's o + Δo_w
-            D_, o_, dip_ = unpack_theta(theta)
-            nRb = _window_rotations(windows, nRk, pre)
-            n_nav = n_mag_from_dip(dip_)
-            if prob.block.field_offsets is not None:          # n + d_k of each sample's keyframe
-                n_nav = n_nav + prob.block.field_offsets[pre.sample_kf]
-            fit_offsets(windows, session.t, session.mag, nRb, D_, o_, n_nav,
-                        float(np.sqrt(np.mean(noise.mag ** 2))))
-            mag_state["y"], mag_state["w"] = apply_windows(windows, session.mag)
-            history[-1]["windows"] = [w.as_dict(session.t) for w in windows]
-        if gate["estimated"]:
-            history[-1]["gyro_map"] = gyro.E.tolist()
-            change = max(change, gyro.step / opt.gyro_map_tol * opt.noise_tol)     # E settled
-            gate.setdefault("steps", []).append(gyro.step)
-        bias_change = float(np.max(np.linalg.norm(bias_new - bias, axis=1)))
-        noise = Noise(new.get("gyr", noise.gyr), new.get("acc", noise.acc), new.get("mag", noise.mag))
-        bias = bias_new
-        if opt.progress:
-            print(f"  ML round {outer}: LM {info.iterations} it, noise change {change:.3f}, "
-                  f"bias change {np.rad2deg(bias_change):.4f} °/s", file=sys.stderr)
-        if change < opt.noise_tol and bias_change < 1e-4:
-            converged = True
-            break
-    steps = gate.get("steps", [])
-    gate["contraction"] = steps[-1] / steps[-2] if len(steps) > 1 and steps[-2] > 0 else None
-    if gate["estimated"] and (not converged or gate["contraction"] is None
-                              or gate["contraction"] > opt.gyro_map_max_contraction):
-        # Ê still moving after max_outer rounds, or creeping (each round's step ≥ half the previous): E
-        # is set by what a round freezes (intra-interval rotations, velocity increments, windows), not
-        # determined by the joint solve (BROAD 24, tapping: an off-diagonal crept to −0.8 %, 0.51 → 0.73°;
-        # zeroing Ê for the final solve alone still gave 0.72°): the plain model's result instead
-        plain = calibrate(session_in, replace(opt, gyro_map=False), initial=None if weak_reason else init,
-                          allow_weak=allow_weak)
-        plain.info["gyro_map_gate"] = {**gate, "estimated": False, "reason": "E did not settle in the ML rounds"
-                                       f" (contraction {gate['contraction']})",
-                                       "E_unsettled": gyro.E.copy()}
-        return plain
+            if opt.progress:
+                print(f"  ML round {len(history)}: LM {info.iterations} it, noise change {change:.3f}, "
+                      f"bias change {np.rad2deg(bias_change):.4f} °/s", file=sys.stderr)
+            if change < opt.noise_tol and bias_change < 1e-4:
+                converged = True
+                break
+        return bias, noise, nRk, theta, values, converged
+
+    if gate["estimated"]:
+        # E from the first round; the plain model's starting state is kept so that, if Ê does not settle,
+        # the plain rounds run from it (the result is exactly the plain model's, without redoing step 1)
+        start = (bias, noise, dict(vel_state), dict(mag_state), deepcopy(windows))
+        phase["map"] = True
+        bias, noise, nRk, theta, values, converged = ml_rounds(bias, noise, nRk, theta, None)
+        steps = gate.get("steps", [])
+        gate["contraction"] = steps[-1] / steps[-2] if len(steps) > 1 and steps[-2] > 0 else None
+        if not converged or gate["contraction"] is None or gate["contraction"] > opt.gyro_map_max_contraction:
+            # Ê still moving after max_outer rounds, or creeping (a round's step > half the previous): E
+            # is set by what a round freezes (intra-interval rotations, velocity increments, windows), not
+            # determined by the joint solve (BROAD 24, tapping: an off-diagonal crept to −0.8 %, 0.51 → 0.73°;
+            # zeroing Ê for the final solve alone still gave 0.72°): the plain model's result instead
+            gate.update(estimated=False, reason=f"E did not settle in the ML rounds (contraction "
+                        f"{gate['contraction']})", E_unsettled=gyro.E.copy(), rounds=list(history))
+            bias, noise, nRk, theta, tau_fixed = start[0], start[1], None, theta0, None
+            vel_state.update(start[2]); mag_state.update(start[3]); windows[:] = start[4]
+            del history[:]
+            gyro.E, phase["map"] = np.zeros((3, 3)), False
+    if not phase["map"]:
+        bias, noise, nRk, theta, values, converged = ml_rounds(bias, noise, nRk, theta, None)
+    gate.setdefault("contraction", None)
+
     # final solve at the converged noise levels and bias, then marginals
     pre, prob, values, info = solve_round(bias, noise, nRk, theta, final=True, values0=values)
     nRk = keyframe_rotations(values, len(kf))
@@ -268,7 +276,7 @@ def calibrate(session: Session, options: Options | None = None, initial=None,
     return Estimate(cal, session.t, quat, residuals,
                     {"history": history, "keyframes": len(kf), "stride": stride, "g": vel_state["g"] or g,
                      "gyro_bias_segments": bias_segments, "noise_correlation": tau_fixed or {},
-                     "lm_iterations_final": info.iterations,
+                     "lm_iterations_final": info.iterations, "final_cost": (info.cost_initial, info.cost_final),
                      "velocity": vel_state["v"],
                      "acc_bias": (None if vel_state["s"] is None or vel_state["s"].shape[1] < 6
                                   else vel_state["s"][:, 3:].mean(axis=0)),
@@ -276,6 +284,17 @@ def calibrate(session: Session, options: Options | None = None, initial=None,
                      "disturbance_windows": [w.as_dict(session.t) for w in windows], "keyframe_samples": kf,
                      "field_offsets": prob.block.field_offsets, "gyro_map": gyro.E,
                      "gyro_map_gate": gate})
+
+
+def _thinned(y: np.ndarray, every: int) -> np.ndarray:
+    """Every `every`-th field sample kept (NaN elsewhere): the ML rounds only steer the noise levels,
+    bias and θ toward the final solve, which uses every sample."""
+    if every <= 1:
+        return y
+    out = np.full_like(y, np.nan)
+    idx = np.flatnonzero(np.all(np.isfinite(y), axis=1))[::every]
+    out[idx] = y[idx]
+    return out
 
 
 def _velocity_model(opt: Options, vel: dict) -> VelocityModel | None:

@@ -57,16 +57,20 @@ class Options:
     gyro_map: bool = False            # gyro scale/misalignment E estimated jointly (calibration/gyro_map.py)
     #   from the intervals where the accelerometer sees gravity only, behind a coverage gate and a settling
     #   gate (else the plain model's result). Ungated, E ran to +40 % on BROAD 16 (16.8°): it absorbed
-    #   unmodelled linear acceleration. Gated: BROAD 17-trial mean 0.83° → 0.77° (01 1.23 → 0.79°,
-    #   04 1.17 → 0.52°, 02 0.42 → 0.44°, others unchanged); calibrate+smooth on 01 ≈ 1.7× slower
+    #   unmodelled linear acceleration. Gated: BROAD 17-trial mean 0.83° → 0.77° (01 1.23 → 0.755°,
+    #   04 1.17 → 0.548°, 02 0.424 → 0.470°, others identical). Until the final solve's fix (B6: it kept
+    #   the rounds' β_k/e keys, met an indeterminate system at every λ and returned the last round's
+    #   thinned-field solution) these were 0.793° / 0.524° / 0.443°, mean also 0.77°
     gyro_map_sigma: float = 0.02      # prior std of the entries of E
     gyro_map_acc_tol: float | None = 2.0   # m/s²: only keyframe intervals with | |b_acc| − g | below this
     #   inform E (calibration/gyro_map.clean_intervals; None: all intervals)
     gyro_map_final: bool = False      # False: the final (all-sample) solve keeps the rounds' Ê (freeing it there:
     #   BROAD 02 0.44 → 0.52°, 01 0.79 → 0.73°, 04 0.53 → 0.58°; the rounds set noise levels and E)
     gyro_map_tol: float = 3e-4        # E settled when no entry moves more than this in a round
-    gyro_map_max_contraction: float = 0.5   # E kept only if its last step ≤ this × the one before
-    #   (BROAD 01/02/04: fast settling; 24: 0.65 per round, E off-diagonal to −0.8 %, 0.51 → 0.73°)
+    gyro_map_max_contraction: float = 0.5   # E kept only if each step ≤ this × the one before; the rounds
+    #   stop at the first larger step and the plain model's rounds run from the kept starting state
+    #   (BROAD 01/02/04: steps shrink 0.12–0.39 per round; 24: 0.52 then 0.67 per round, E off-diagonal
+    #   to −0.8 %, 0.51 → 0.73° if kept; 06/07/16/21/30/32 with the coverage gate lowered: 0.62 to 6.9)
     gyro_map_min_turns: float = 15.0  # coverage gate: E estimated only with this many turns of rotation in
     #   those intervals (gyro_map.clean_turns), else left at 0 (info["gyro_map_gate"])
     round_min_samples: int = 8        # ML rounds see every n-th field sample, keeping at least this many

@@ -93,6 +93,7 @@ class Preintegration:
         kRb: (N, 3, 3) rotation of each sample's body frame into its keyframe's body frame.
         delta_R: (K−1, 3, 3) ΔR between consecutive keyframes; dR_db (K−1, 3, 3); cov (K−1, 3, 3); dt (K−1,).
         bias_hat: (K−1, 3) bias used for each keyframe interval.
+        steps: with keep_steps, per-sample (Exp(θ_j), J_r(θ_j)·Δt_j), each (N, 3, 3) (calibration.gyro_map).
     """
 
     kf_samples: np.ndarray
@@ -103,16 +104,19 @@ class Preintegration:
     cov: np.ndarray
     dt: np.ndarray
     bias_hat: np.ndarray
+    steps: tuple | None = None
 
 
 def preintegrate(b_gyr: np.ndarray, dt: np.ndarray, kf_samples: np.ndarray, sample_kf: np.ndarray,
-                 bias_hat: np.ndarray, sigma_gyr: np.ndarray, rate_error: float = 0.0) -> Preintegration:
+                 bias_hat: np.ndarray, sigma_gyr: np.ndarray, rate_error: float = 0.0,
+                 keep_steps: bool = False) -> Preintegration:
     """Integrate the gyro within every keyframe interval at once (loop over the position in the interval).
 
     Args:
         b_gyr: (N, 3) rad/s; dt: (N,) s, step from sample i to i+1; kf_samples, sample_kf: keyframe layout;
         bias_hat: (3,) or per-sample (N, 3) rad/s; sigma_gyr: (3,) discrete per-sample gyro noise std, rad/s;
         rate_error: κ, relative gyro error (scale factor and misalignment), dimensionless.
+        keep_steps: also return each sample's Exp(θ_j) and J_r(θ_j)Δt_j (Preintegration.steps).
     """
     n = b_gyr.shape[0]
     k = len(kf_samples)
@@ -148,15 +152,20 @@ def preintegrate(b_gyr: np.ndarray, dt: np.ndarray, kf_samples: np.ndarray, samp
         cov_db[:, :, 3:] -= jdt[p]
     R = left_R[:, 3:]
     dRdb, cov = cov_db[:, :, 3:], cov_db[:, :, :3]
-    if np.all(lengths[:-1] == L):                             # regular layout: samples in (k, p) order
+    regular = bool(np.all(lengths[:-1] == L))                 # regular layout: samples in (k, p) order
+    if regular:
         kRb = R_at.reshape(-1, 3, 3)[:n]
     else:
         kRb = np.empty((n, 3, 3))
         kRb[idx.T[valid.T]] = R_at[valid.T]
+    steps = None
+    if keep_steps:                                            # (L, K) positions → samples, as kRb
+        steps = tuple(np.transpose(a, (1, 0, 2, 3)).reshape(-1, 3, 3)[:n] if regular else
+                      a[valid][np.argsort(idx[valid], kind="stable")] for a in (inc, jdt))
     # Interval k integrated the increments of samples s_k .. s_{k+1}−1: exactly keyframe k → k+1.
     kf_dt = np.add.reduceat(dt, kf_samples)[:-1]
     return Preintegration(kf_samples, sample_kf, kRb, R[:-1], dRdb[:-1], cov[:-1], kf_dt,
-                          np.array(bias_rows[kf_samples[:-1]]))
+                          np.array(bias_rows[kf_samples[:-1]]), steps)
 
 
 def ahrs_factors(pre: Preintegration, key_rot, key_bias, sigma_gyr: np.ndarray) -> list:

@@ -4,6 +4,9 @@ The prior is linear in d, so its JacobianFactors are exact:
 
     [ I/σ_d ] d_0 = −d_0/σ_d (at the linearisation point),   [ −φ_k I/σ_w,k   I/σ_w,k ] [δd_k; δd_{k+1}]
                                                                = −(d_{k+1} − φ_k d_k)/σ_w,k
+
+Being exact, they can also be handed to GTSAM once, as C++ `LinearContainerFactor`s linearised at d = 0
+(`FieldBlock.factors`): GTSAM then re-linearises them itself (b = −A·d), with no Python per iteration.
 """
 
 from __future__ import annotations
@@ -14,7 +17,7 @@ import gtsam
 import numpy as np
 
 from imugraph.factors.field import field_key, field_prior_terms
-from imugraph.graphs.solver import keyframe_vectors
+from imugraph.graphs.solver import keyframe_vectors, state_keys
 
 
 @dataclass
@@ -40,14 +43,29 @@ class FieldBlock:
     def cost(self, values: gtsam.Values) -> float:
         return self.cost_at(self.offsets(values))
 
-    def linearize(self, values: gtsam.Values) -> gtsam.GaussianFactorGraph:
-        d = self.offsets(values)
+    def _jacobians(self, d: np.ndarray) -> gtsam.GaussianFactorGraph:
+        """The prior's JacobianFactors at d (K, 3): A δ = −r(d) (A does not depend on d)."""
         start, steps, phi, sigma_w = field_prior_terms(d, self.dt_k, self.sigma_d, self.tau_d)
         unit = gtsam.noiseModel.Unit.Create(3)
         gfg = gtsam.GaussianFactorGraph()
         sig = np.broadcast_to(np.asarray(self.sigma_d, float), (3,))
-        gfg.push_back(gtsam.JacobianFactor(field_key(0), np.diag(1.0 / sig), -start, unit))
+        fk = state_keys(field_key, self.n_keyframes)
+        eye = np.eye(3)
+        A0 = -(phi[:, None] / sigma_w)[:, :, None] * eye       # diag(−φ_k/σ_w,k) (K−1, 3, 3)
+        A1 = (1.0 / sigma_w)[:, :, None] * eye                 # diag(1/σ_w,k)
+        gfg.push_back(gtsam.JacobianFactor(fk[0], np.diag(1.0 / sig), -start, unit))
         for k in range(len(steps)):
-            gfg.push_back(gtsam.JacobianFactor(field_key(k), np.diag(-phi[k] / sigma_w[k]),
-                                               field_key(k + 1), np.diag(1.0 / sigma_w[k]), -steps[k], unit))
+            gfg.push_back(gtsam.JacobianFactor(fk[k], A0[k], fk[k + 1], A1[k], -steps[k], unit))
         return gfg
+
+    def linearize(self, values: gtsam.Values) -> gtsam.GaussianFactorGraph:
+        return self._jacobians(self.offsets(values))
+
+    def factors(self) -> gtsam.NonlinearFactorGraph:
+        """The prior as C++ nonlinear factors (exact: the prior is linear in d), for the graph itself
+        instead of the solver's block list: LinearContainerFactors of the Jacobians at d = 0."""
+        K = self.n_keyframes
+        zero = gtsam.Values()
+        for key in state_keys(field_key, K):
+            zero.insert(key, np.zeros(3))
+        return gtsam.LinearContainerFactor.ConvertLinearGraph(self._jacobians(np.zeros((K, 3))), zero)

@@ -10,7 +10,9 @@ S e = the rotation vector of E's antisymmetric part, (E − Eᵀ)/2 = [S e]×: a
 against the accelerometer's, which only the (weak) accelerometer constraint sees — unconstrained it ran
 to 5° on BROAD 04 — so it gets a tight prior σ_rot; the symmetric part (scale, non-orthogonality) keeps σ_e.
 
-Both are linear, so the JacobianFactors are exact (three keys: β_k, b_s(k), e).
+Both are linear, so the JacobianFactors are exact (three keys: β_k, b_s(k), e), and they can be handed to
+GTSAM once as C++ `LinearContainerFactor`s linearised at zero (`GyroMapBlock.factors`), which GTSAM
+re-linearises itself.
 """
 
 from __future__ import annotations
@@ -20,7 +22,7 @@ from dataclasses import dataclass
 import gtsam
 import numpy as np
 
-from imugraph.graphs.solver import keyframe_vectors
+from imugraph.graphs.solver import keyframe_vectors, state_keys
 
 E_KEY = gtsam.symbol("e", 0)
 # S: e = vec E (row-major) → the axial vector of (E − Eᵀ)/2: ((E21 − E12), (E02 − E20), (E10 − E01))/2
@@ -33,6 +35,20 @@ for _r, (_i, _j) in enumerate(((2, 1), (0, 2), (1, 0))):
 def beta_key(k: int) -> int:
     """Key of gyro interval k's effective bias β_k (Vector3)."""
     return gtsam.symbol("q", int(k))
+
+
+def without_map_keys(values: gtsam.Values) -> gtsam.Values:
+    """values without the β_k and e keys (a copy; values itself when it holds none), for a graph built
+    without the gyro-map block: variables with no factor are not in its ordering, and eliminating with
+    them fails (the solver then saw an indeterminate system at every λ and returned its start)."""
+    if not values.exists(E_KEY):
+        return values
+    out = gtsam.Values(values)
+    q = ord("q")
+    for key in values.keys():
+        if key == E_KEY or gtsam.Symbol(key).chr() == q:
+            out.erase(key)
+    return out
 
 
 @dataclass
@@ -65,14 +81,32 @@ class GyroMapBlock:
         con, pri = self.residuals(values)
         return 0.5 * float(np.sum(con**2) + np.sum(pri**2))
 
-    def linearize(self, values: gtsam.Values) -> gtsam.GaussianFactorGraph:
-        con, pri = self.residuals(values)
+    def _jacobians(self, con: np.ndarray, pri: np.ndarray) -> gtsam.GaussianFactorGraph:
+        """The JacobianFactors A δ = −r for residuals con (K−1, 3), pri (12,) (A is constant)."""
         gfg = gtsam.GaussianFactorGraph()
         unit3 = gtsam.noiseModel.Unit.Create(3)
         eye = np.eye(3) / self.sigma_c
+        C = -self.C / self.sigma_c
+        bk = state_keys(beta_key, len(con))
         for k in range(len(con)):
-            gfg.push_back(gtsam.JacobianFactor(beta_key(k), eye, self.bias_key(int(self.seg[k])), -eye,
-                                               E_KEY, -self.C[k] / self.sigma_c, -con[k], unit3))
+            gfg.push_back(gtsam.JacobianFactor(bk[k], eye, self.bias_key(int(self.seg[k])), -eye,
+                                               E_KEY, C[k], -con[k], unit3))
         A = np.r_[np.eye(9) / self.sigma_e, _ANTI / self.sigma_rot]
         gfg.push_back(gtsam.JacobianFactor(E_KEY, A, -pri, gtsam.noiseModel.Unit.Create(12)))
         return gfg
+
+    def linearize(self, values: gtsam.Values) -> gtsam.GaussianFactorGraph:
+        return self._jacobians(*self.residuals(values))
+
+    def factors(self) -> gtsam.NonlinearFactorGraph:
+        """The block as C++ nonlinear factors (exact: it is linear), for the graph itself instead of the
+        solver's block list: LinearContainerFactors of its Jacobians at β = b = e = 0."""
+        n = len(self.C)
+        n_seg = int(self.seg.max()) + 1 if n else 1
+        zero = gtsam.Values()
+        for key in list(state_keys(beta_key, n)) + [self.bias_key(i) for i in range(n_seg)]:
+            zero.insert(key, np.zeros(3))
+        zero.insert(E_KEY, np.zeros(9))
+        con = np.zeros((n, 3))
+        pri = np.r_[self.e_now / self.sigma_e, _ANTI @ self.e_now / self.sigma_rot]
+        return gtsam.LinearContainerFactor.ConvertLinearGraph(self._jacobians(con, pri), zero)

@@ -212,12 +212,13 @@ class MeasurementBlock:
         from imugraph.factors.field import field_key
 
         G_Rd, G_td, G_dd, g_d = self._last.pop("field")
+        fk = state_keys(field_key, self.n_keyframes)
         for k in range(self.n_keyframes):
             if two:
-                gfg.push_back(gtsam.HessianFactor(rot[k], keys.CALIB, field_key(k), G11[k], G12[k], G_Rd[k], g1[k],
+                gfg.push_back(gtsam.HessianFactor(rot[k], keys.CALIB, fk[k], G11[k], G12[k], G_Rd[k], g1[k],
                                                   G22[k], G_td[k], g2[k], G_dd[k], g_d[k], f[k]))
             else:
-                gfg.push_back(gtsam.HessianFactor(rot[k], field_key(k), G11[k], G_Rd[k], g1[k], G_dd[k], g_d[k],
+                gfg.push_back(gtsam.HessianFactor(rot[k], fk[k], G11[k], G_Rd[k], g1[k], G_dd[k], g_d[k],
                                                   f[k]))
         return gfg
 

@@ -12,7 +12,7 @@ import gtsam
 import numpy as np
 
 from imugraph.factors.gyro import Preintegration
-from imugraph.geometry import quat_slerp, quat_to_rotmat, rotmat_to_quat
+from imugraph.geometry import expmap, logmap, quat_slerp, quat_to_rotmat, rotmat_to_quat
 
 
 def triad(b_up: np.ndarray, b_mag: np.ndarray) -> np.ndarray:
@@ -73,18 +73,23 @@ def complementary_keyframes(pre: Preintegration, b_acc: np.ndarray, b_mag_cal: n
 def sample_orientations(nRk: np.ndarray, pre: Preintegration) -> np.ndarray:
     """Per-sample nRb (N, 4) quaternions: forward from keyframe k and backward from k+1, blended by slerp.
 
-    nRb_j = R_k ΔR_{k,j} (forward) and R_{k+1} ΔR_kᵀ ΔR_{k,j} (backward), weight by position in the interval.
+    Forward nRb_j = R_k ΔR_{k,j}, backward R_{k+1} ΔR_kᵀ ΔR_{k,j}, slerp weight u_j = position in the
+    interval. The relative rotation fwdᵀ·bwd = ΔR_{k,j}ᵀ Exp(ε_k) ΔR_{k,j} = Exp(ΔR_{k,j}ᵀ ε_k) with one
+    per-keyframe ε_k = Log(R_kᵀ R_{k+1} ΔR_kᵀ) (the interval's closing error), so
+
+        slerp(fwd, bwd, u) = R_k ΔR_{k,j} Exp(u ΔR_{k,j}ᵀ ε_k) = R_k Exp(u ε_k) ΔR_{k,j}
+
+    (R Exp(v) Rᵀ = Exp(R v)): one log per keyframe, one exp and two products per sample.
     """
     k = pre.sample_kf
-    fwd = nRk[k] @ pre.kRb
     K = len(nRk)
+    if K < 2:
+        return rotmat_to_quat(nRk[k] @ pre.kRb)
+    # ε_k = Log(R_kᵀ R_{k+1} ΔR_kᵀ), k = 0..K−2 (the last keyframe's samples have no next: ε = 0, u = 0)
+    eps = np.zeros((K, 3))
+    eps[:-1] = logmap(np.transpose(nRk[:-1], (0, 2, 1)) @ nRk[1:] @ np.transpose(pre.delta_R[:K - 1], (0, 2, 1)))
     k_next = np.minimum(k + 1, K - 1)
-    has_next = k < K - 1
-    bwd = fwd.copy()
-    dR = pre.delta_R[np.minimum(k, K - 2)] if K > 1 else np.broadcast_to(np.eye(3), fwd.shape)
-    bwd[has_next] = nRk[k_next[has_next]] @ np.transpose(dR[has_next], (0, 2, 1)) @ pre.kRb[has_next]
     s_k = pre.kf_samples[k]
-    s_next = pre.kf_samples[k_next]
-    span = np.maximum(s_next - s_k, 1)
-    u = np.where(has_next, (np.arange(len(k)) - s_k) / span, 0.0)
-    return quat_slerp(rotmat_to_quat(fwd), rotmat_to_quat(bwd), u)
+    span = np.maximum(pre.kf_samples[k_next] - s_k, 1)
+    u = np.where(k < K - 1, (np.arange(len(k)) - s_k) / span, 0.0)
+    return rotmat_to_quat(nRk[k] @ expmap(u[:, None] * eps[k]) @ pre.kRb)

@@ -18,7 +18,7 @@ from imugraph.factors.gyro import Preintegration, ahrs_factors
 from imugraph.factors.robust import QUADRATIC, Kernel
 from imugraph.factors.theta import THETA_DIM
 from imugraph.graphs.measurements import ChannelData, MeasurementBlock
-from imugraph.graphs.solver import chain_ordering, keyframe_rotations, keyframe_vectors  # noqa: F401
+from imugraph.graphs.solver import chain_ordering, keyframe_rotations, keyframe_vectors, state_keys  # noqa: F401
 from imugraph.graphs.velocity_block import VelocityBlock
 
 
@@ -156,13 +156,16 @@ def build_problem(pre: Preintegration, b_acc: np.ndarray, b_mag: np.ndarray, noi
     n_seg = int(seg.max()) + 1 if len(seg) else 1
     if gyro_map is not None:
         from imugraph.graphs.gyro_map_block import E_KEY, GyroMapBlock, beta_key
-    gyro_key = beta_key if gyro_map is not None else (lambda i: keys.bias(seg[i]))
-    for f in ahrs_factors(pre, keys.rot, gyro_key, noise.gyr):
+    rk, vk = state_keys(keys.rot, K), state_keys(keys.vel, K)   # memoised key tuples (gtsam symbols cost ~1 µs)
+    bk, fk = state_keys(keys.bias, n_seg), None
+    qk = state_keys(beta_key, K - 1) if gyro_map is not None else None
+    gyro_key = qk.__getitem__ if gyro_map is not None else (lambda i: bk[seg[i]])
+    for f in ahrs_factors(pre, rk.__getitem__, gyro_key, noise.gyr):
         graph.add(f)
     fill = values0 is None
     values = gtsam.Values() if fill else values0
     for k in range(K if fill else 0):
-        values.insert(keys.rot(k), gtsam.Rot3(nRk0[k]))
+        values.insert(rk[k], gtsam.Rot3(nRk0[k]))
     prior = gtsam.noiseModel.Isotropic.Sigma(3, bias_prior_sigma)
     seg_dt = (pre.dt.sum() / n_seg) if len(pre.dt) else 1.0
     rw = gtsam.noiseModel.Isotropic.Sigma(3, max(bias_rw_sigma, 1e-9) * np.sqrt(seg_dt))
@@ -176,7 +179,8 @@ def build_problem(pre: Preintegration, b_acc: np.ndarray, b_mag: np.ndarray, noi
     gblock = None
     if gyro_map is not None:         # β_k = b_s(k) and e = 0 at the start of every solve (Ê is in `pre`)
         gblock = GyroMapBlock(gyro_map.C, seg, keys.bias, np.asarray(gyro_map.e_now, float), gyro_map.sigma_e)
-        starts = [(beta_key(k), values.atVector(keys.bias(int(seg[k])))) for k in range(K - 1)]
+        b_seg = [values.atVector(bk[i]) for i in range(n_seg)]
+        starts = [(key, b_seg[int(seg[k])]) for k, key in enumerate(qk)]
         for key, val in starts + [(E_KEY, np.zeros(9))]:
             if values.exists(key):
                 values.update(key, val)
@@ -197,25 +201,26 @@ def build_problem(pre: Preintegration, b_acc: np.ndarray, b_mag: np.ndarray, noi
                                B, velocity.acc_bias_sigma0, velocity.acc_bias_rw, rest_kf, velocity.sigma_rest)
         v0 = np.zeros((K, vblock.state_dim)) if velocity.v0 is None else velocity.v0
         for k in range(K if fill else 0):
-            values.insert(keys.vel(k), np.asarray(v0[k], float))
+            values.insert(vk[k], np.asarray(v0[k], float))
     fblock = None
     if field is not None and theta0 is not None:
         from imugraph.factors.field import field_key
         from imugraph.graphs.field_block import FieldBlock
         fblock = FieldBlock(pre.dt, field.sigma, field.tau)
+        fk = state_keys(field_key, K)
         for k in range(K if fill else 0):
-            values.insert(field_key(k), np.zeros(3) if field.d0 is None else np.asarray(field.d0[k], float))
+            values.insert(fk[k], np.zeros(3) if field.d0 is None else np.asarray(field.d0[k], float))
     order = []
     for k in range(K):
-        order.append(keys.rot(k))
+        order.append(rk[k])
         if vblock is not None:
-            order.append(keys.vel(k))
+            order.append(vk[k])
         if fblock is not None:
-            order.append(field_key(k))
+            order.append(fk[k])
         if gblock is not None and k < K - 1:
-            order.append(beta_key(k))
+            order.append(qk[k])
         if k < K - 1 and (k == K - 2 or seg[k + 1] != seg[k]):
-            order.append(keys.bias(seg[k]))
+            order.append(bk[seg[k]])
     if K == 1:
         order.append(keys.bias(0))
     global_keys: list = []
@@ -236,5 +241,8 @@ def build_problem(pre: Preintegration, b_acc: np.ndarray, b_mag: np.ndarray, noi
     if gblock is not None:
         global_keys.append(E_KEY)
     ordering = chain_ordering(order, global_keys)
-    blocks = [adapter] + [b for b in (vblock, fblock, gblock) if b is not None]
+    for lin in (fblock, gblock):     # linear priors/constraints: exact C++ factors, no Python per iteration
+        if lin is not None:
+            graph.push_back(lin.factors())
+    blocks = [adapter] + ([vblock] if vblock is not None else [])
     return Problem(graph, blocks, values, ordering, block, order + global_keys, vblock)

@@ -105,8 +105,27 @@ def keyframe_rotations(values: gtsam.Values, K: int) -> np.ndarray:
 
 def keyframe_vectors(values: gtsam.Values, key_of: Callable[[int], int], K: int) -> np.ndarray:
     """(K, d) vector values key_of(0..K−1), e.g. keyframe velocities (once per Values inside `optimize`)."""
-    return cached_state(values, ("vec", key_of, K),
-                        lambda v: np.array([v.atVector(key) for key in state_keys(key_of, K)]).reshape(K, -1))
+    return cached_state(values, ("vec", key_of, K), lambda v: _vectors(v, key_of, K))
+
+
+def _vectors(values: gtsam.Values, key_of: Callable[[int], int], K: int) -> np.ndarray:
+    """(K, d) values of key_of(0..K−1). When those keys are the symbols (c, 0..K−1), two C++ calls
+    (Values.extract of exactly those keys, which raises on a missing one as atVector does, then
+    gtsam.utilities.extractVectors, rows in key order = index order) replace K atVector calls (≈ 3×
+    faster at K = 1000); otherwise key by key."""
+    wanted = state_keys(key_of, K)
+    if K > 0:
+        c = chr(gtsam.Symbol(wanted[0]).chr())
+        if wanted == _symbol_range(c, K):
+            rows = gtsam.utilities.extractVectors(values.extract(list(wanted)), c)
+            return np.array(rows, float).reshape(K, -1)
+    return np.array([values.atVector(key) for key in wanted]).reshape(K, -1)
+
+
+@lru_cache(maxsize=16)
+def _symbol_range(c: str, K: int) -> tuple:
+    """The keys gtsam.symbol(c, 0..K−1)."""
+    return tuple(gtsam.symbol(c, k) for k in range(K))
 
 
 def _rotations(values: gtsam.Values, K: int) -> np.ndarray:
@@ -117,13 +136,6 @@ def _rotations(values: gtsam.Values, K: int) -> np.ndarray:
 def state_keys(key_of: Callable[[int], int], K: int) -> tuple:
     """The keys key_of(0..K−1) as a tuple (memoised: building gtsam symbols costs ~1 µs each)."""
     return tuple(key_of(k) for k in range(K))
-
-
-def _key_dim(values: gtsam.Values, key: int) -> int:
-    ch = chr(gtsam.Symbol(key).chr())
-    if ch == "r":
-        return 3
-    return int(np.asarray(values.atVector(key)).size)
 
 
 def total_cost(graph: gtsam.NonlinearFactorGraph, blocks: list, values: gtsam.Values) -> float:
@@ -155,7 +167,7 @@ def _optimize(graph, blocks, values, ordering, p: SolverParams, on_iteration):
     cost = total_cost(graph, blocks, x)
     info = SolveInfo(cost_initial=cost, history=[cost])
     lam = p.lambda_initial if p.method == "lm" else 0.0
-    key_dims = [(key, _key_dim(x, key)) for key in x.keys()]
+    key_dims = list(x.dims().items())       # (key, dim) in key order, as x.keys()
     for it in range(1, p.max_iterations + 1):
         gfg = graph.linearize(x)
         for b in blocks:
