@@ -1,6 +1,7 @@
 """The diagnosis' speed-ups give the same numbers as the routines they replace or cache (issue 5):
 sort-based quantiles vs numpy.quantile, the rotation-only preintegration vs the calibration's, the Jacobian
-column cache and the base noise-level cache vs fresh computations, and the alternation's convergence test."""
+column cache and the base noise-level cache vs fresh computations, the alternation's convergence test, and the
+refit skip bound (a localised verdict found, refits of effects that cannot be localised cannot change it)."""
 
 from __future__ import annotations
 
@@ -104,9 +105,62 @@ def test_alternation_stops_when_the_correction_stops_changing(clean, monkeypatch
 
     _, f = clean
     calls = []
-    monkeypatch.setattr(refit, "fit_simulation", lambda sess, start: calls.append(1) or start)
+    monkeypatch.setattr(refit, "fit_simulation", lambda sess, start, **kw: calls.append(1) or start)
     monkeypatch.setattr(refit, "on_session", lambda fit, session: fit)
     _, info = refit.refit_effect(_Fixed(step), f, rounds=3)
     assert len(calls) == n_fits
     assert bool(info.get("converged")) == (n_fits < 3)
     assert CONVERGED < 0.1
+
+
+def _res(name, channel, penalised, frac, value=2.0, stage="refit", raw_before=1.0, decisive=False):
+    from imugraph.diagnose.attribute import EffectResult
+
+    return EffectResult(name, channel, 0.9, 0.1, 0.9, penalised, 3, raw_before=raw_before, floor=0.1,
+                        size={"value": value, "threshold": 1.0}, stage=stage, support_fraction=frac,
+                        decisive=decisive)
+
+
+def test_may_be_localised_and_refit_order():
+    """Windowed effects, a screening support and conclusive evidence may be localised; the library's
+    global effects not. refit_order puts those first and keeps the candidates' order otherwise."""
+    from imugraph.diagnose.refit import may_be_localised, refit_order
+
+    glob = _res("x", "acc", 0.5, 1.0, stage="screen")
+    expect = {"magnetic_disturbance": True, "vibration": True, "saturation": False, "linear_acceleration": False,
+              "gyro_scale": False, "gyro_bias_drift": False, "time_offset": False, "accelerometer_bias": False}
+    for name, want in expect.items():
+        assert may_be_localised(EFFECTS[name], glob) is want, name
+    assert may_be_localised(EFFECTS["saturation"], _res("s", "gyr", 0.0, 0.02, stage="screen"))
+    assert may_be_localised(EFFECTS["saturation"], _res("s", "gyr", 0.0, 1.0, stage="screen", decisive=True))
+    names = ["linear_acceleration", "gyro_scale", "magnetic_disturbance", "accelerometer_bias", "vibration"]
+    screened = {n: glob for n in names}
+    assert refit_order(names, screened, EFFECTS) == ["magnetic_disturbance", "vibration", "linear_acceleration",
+                                                     "gyro_scale", "accelerometer_bias"]
+
+
+def test_skipping_global_refits_after_a_local_verdict_never_changes_the_verdict():
+    """The bound of refit.verdict_is_local against attribute.verdict (V): once a refitted localised
+    effect is significant and relevant, ANY result of the global effects (random scores, sizes,
+    significance, their screening or refit numbers) gives the same verdict. And it is not vacuous: a
+    local effect that is not relevant, not significant, or not localised does not settle the verdict."""
+    from imugraph.diagnose.attribute import AttributionOptions, _rank, verdict
+    from imugraph.diagnose.refit import verdict_is_local
+
+    opt, floor = AttributionOptions(), {"gyr": 0.1, "acc": 0.1, "mag": 0.1}
+    local = _res("magnetic_disturbance", "mag", 0.4, 0.3)
+    assert verdict_is_local([local], floor, opt)
+    assert not verdict_is_local([_res("m", "mag", 0.4, 0.3, value=0.5)], floor, opt)        # not relevant
+    assert not verdict_is_local([_res("m", "mag", 0.1, 0.3)], floor, opt)                   # not significant
+    assert not verdict_is_local([_res("m", "mag", 0.4, 0.7)], floor, opt)                   # not localised
+    assert not verdict_is_local([_res("m", "mag", 0.4, 0.3, stage="screen")], floor, opt)   # not refitted
+    rng = np.random.default_rng(0)
+    for _ in range(200):
+        globs = [_res(n, c, float(rng.uniform(-1, 1.2)), 1.0, value=float(rng.uniform(0, 3)),
+                      raw_before=float(rng.uniform(0, 2)), decisive=bool(rng.random() < 0.1))
+                 for n, c in (("linear_acceleration", "acc"), ("gyro_scale", "gyr"), ("time_offset", "mag"))]
+        other = _res("vibration", "acc", float(rng.uniform(-1, 1)), 0.2, value=float(rng.uniform(0, 3)))
+        assert verdict(_rank([local, other] + globs), floor, opt) in ("magnetic_disturbance", "vibration")
+        screened = [_res(g.name, g.channel, float(rng.uniform(-1, 1.2)), 1.0, stage="screen") for g in globs]
+        assert verdict(_rank([local, other] + globs), floor, opt) == verdict(_rank([local, other] + screened),
+                                                                            floor, opt)

@@ -20,6 +20,12 @@ cross-validation then evaluates the effect from scratch on the ORIGINAL measurem
 blocks. θ* is fitted on all samples, as the base model's θ is for the "before" residuals; only the
 effect's parameters are cross-validated. (θ* saw the held-out samples through the correction of (F1),
 whose parameters φ_r are few and global or per window: a weak leak, stated in docs/diagnose.md.)
+
+Which refits are needed (speed, issue 5): by the verdict rule (V) of imugraph.diagnose.attribute a
+significant, relevant, localised effect is the verdict ahead of every global one. The candidates that may
+be localised are refitted first (`refit_order`); once one of them is the verdict (`verdict_is_local`), the
+refits of effects that cannot be localised (`may_be_localised`) cannot change it and are skipped — an
+exact bound, not a threshold (BROAD 32, magnet: the 5 global refits of its 6 candidates).
 """
 
 from __future__ import annotations
@@ -84,6 +90,33 @@ def refit_effect(effect, real: Fit, rounds: int = 2, window=None) -> tuple[Fit, 
 
 
 CONVERGED = 0.02     # relative change of the corrected data below which the alternation stops
+
+
+def may_be_localised(effect, screened) -> bool:
+    """Whether the refit of `effect` could make it a localised effect (support < half the recording,
+    attribute (A3)/(V)): a windowed effect (its windows come from the fit), one whose screening claimed a
+    support (saturation's rails) or whose evidence is conclusive. The others (linear_acceleration,
+    gyro_scale, gyro_bias_drift, time_offset, accelerometer_bias) claim the whole recording whatever θ*."""
+    return bool(getattr(effect, "windowed", False) or getattr(screened, "decisive", False)
+                or getattr(screened, "support_fraction", 1.0) < 1.0)
+
+
+def refit_order(names: list, screened: dict, effects: dict) -> list:
+    """The candidates with those that may be localised first (stable otherwise): a localised verdict
+    found early lets `verdict_is_local` skip the refits that cannot change it."""
+    return sorted(names, key=lambda n: not may_be_localised(effects[n], screened[n]))
+
+
+def verdict_is_local(refitted: list, null_gap: dict, opt) -> bool:
+    """True when a refitted effect is localised, significant and relevant. By the verdict rule (V) the
+    verdict is then a localised effect whatever the refits of effects that cannot be localised
+    (`may_be_localised` False) give: they can only re-rank the global effects, which (V) puts after
+    every localised one. An exact bound (no threshold of its own): skipping those refits leaves the
+    verdict unchanged; their entries in `effects[]` keep the screening stage."""
+    from imugraph.diagnose.attribute import LOCAL_FRACTION, significant
+
+    return any(r.stage == "refit" and r.support_fraction < LOCAL_FRACTION and r.relevant
+               and significant(r, null_gap, opt) for r in refitted)
 
 
 def _change(new: dict, prev: dict, session) -> float:
