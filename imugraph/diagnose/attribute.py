@@ -255,11 +255,15 @@ def candidates(results: list, null_gap: dict, n_top: int, effects: dict | None =
       screened effects of that home channel (`Effect.channel`, or the channel the effect's own fit chose,
       `Correction.channel`: an accelerometer delay is time_offset on acc) whose screened size reaches half their
       relevance threshold — a distorted base fit hides an effect from the screening (negative (A2)) and
-      makes its first-order size an underestimate, so the screening cannot be the judge there.
+      makes its first-order size an underestimate, so the screening cannot be the judge there;
+    * every effect whose own evidence is conclusive (`decisive`, saturation's rail (C2)): it can be the
+      verdict whatever its screened score, so its reported shrink must be the extended model's (BROAD
+      06/07 + clipped gyro: screened −0.28/−0.42, refitted 0.53 on 06).
     """
     opt = opt or AttributionOptions()
     ok = [r for r in results if np.isfinite(r.penalised) and (r.size or {}).get("value", 1.0) != 0.0]
     names = [r.name for r in ok if r.penalised > 0][:n_top]
+    names += [r.name for r in ok if r.decisive and r.name not in names]      # can win on its own evidence
     for ch in CHANNELS:
         raw = next((r.raw_before for r in ok if r.channel == ch and np.isfinite(r.raw_before)), np.nan)
         if not raw >= opt.min_gap_ratio * null_gap.get(ch, 0.0):
@@ -307,7 +311,8 @@ def attribute(real, sim, null_gap: dict, effects: dict, opt: AttributionOptions 
             effect = effects[name]
             window = (windows or {}).get(effect.channel) if getattr(effect, "windowed", False) else None
             try:
-                ext, info = refit_effect(effect, real, opt.refit_rounds, window)
+                refit = getattr(effect, "refit", None) or (lambda *a: refit_effect(effect, *a))
+                ext, info = refit(real, opt.refit_rounds, window)      # the effect's own refit when it has one
                 if not info["changed"]:
                     continue                                               # nothing to refit: screening stands
                 res = evaluate_effect(effect, real, sim, null_gap, folds, opt, gap_opt, info["window"], base,

@@ -12,6 +12,9 @@ well (truth "none"). Scores:
                 whose verdict is the injected effect (the verdict's t_start/t_end)
     shrink    = 1 − gap_after / gap_before on held-out time, as the diagnoser reports it for the verdict
                 (and, separately, for the true effect's entry whatever the verdict)
+    injected part shrink = the same for the gap the injection ADDED: a global verdict's held-out gap
+                net of the clean host's own gap on that channel (`injected_part_shrink`; needs the clean
+                runs) — reported beside the shrink, which it does not replace
 
 and the confusion matrix (rows: truth, columns: verdict).
 """
@@ -81,11 +84,43 @@ def run_case(session: Session, truth_name: str, truth: dict, case_id: str, diagn
             "shrink": None if won is None else won.get("shrink"),
             "true_effect_shrink": None if true_entry is None else true_entry.get("shrink"),
             "gap": d.get("gap"), "seconds": seconds, "iou": None,
-            "ranking": [e.get("name") for e in d.get("effects", [])][:3]}
+            "ranking": [e.get("name") for e in d.get("effects", [])][:3],
+            "host": session.name.split("+")[0],
+            "won": None if won is None else {k: won.get(k) for k in ("channel", "gap_before", "gap_after",
+                                                                     "support_fraction")},
+            "host_excess": None if truth_name != NONE else _host_excess(d)}
     if windowed and verdict == truth_name and won is not None:
         case["estimated_window"] = [won.get("t_start"), won.get("t_end")]
         case["iou"] = interval_iou((truth["t_start"], truth["t_end"]), (won.get("t_start"), won.get("t_end")))
     return case
+
+
+def _host_excess(d: dict) -> dict:
+    """channel → the held-out gap excess (A1) of an unmodified recording on that channel (the `gap_before`
+    of any global effect scored on it): the host's own misfit, which no injected effect's model removes."""
+    out = {}
+    for e in d.get("effects", []):
+        gb = e.get("gap_before")
+        if e.get("support_fraction", 1.0) >= 1.0 and gb is not None and np.isfinite(gb):
+            out.setdefault(e.get("channel"), float(gb))
+    return out
+
+
+def injected_part_shrink(case: dict, hosts: dict) -> Optional[float]:
+    """Shrink of the part of the gap the injection added (docs/diagnose.md §4): for a global verdict,
+    1 − max(0, after − h) / (before − h), h the clean host's own held-out excess on the verdict's channel
+    (`_host_excess`); a localised verdict (A3) is already scored above the recording's own gap outside its
+    support, so its shrink stands. None when the host was not diagnosed or the injection added nothing."""
+    won = case.get("won")
+    if not case.get("correct") or not won or won.get("gap_before") is None:
+        return None
+    if (won.get("support_fraction") or 1.0) < 1.0:
+        return case.get("shrink")
+    h = (hosts.get(case.get("host")) or {}).get(won.get("channel"))
+    b, a = won.get("gap_before"), won.get("gap_after")
+    if h is None or a is None or not b > h:
+        return None
+    return float(1.0 - max(0.0, a - h) / (b - h))
 
 
 def run_harness(sessions: Iterable, effects: Optional[Iterable[str]] = None, n_per_effect: int = 2,
@@ -150,6 +185,8 @@ def summarise(cases: list, names: list, seconds: float = float("nan")) -> dict:
     ious = [c["iou"] for c in injected if c["iou"] is not None]
     shrinks = [c["shrink"] for c in injected if c["correct"] and c["shrink"] is not None]
     true_shrinks = [c["true_effect_shrink"] for c in injected if c["true_effect_shrink"] is not None]
+    hosts = {c.get("host"): c.get("host_excess") for c in clean if c.get("host_excess")}
+    part = [injected_part_shrink(c, hosts) for c in injected]
 
     def stats(v):
         v = [x for x in v if x is not None and np.isfinite(x)]
@@ -161,6 +198,7 @@ def summarise(cases: list, names: list, seconds: float = float("nan")) -> dict:
             "top1": float(np.mean([c["correct"] for c in injected])) if injected else None,
             "n_clean": len(clean), "clean_flagged": int(sum(not c["correct"] for c in clean)),
             "iou": stats(ious), "shrink": stats(shrinks), "true_effect_shrink": stats(true_shrinks),
+            "injected_part_shrink": stats(part),
             "seconds": seconds}
 
 
@@ -188,8 +226,10 @@ def format_report(report: dict) -> str:
     lines.append(f"clean sessions flagged (verdict ≠ none): {report['clean_flagged']} of {report['n_clean']}")
     for key, label in (("iou", "window IoU (correct windowed verdicts)"),
                        ("shrink", "gap shrink on held-out time (correct verdicts)"),
-                       ("true_effect_shrink", "gap shrink of the true effect (all injected cases)")):
-        s = report[key]
+                       ("true_effect_shrink", "gap shrink of the true effect (all injected cases)"),
+                       ("injected_part_shrink", "gap shrink of the injected part (correct verdicts, net of "
+                                                "the clean host's own gap)")):
+        s = report.get(key, {"n": 0})
         if s["n"]:
             lines.append(f"{label}: median {s['median']:.2f}, mean {s['mean']:.2f}, min {s['min']:.2f} (n = {s['n']})")
         else:

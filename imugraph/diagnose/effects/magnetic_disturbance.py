@@ -11,19 +11,23 @@ the offset o by δo (the base fit's o was pulled by the disturbance). Linear in 
 fitted orientations: least squares on the training samples.
 
 Windows: the `window` argument (the diagnosis' localisation), else found from the magnetometer residual of
-all samples — moving mean of |r/σ|², flagged where well above its quiet level (base.detect_windows) — with
-each edge refined to the step in the residual's mean (base.refine_edge). Only the window edges use the
+all samples — steps of its mean (`step_windows`, (M3): a field fixed to the sensor), then windows where
+the moving mean of |r/σ|² is well above its quiet level (base.detect_windows) that overlap none of them —
+with each edge refined to the step in the residual's mean (base.refine_edge). Only the window edges use the
 held-out samples (localisation); the fields are estimated on training samples only.
 
-Refit (imugraph.diagnose.refit): `corrected` leaves the windows' field samples out, so the refitted D, o,
-dip and heading come from undisturbed samples.
+Refit (`MagneticDisturbance.refit`, the alternation of imugraph.diagnose.refit with the effect's own
+windows): `FieldRemoved.corrected` removes the windows' fitted field from the measurements (and leaves the
+ramps at their edges out), the base model is refitted to them, and the field is estimated again against
+that fit. (`MagneticCorrection.corrected`, which leaves the windows' samples out, is no longer used by the
+diagnosis.)
 
 Relevance (`size`): the window's extra field ≥ 10 % of |m| (M2). The heading comes from the horizontal
 field |m| cos(dip), so at BROAD's dip (≈ 69°) 10 % of |m| can turn it by up to asin(0.1 / cos 69°) ≈ 16°
 (not "~6°", which holds at dip 0). A heading-based threshold, sin 6° · cos(dip) (3.7 % of |m| on BROAD),
 was tried: it flagged the clean BROAD 04 (a 0.061 |m| field over 31–38 s of its full length, (A2) 0.35 on
-that window) and did not help 36 (its magnet is not significant: the joint refit makes the mag gap worse
-there, docs/diagnose.md §5), so the 10 % rule stays.
+that window) and was not needed for 36 (0.129 |m| with the step windows (M3) and the refit by the effect's
+own windows, docs/diagnose.md §3), so the 10 % rule stays.
 
 Injection ranges (RANGES): field 10–60 µT-equivalent (≥ 20 % of a 50 µT field: above relevance) (scaled by the session's field magnitude / 50 µT),
 uniformly random direction; window 15–40 % of the session; raised-cosine ramps 0.2–1.0 s (a magnet brought
@@ -51,9 +55,9 @@ class MagneticCorrection(Correction):
     """(M1) evaluated at every sample."""
 
     def corrected(self, fit) -> dict:
-        """For the full refit: the magnetometer samples of the windows (widened by PAD_S) left out (NaN),
-        so that the base refit's D, o, dip and heading come from undisturbed samples only — the limit of
-        (M1) with a free field per sample in the window, which also covers a field that is not constant."""
+        """Data with the windows' magnetometer samples (widened by PAD_S) left out (NaN) — the limit of (M1)
+        with a free field per sample in the window, which also covers a field that is not constant. Not
+        what the diagnosis' refit uses (`FieldRemoved`, `MagneticDisturbance.refit`)."""
         t = fit.session.t
         wins = [(w["t_start"] - PAD_S, w["t_end"] + PAD_S) for w in self.params.get("windows", [])]
         if not wins:
@@ -68,12 +72,35 @@ class MagneticCorrection(Correction):
         return out
 
 
+class FieldRemoved(MagneticCorrection):
+    """(M1) whose data-level correction removes the windows' fitted field (the diagnosis' refit)."""
+
+    def corrected(self, fit) -> dict:
+        """For the full refit: the windows' fitted extra field Δo_w + D bRn Δn_w removed from the
+        magnetometer, y' = y − (Δo_w + D bRn Δn_w) (M1), and the samples within PAD_S of a window's edge
+        left out (NaN: the ramps of a magnet brought by hand, which a constant field does not model).
+        Leaving the whole windows out (the limit of (M1) with a free field per sample) was the rule before:
+        it leaves the heading unobserved through a long window and D to the rotation outside it (BROAD 36,
+        magnet over 35–98 s of a 44–130 s movement: D₂₁ 1.3 → 10.8, heading off by up to 16 µT of
+        residual at rest), so the field is removed and the samples kept."""
+        t = fit.session.t
+        wins = self.params.get("windows", [])
+        if not wins or "window" not in self.deltas:
+            return {}
+        mag = fit.session.mag - np.nan_to_num(self.deltas["window"])
+        edges = [(w[k] - PAD_S, w[k] + PAD_S) for w in wins for k in ("t_start", "t_end")]
+        mag[window_mask(t, edges)] = np.nan
+        return {"mag": mag}
+
+
 class MagneticDisturbance(Effect):
     name = "magnetic_disturbance"
     channel = "mag"
     windowed = True
     ranges = RANGES
-    joint_options = {"disturbance_windows": True}   # imugraph.calibration.disturbance: the same model (M1)
+    # imugraph.calibration.disturbance (windows from the field norm): what refit.refit_effect fits when
+    # called on this effect directly; the diagnosis refits by `refit` (the effect's own windows)
+    joint_options = {"disturbance_windows": True}
 
     def inject(self, session, rng, *, window=None, strength=None):
         """Add (M1)'s field over a window. strength: field in µT-equivalent (default: random in range)."""
@@ -155,23 +182,123 @@ class MagneticDisturbance(Effect):
                 best = max(best, float(np.median(dw[m])))
         return {"value": best / max(earth, 1e-12), "threshold": RELEVANT_FRACTION, "unit": "fraction of |m|"}
 
+    def refit(self, real, rounds: int = 2, window=None):
+        """Full refit (docs/diagnose.md §3 (F1)) of (M1) with the effect's OWN windows: the alternation of
+        imugraph.diagnose.refit with the windows' field samples left out (`MagneticCorrection.corrected`).
+        The joint calibration (`joint_options`, imugraph.calibration.disturbance) finds its windows by the
+        field norm, which a magnet weaker than ~15 % of |m| crosses only at some orientations (BROAD 36,
+        0.12 |m|: 24 fragments over 36–127 s, half of them unmodelled, and a θ* whose gyro gap rose from 13
+        to 23); the extended model must be base + THIS effect, so its windows are the effect's."""
+        from imugraph.diagnose.refit import refit_effect
+
+        return refit_effect(_ALTERNATION, real, rounds, window)
+
     @staticmethod
     def find_windows(fit) -> list:
-        """Disturbance windows (t_start, t_end) from the magnetometer residual of all samples."""
+        """Disturbance windows (t_start, t_end) from the magnetometer residual of all samples, longest
+        first: steps of its mean (`step_windows`, (M3): a field fixed to the sensor), then windows of
+        excess residual energy that overlap none of them (a field that is not constant in the body frame)."""
         t = fit.session.t
         r = fit.residuals["mag"]
-        z2 = np.sum((r / fit.sigma["mag"]) ** 2, axis=1) / 3.0
-        found = detect_windows(t, z2, smooth_s=1.0, factor=4.0, min_s=2.0, merge_s=2.0)[:MAX_WINDOWS]
         half = max(3, int(round(2.0 * fit.session.rate)))
+        bRn = np.transpose(fit.nRb, (0, 2, 1))
+        earth = float(np.median(np.linalg.norm((bRn @ fit.calibration.n_mag) @ np.asarray(fit.calibration.D).T,
+                                               axis=1)))
+        found = [(i0, i1) for i0, i1, _, _ in step_windows(t, r, earth)]
+        z2 = np.sum((r / fit.sigma["mag"]) ** 2, axis=1) / 3.0
+        for i0, i1 in detect_windows(t, z2, smooth_s=1.0, factor=4.0, min_s=2.0, merge_s=2.0):
+            if all(i1 <= a or i0 >= b for a, b in found):
+                found.append((i0, i1))
         out = []
-        for i0, i1 in found:
+        for i0, i1 in found[:MAX_WINDOWS]:
             a = refine_edge(r, i0, half)
-            b = refine_edge(r, i1 - 1, half)
-            if b > a:
+            b = refine_edge(r, min(i1, len(t)) - 1, half)
+            if t[b] - t[a] >= STEP_MIN_S:          # an edge refined onto the other: no window left
                 out.append((float(t[a]), float(t[b])))
         return sorted(out, key=lambda w: -(w[1] - w[0]))
 
 
+STEP_BLOCK_S = 0.25          # block length of the step search (longer for long recordings: ≤ STEP_MAX_BLOCKS)
+STEP_MAX_BLOCKS = 800
+STEP_MIN_S = 2.0             # shortest window (and shortest undisturbed remainder)
+STEP_P = 0.01                # family-wise false-alarm probability of one step window on white residuals
+STEP_FLOOR = 0.5 * RELEVANT_FRACTION   # smallest step kept, fraction of |m| (half the relevance)
+
+
+def step_windows(t: np.ndarray, r: np.ndarray, field: float, max_windows: int = MAX_WINDOWS) -> list:
+    """Windows where the mean of the magnetometer residual r (N, 3) steps away and back: a magnet attached
+    to the sensor adds a constant body-frame field Δo_w (M1), which the base fit cannot follow (it splits
+    it between o and the noise level: BROAD 36, a 5.6 µT magnet over 35–98 s, shows as ±2.7 µT around o
+    and σ_z 2.4 µT, below the excess-energy detector's 4× quiet level).
+
+    Square-wave ("epidemic") changepoint search on block means x_k (blocks of STEP_BLOCK_S, K blocks):
+    for every window [a, b) of the blocks,
+
+        LR(a, b) = n_in n_out / K · Σ_axis ((x̄_in − x̄_out) / s_axis)²                             (M3)
+
+    the likelihood ratio of "one extra mean inside the window" against "one mean" for Gaussian block
+    means of std s (robust, from first differences: s = 1.4826 MAD(Δx) / √2, insensitive to the steps
+    themselves). Kept when LR exceeds the χ²₃ quantile at STEP_P / (K²/2) (Bonferroni over the windows:
+    false alarm ≤ 1 % on white residuals) AND the step |x̄_in − x̄_out| ≥ STEP_FLOOR · |m| (colour of a real
+    recording's residual makes LR large anyway; the difference of the two means is the window's field
+    itself, whatever part of it the base fit's o absorbed, and a field below half the relevance threshold
+    cannot become relevant). Greedy: the best window's step is removed and the search repeated.
+
+    Returns [(i_start, i_stop, LR, step)] sample index ranges, in the order found."""
+    from scipy.stats import chi2
+
+    dur = float(t[-1] - t[0])
+    rate = 1.0 / float(np.median(np.diff(t)))
+    m = max(1, int(round(max(STEP_BLOCK_S, dur / STEP_MAX_BLOCKS) * rate)))
+    K0 = len(t) // m
+    xb = r[:K0 * m].reshape(K0, m, 3)
+    ok = np.all(np.isfinite(xb), axis=2)
+    cnt = ok.sum(1)
+    mean = np.where(ok[:, :, None], xb, 0.0).sum(1) / np.maximum(cnt, 1)[:, None]
+    idx = np.flatnonzero(cnt >= max(1, m // 2))
+    x = mean[idx]
+    K = len(x)
+    L = max(2, int(round(STEP_MIN_S * rate / m)))
+    if K < 4 * L:
+        return []
+    d = np.diff(x, axis=0)
+    s = np.maximum(1.4826 * np.median(np.abs(d - np.median(d, 0)), 0) / np.sqrt(2), 1e-12)
+    thr = float(chi2.isf(STEP_P / (K * K / 2.0), 3))
+    a = np.arange(K + 1)
+    n_in = (a[None, :] - a[:, None]).astype(float)                          # window [a, b) of blocks
+    n_out = K - n_in
+    valid = (n_in >= L) & (n_out >= L)
+    out = []
+    y = x.copy()
+    for _ in range(max_windows):
+        P = np.vstack([np.zeros(3), np.cumsum(y, 0)])
+        S = P[None, :, :] - P[:, None, :]
+        with np.errstate(invalid="ignore", divide="ignore"):
+            diff = S / n_in[..., None] - (P[-1] - S) / n_out[..., None]
+            lr = np.where(valid, (n_in * n_out / K) * np.sum((diff / s) ** 2, axis=2), -np.inf)     # (M3)
+        i, j = np.unravel_index(int(np.argmax(lr)), lr.shape)
+        step = diff[i, j]
+        if not (lr[i, j] > thr and np.linalg.norm(step) >= STEP_FLOOR * field):
+            break
+        out.append((int(idx[i] * m), int(min(len(t), idx[j - 1] * m + m)), float(lr[i, j]), step))
+        y[i:j] -= step
+    return out
+
 EFFECT = MagneticDisturbance()
 
-__all__ = ["EFFECT", "MagneticDisturbance", "RANGES", "window_mask"]
+
+class _Alternation(MagneticDisturbance):
+    """The effect as `MagneticDisturbance.refit` alternates it: no joint calibration, and corrections
+    that remove the windows' field (`FieldRemoved`)."""
+
+    joint_options = None
+
+    def fit(self, fit, train, window=None) -> Correction:
+        corr = super().fit(fit, train, window)
+        corr.__class__ = FieldRemoved
+        return corr
+
+
+_ALTERNATION = _Alternation()
+
+__all__ = ["EFFECT", "MagneticDisturbance", "RANGES", "step_windows", "window_mask"]
