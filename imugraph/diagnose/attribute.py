@@ -291,7 +291,7 @@ def attribute(real, sim, null_gap: dict, effects: dict, opt: AttributionOptions 
         null: the fit of simulation B (enables the support-restricted scoring (A3)); None: every effect
             is scored on the whole recording.
     """
-    from imugraph.diagnose.refit import refit_effect
+    from imugraph.diagnose.refit import may_be_localised, refit_effect, refit_order, verdict_is_local
 
     say = progress or (lambda _m: None)
     folds = fold_masks(real.session.t, opt)
@@ -307,8 +307,12 @@ def attribute(real, sim, null_gap: dict, effects: dict, opt: AttributionOptions 
         results[name] = res
     ranked = _rank(list(results.values()))
     if opt.refit_top > 0 and opt.refit_rounds > 0:                         # stage 2: full refit
-        for name in candidates(ranked, null_gap, opt.refit_top, effects, opt):
+        refitted = []
+        for name in refit_order(candidates(ranked, null_gap, opt.refit_top, effects, opt), results, effects):
             effect = effects[name]
+            if not may_be_localised(effect, results[name]) and verdict_is_local(refitted, null_gap, opt):
+                say(f"effect {name}: refit skipped (a localised effect is the verdict, (V))")
+                continue
             window = (windows or {}).get(effect.channel) if getattr(effect, "windowed", False) else None
             try:
                 refit = getattr(effect, "refit", None) or (lambda *a: refit_effect(effect, *a))
@@ -325,6 +329,7 @@ def attribute(real, sim, null_gap: dict, effects: dict, opt: AttributionOptions 
                 res.error = f"refit failed: {_failed(name, effect, exc).error}"
             say(_line(res))
             results[name] = res
+            refitted.append(res)
     ranked = _rank(list(results.values()))
     for r in ranked:
         r.significant = significant(r, null_gap, opt)
