@@ -77,9 +77,12 @@ def _allow_weak(p: argparse.ArgumentParser) -> None:
 
 
 def _gyro_scale(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--gyro-scale", action="store_true",
-                   help="also estimate the gyro scale/misalignment (from gravity-only stretches, only when the "
-                        "data hold enough turns; slower)")
+    g = p.add_mutually_exclusive_group()
+    g.add_argument("--gyro-scale", dest="gyro_scale", action="store_const", const=True, default=None,
+                   help="estimate the gyro scale/misalignment (the default: from gravity-only stretches, only "
+                        "when the data hold enough turns and the estimate settles)")
+    g.add_argument("--no-gyro-scale", dest="gyro_scale", action="store_const", const=False,
+                   help="do not estimate the gyro scale/misalignment (faster)")
 
 
 def _simulation(p: argparse.ArgumentParser) -> None:

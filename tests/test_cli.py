@@ -154,7 +154,8 @@ def test_usage_errors_and_module_entry_point(tmp_path):
 
 
 def test_calibrate_gyro_scale_flag_reaches_the_calibration(monkeypatch, tmp_path):
-    """`--gyro-scale` turns on ml.Options.gyro_map (and only then)."""
+    """No flag follows the library default (ml.Options().gyro_map, on); `--gyro-scale` / `--no-gyro-scale`
+    force it on / off, for calibrate and batch; both flags together are a usage error."""
     import imugraph.calibration.ml as ml
     from imugraph.cli import build_parser
     from imugraph.commands import calibrate as cmd
@@ -166,12 +167,18 @@ def test_calibrate_gyro_scale_flag_reaches_the_calibration(monkeypatch, tmp_path
         raise RuntimeError("stop here")
 
     monkeypatch.setattr(ml, "calibrate", fake_calibrate)
-    args = build_parser().parse_args(["calibrate", "x.npz", "--gyro-scale"])
-    assert args.gyro_scale is True
+    parser = build_parser()
+    for command in (["calibrate", "x.npz"], ["batch", "x.npz", "--out", str(tmp_path)]):
+        assert parser.parse_args(command + ["--gyro-scale"]).gyro_scale is True
+        assert parser.parse_args(command + ["--no-gyro-scale"]).gyro_scale is False
+        assert parser.parse_args(command).gyro_scale is None
+        with pytest.raises(SystemExit):
+            parser.parse_args(command + ["--gyro-scale", "--no-gyro-scale"])
+    assert cmd.CalibrateOptions().gyro_scale is None
     progress = cmd.common.Progress(True)
-    for flag in (True, False):
+    for flag in (True, False, None):
         try:
             cmd.estimate_calibration(None, 5.0, progress, gyro_scale=flag)
         except RuntimeError:
             pass
-    assert seen == [True, False]
+    assert seen == [True, False, ml.Options().gyro_map] and ml.Options().gyro_map is True

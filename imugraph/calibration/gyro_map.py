@@ -45,6 +45,14 @@ b5_gyro_map_trace.py):
 Fallback (calibration.ml): E is estimated from the first ML round; the plain model's starting state is
 kept, and if the settling gate fails (checked after every round) the plain rounds run from it — the
 result is exactly the run without E, without redoing the initial calibration.
+
+Cost (B7, `benchmarks/b6_profile.py TRIAL --opt gyro_map=… --repeat 2 --top 0`, CPU, one BLAS thread, shared
+machine): only the trials that pass the coverage gate pay (the gate itself is a few ms). Where E settles, the
+extra is one or two ML rounds (E's steps shrink 0.12–0.39 per round down to gyro_map_tol: 3 rounds on 02/04,
+4 on 01, against 2 without E) and the β_k/e keys in each round's graph (e joins every clique's separator):
+04 2.29 → 2.60 s. Where it does not settle (BROAD 24), the two rounds with E are thrown away and the plain
+rounds run in full: 2.35 → 4.26 s. map_jacobian reads kRb_j Exp(θ_j) J_r(θ_j)Δt_j formed inside the
+preintegration's recursion (Preintegration.steps).
 """
 
 from __future__ import annotations
@@ -61,8 +69,8 @@ def map_jacobian(b_gyr: np.ndarray, dt: np.ndarray, pre: Preintegration, bias_ro
         b_gyr: (N, 3) the gyro as preintegrated (already corrected by Ê), rad/s; dt: (N,) steps, s;
         pre: the preintegration of b_gyr; bias_rows: (N, 3) bias used for each sample.
     """
-    if pre.steps is not None:                                       # kept by preintegrate(keep_steps=True)
-        P = pre.kRb @ pre.steps[0] @ pre.steps[1]                   # kRb_j Exp(θ_j) J_r(θ_j) Δt_j
+    if pre.steps is not None:                                       # kept by preintegrate(keep_steps=True):
+        P = pre.steps                                               # kRb_j Exp(θ_j) J_r(θ_j) Δt_j
     else:
         exp, jr = exp_and_right_jacobian((b_gyr - bias_rows) * dt[:, None])
         P = pre.kRb @ exp @ jr * dt[:, None, None]

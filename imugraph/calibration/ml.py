@@ -267,7 +267,8 @@ def calibrate(session: Session, options: Options | None = None, initial=None,
         std={"D": std_theta[:9].reshape(3, 3), "o": std_theta[9:12], "dip_deg": float(np.rad2deg(std_theta[12])),
              "gyro_bias": np.sqrt(np.maximum(np.diag(cov_bias), 0.0))},
         coverage=getattr(init, "coverage", {}) or {}, converged=bool(converged and info.converged),
-        iterations=len(history), mag_delay_s=delay, disturbances=[w.as_dict(session.t) for w in windows])
+        iterations=len(history), mag_delay_s=delay, disturbances=[w.as_dict(session.t) for w in windows],
+        gyro_map=gyro.E.copy())
     residuals = per_sample_residuals(prob, nRk, theta, session)
     if opt.heading_only_orientation and prob.block.mag is not None:
         nRk = _heading_stage(session, opt, pre, values, noise, g_used=vel_state["g"] or g,

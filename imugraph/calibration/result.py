@@ -29,6 +29,8 @@ class Calibration:
             `imugraph.calibration.alignment.undelay_magnetometer`).
         disturbances: lasting disturbances found (`imugraph.calibration.disturbance`): a list of
             {"t_start", "t_end" (s), "offset" (3, raw unit, or None), "modelled"}; `corrected` applies them.
+        gyro_map: (3, 3) gyro scale/misalignment E (`imugraph.calibration.gyro_map`): the rate is
+            ω = (I + E)·b_gyr − gyro_bias; zero when not estimated. `corrected_gyro` applies it.
     """
 
     D: np.ndarray
@@ -42,6 +44,7 @@ class Calibration:
     iterations: int = 0
     mag_delay_s: float = 0.0
     disturbances: list = field(default_factory=list)
+    gyro_map: np.ndarray = field(default_factory=lambda: np.zeros((3, 3)))
 
     @property
     def dip_rad(self) -> float:
@@ -69,6 +72,13 @@ class Calibration:
                 y[inside] = np.nan
         return y
 
+    def corrected_gyro(self, b_gyr: np.ndarray) -> np.ndarray:
+        """(I + E)·b_gyr, (N, 3) → (N, 3): the gyro with its scale/misalignment removed (not its bias), as
+        calibration.ml preintegrated it (gyro_map.GyroMapState.corrected); b_gyr itself when E = 0."""
+        b_gyr = np.asarray(b_gyr, float)
+        E = np.asarray(self.gyro_map, float)
+        return b_gyr + b_gyr @ E.T if np.any(E) else b_gyr
+
     def to_dict(self) -> dict:
         def arr(x):
             return np.asarray(x, float).tolist()
@@ -80,6 +90,7 @@ class Calibration:
             "coverage": self.coverage, "converged": bool(self.converged),
             "iterations": int(self.iterations), "mag_delay_s": float(self.mag_delay_s),
             "disturbances": [dict(d) for d in self.disturbances],
+            "gyro_map": arr(self.gyro_map),
         }
 
     @classmethod
@@ -92,4 +103,18 @@ class Calibration:
             coverage=d.get("coverage", {}), converged=bool(d.get("converged", False)),
             iterations=int(d.get("iterations", 0)), mag_delay_s=float(d.get("mag_delay_s", 0.0)),
             disturbances=list(d.get("disturbances", [])),
+            gyro_map=_gyro_map(d.get("gyro_map")),
         )
+
+
+def _gyro_map(value) -> np.ndarray:
+    """The optional `gyro_map` field of calibration.json: absent or null → zeros; else a finite 3×3 array."""
+    if value is None:
+        return np.zeros((3, 3))
+    try:
+        E = np.asarray(value, float)
+    except (TypeError, ValueError):
+        raise ValueError(f"gyro_map: {str(value)[:60]!r}, expected a 3×3 array of numbers") from None
+    if E.shape != (3, 3) or not np.all(np.isfinite(E)):
+        raise ValueError(f"gyro_map: shape {E.shape} or non-finite entries, expected a finite 3×3 array")
+    return E

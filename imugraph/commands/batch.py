@@ -23,7 +23,7 @@ EXIT_SOME_FAILED = 1
 
 def run_batch_command(args: argparse.Namespace) -> int:
     """batch SESSIONS… --out DIR [--scheduler ADDRESS] [--workers N] [--keyframe-hz HZ] [--allow-weak]
-    [--data-dir DIR] [--quiet].
+    [--gyro-scale | --no-gyro-scale] [--data-dir DIR] [--quiet].
 
     Returns:
         0 when every session succeeded, 1 when any failed (errors that stop the whole batch are raised
@@ -33,7 +33,7 @@ def run_batch_command(args: argparse.Namespace) -> int:
     from imugraph.commands.calibrate import CalibrateOptions
 
     paths = [common.resolve_session_path(s, args.data_dir) for s in args.sessions]
-    options = CalibrateOptions(args.keyframe_hz, args.allow_weak, getattr(args, "gyro_scale", False))
+    options = CalibrateOptions(args.keyframe_hz, args.allow_weak, getattr(args, "gyro_scale", None))
     if args.scheduler and args.workers and not args.quiet:
         print("imugraph: note: --workers applies to the local cluster only; ignored with --scheduler",
               file=sys.stderr)

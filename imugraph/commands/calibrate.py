@@ -31,17 +31,18 @@ class CalibrateOptions:
         keyframe_hz: orientation states per second (every sample is still used).
         allow_weak: when the data do not identify D and o, return a regularised estimate (coverage
             "identifiable": false) instead of raising CalibrationError.
-        gyro_scale: also estimate the gyro scale/misalignment matrix (ml.Options.gyro_map, gated; BROAD
-            mean 0.83° → 0.77°, calibrate ≈ 1.7× slower).
+        gyro_scale: estimate the gyro scale/misalignment matrix E (ml.Options.gyro_map, gated; BROAD
+            mean 0.83° → 0.77°, one more ML round where the gates pass); None: the library default
+            (ml.Options().gyro_map, on), True/False: --gyro-scale / --no-gyro-scale.
     """
 
     keyframe_hz: float = 5.0
     allow_weak: bool = False
-    gyro_scale: bool = False
+    gyro_scale: Optional[bool] = None
 
 
 def estimate_calibration(session: Session, keyframe_hz: float, progress: common.Progress,
-                         allow_weak: bool = False, gyro_scale: bool = False) -> "Estimate":
+                         allow_weak: bool = False, gyro_scale: Optional[bool] = None) -> "Estimate":
     """Run the ML calibration (`imugraph.calibration.ml.calibrate`), its per-round lines on stderr.
 
     Args:
@@ -60,9 +61,11 @@ def estimate_calibration(session: Session, keyframe_hz: float, progress: common.
     from imugraph.calibration.ml import Options, calibrate
 
     progress.say(f"calibrating (keyframes at {keyframe_hz:g} Hz)")
+    options = Options(keyframe_hz=keyframe_hz, progress=not progress.quiet)
+    if gyro_scale is not None:          # else the library default
+        options.gyro_map = bool(gyro_scale)
     with progress.library_output():
-        estimate = calibrate(session, Options(keyframe_hz=keyframe_hz, progress=not progress.quiet,
-                                              gyro_map=gyro_scale), allow_weak=allow_weak)
+        estimate = calibrate(session, options, allow_weak=allow_weak)
     progress.say("calibration done")
     return estimate
 
@@ -109,7 +112,8 @@ def calibrate_path(path: Union[str, Path], out_dir: Optional[Union[str, Path]],
 
 
 def run_calibrate(args: argparse.Namespace) -> int:
-    """calibrate SESSION [--out DIR] [--keyframe-hz HZ] [--allow-weak] [--data-dir DIR] [--quiet].
+    """calibrate SESSION [--out DIR] [--keyframe-hz HZ] [--allow-weak] [--gyro-scale | --no-gyro-scale]
+    [--data-dir DIR] [--quiet].
 
     Returns:
         0 on success (errors are raised as ImugraphError and reported by `imugraph.cli.main`).
@@ -117,7 +121,7 @@ def run_calibrate(args: argparse.Namespace) -> int:
     progress = common.Progress(args.quiet)
     path = common.resolve_session_path(args.session, args.data_dir)
     options = CalibrateOptions(args.keyframe_hz, getattr(args, "allow_weak", False),
-                               getattr(args, "gyro_scale", False))
+                               getattr(args, "gyro_scale", None))
     print(calibrate_path(path, args.out, options, progress)["table"])
     return 0
 

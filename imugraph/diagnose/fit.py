@@ -106,7 +106,8 @@ def base_options(keyframe_hz: float = 5.0):
     from imugraph.calibration.ml import Options
 
     return Options(linear_acceleration="noise", disturbance_windows=False, compensate_mag_delay=False,
-                   keyframe_hz=keyframe_hz, bias_segment_s=0.0, field_sigma=None)  # no field perturbation
+                   keyframe_hz=keyframe_hz, bias_segment_s=0.0, field_sigma=None,  # no field perturbation
+                   gyro_map=False)  # gyro scale/misalignment is an effect (gyro_scale), not the base
 
 
 def body_rate(nRb: np.ndarray, dt: np.ndarray) -> np.ndarray:

@@ -93,7 +93,8 @@ class Preintegration:
         kRb: (N, 3, 3) rotation of each sample's body frame into its keyframe's body frame.
         delta_R: (K−1, 3, 3) ΔR between consecutive keyframes; dR_db (K−1, 3, 3); cov (K−1, 3, 3); dt (K−1,).
         bias_hat: (K−1, 3) bias used for each keyframe interval.
-        steps: with keep_steps, per-sample (Exp(θ_j), J_r(θ_j)·Δt_j), each (N, 3, 3) (calibration.gyro_map).
+        steps: with keep_steps, per sample (N, 3, 3) kRb_j Exp(θ_j) J_r(θ_j) Δt_j, the summand of the bias and
+            gyro-map Jacobians (calibration.gyro_map.map_jacobian); None otherwise.
     """
 
     kf_samples: np.ndarray
@@ -116,7 +117,9 @@ def preintegrate(b_gyr: np.ndarray, dt: np.ndarray, kf_samples: np.ndarray, samp
         b_gyr: (N, 3) rad/s; dt: (N,) s, step from sample i to i+1; kf_samples, sample_kf: keyframe layout;
         bias_hat: (3,) or per-sample (N, 3) rad/s; sigma_gyr: (3,) discrete per-sample gyro noise std, rad/s;
         rate_error: κ, relative gyro error (scale factor and misalignment), dimensionless.
-        keep_steps: also return each sample's Exp(θ_j) and J_r(θ_j)Δt_j (Preintegration.steps).
+        keep_steps: also return each sample's kRb_j Exp(θ_j) J_r(θ_j)Δt_j (Preintegration.steps), formed in
+            the recursion, where kRb_j Exp(θ_j) is the running product after step j (one batched product
+            per position instead of two over all samples afterwards, and no copies of Exp(θ_j), J_r).
     """
     n = b_gyr.shape[0]
     k = len(kf_samples)
@@ -143,11 +146,14 @@ def preintegrate(b_gyr: np.ndarray, dt: np.ndarray, kf_samples: np.ndarray, samp
     cov_db = np.zeros((k, 3, 6))                              # [Σ_ΔR | ∂ΔR/∂b]: left products with Exp(θ)ᵀ
     left_R = np.zeros((k, 6, 3))                              # [Exp(θ)ᵀ Σ_ΔR ; ΔR]: right products with Exp(θ)
     left_R[:, 3:] = np.eye(3)
+    P_at = np.empty((k, L, 3, 3)) if keep_steps else None    # kRb_j Exp(θ_j) J_r(θ_j) Δt_j
     for p in range(L):
         R_at[:, p] = left_R[:, 3:]
         cov_db = incT[p] @ cov_db
         left_R[:, :3] = cov_db[:, :, :3]
         left_R = left_R @ inc[p]
+        if keep_steps:                                        # left_R[:, 3:] = ΔR_{k,j} Exp(θ_j) now
+            np.matmul(left_R[:, 3:], jdt[p], out=P_at[:, p])
         cov_db[:, :, :3] = left_R[:, :3] + var_pad[p]
         cov_db[:, :, 3:] -= jdt[p]
     R = left_R[:, 3:]
@@ -159,9 +165,12 @@ def preintegrate(b_gyr: np.ndarray, dt: np.ndarray, kf_samples: np.ndarray, samp
         kRb = np.empty((n, 3, 3))
         kRb[idx.T[valid.T]] = R_at[valid.T]
     steps = None
-    if keep_steps:                                            # (L, K) positions → samples, as kRb
-        steps = tuple(np.transpose(a, (1, 0, 2, 3)).reshape(-1, 3, 3)[:n] if regular else
-                      a[valid][np.argsort(idx[valid], kind="stable")] for a in (inc, jdt))
+    if keep_steps:                                            # (K, L) positions → samples, as kRb
+        if regular:
+            steps = P_at.reshape(-1, 3, 3)[:n]
+        else:
+            steps = np.empty((n, 3, 3))
+            steps[idx.T[valid.T]] = P_at[valid.T]
     # Interval k integrated the increments of samples s_k .. s_{k+1}−1: exactly keyframe k → k+1.
     kf_dt = np.add.reduceat(dt, kf_samples)[:-1]
     return Preintegration(kf_samples, sample_kf, kRb, R[:-1], dRdb[:-1], cov[:-1], kf_dt,

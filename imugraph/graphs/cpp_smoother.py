@@ -57,7 +57,8 @@ def smooth_fixed(session: Session, cal: Calibration, keyframe_hz: float = 5.0, h
     """Smoothed per-sample orientation (N, 4) w,x,y,z for a session with a known calibration.
 
     Args:
-        session: the recording; cal: its calibration (D, o, dip, gyro bias, noise levels, magnetometer lag);
+        session: the recording; cal: its calibration (D, o, dip, gyro bias and scale/misalignment E, noise
+        levels, magnetometer lag);
         keyframe_hz: keyframe rate; huber_k: Huber threshold of the magnetometer (and, "noise", the
         accelerometer) factors, whitened units; gyro_rate_error: κ, relative gyro error.
         g: gravity magnitude, m/s², held fixed when given; None: "velocity" estimates it in the graph
@@ -87,7 +88,8 @@ def smooth_fixed(session: Session, cal: Calibration, keyframe_hz: float = 5.0, h
     if len(kf) < 2:
         raise SessionError(name, "samples", str(session.n), f"at least {stride + 1}")
     sig_g = np.asarray(cal.noise.get("gyr", np.full(3, 0.005)), float)
-    pre = preintegrate(session.gyr, session.dt, kf, skf, cal.gyro_bias, sig_g, gyro_rate_error)
+    # ω = (I + E)·b_gyr − b: the calibration's gyro scale/misalignment E (zero when not estimated)
+    pre = preintegrate(cal.corrected_gyro(session.gyr), session.dt, kf, skf, cal.gyro_bias, sig_g, gyro_rate_error)
     m_cal = cal.apply(cal.corrected(session.t, session.mag))
     valid = np.all(np.isfinite(m_cal), axis=1)
     K = len(kf)
