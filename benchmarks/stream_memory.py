@@ -2,7 +2,7 @@
 
 A simulated 286 Hz single-IMU session (`imugraph.sim.scenario.distorted_session`: random rotations, distorted
 magnetometer, gyro bias, noise) of --minutes minutes is pushed sample by sample into a `StreamSmoother` with a
-fixed lag (default: gtsam's IncrementalFixedLagSmoother, 2 s) and online calibration, started from the true
+fixed lag (default: stream_lag.ChainLagSmoother, 2 s) and online calibration, started from the true
 calibration. Every simulated minute the process's resident set size (VmRSS, /proc/self/status) is sampled.
 Reported: RSS per minute, the growth per minute (least-squares slope over minutes ≥ --skip, MB/min), the
 real-time factor (samples per second ÷ rate) and the update latency p50/p99.
@@ -13,7 +13,7 @@ before streaming starts, so the RSS growth is the smoother's. Two runs by defaul
 rows kept for `smoothed()`: O(N) by design, ≈ 8 floats per sample).
 
     .venv/bin/python benchmarks/stream_memory.py [--minutes 30] [--rate 286] [--lag 2]
-        [--lag-solver incremental|batch] [--history both|on|off] [--skip 2]
+        [--lag-solver chain|incremental|batch] [--history both|on|off] [--skip 2]
 
 Writes bench_out/stream_memory.json.
 """
@@ -92,7 +92,7 @@ def main(argv=None) -> int:
     ap.add_argument("--minutes", type=float, default=30.0)
     ap.add_argument("--rate", type=float, default=286.0)
     ap.add_argument("--lag", type=float, default=2.0)
-    ap.add_argument("--lag-solver", choices=("incremental", "batch"), default="incremental")
+    ap.add_argument("--lag-solver", choices=("chain", "incremental", "batch"), default="chain")
     ap.add_argument("--history", choices=("both", "on", "off"), default="both")
     ap.add_argument("--skip", type=float, default=2.0, help="minutes left out of the growth fit (warm-up)")
     ap.add_argument("--seed", type=int, default=3)

@@ -130,9 +130,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="calibration.json to hold fixed instead of the bootstrap")
     p.add_argument("--fixed-calibration", action="store_true",
                    help="hold the start calibration fixed (no online re-estimation of D and o)")
-    p.add_argument("--lag-solver", choices=("incremental", "batch"), default="incremental",
-                   help="fixed-lag solver: gtsam's incremental fixed-lag smoother (default) or a batch "
-                   "fixed-lag smoother")
+    p.add_argument("--lag-solver", choices=("chain", "incremental", "batch"), default="chain",
+                   help="fixed-lag solver: iSAM2 with a once-a-second window re-elimination (chain, default; "
+                   "docs/stream.md), gtsam's incremental fixed-lag smoother, or its batch one")
     _common(p, default_out, data_dir=True)
     _keyframes(p)
 

@@ -15,7 +15,8 @@ from imugraph.graphs.stream_run import stream_session
 from imugraph.sim.scenario import distorted_session
 
 RATE = 100.0
-FIXED = StreamOptions(online_calibration=False)     # the batch comparisons: the same (true) calibration
+FIXED = StreamOptions(online_calibration=False, field_sigma=None)   # the batch comparisons: the same (true)
+# calibration, and no field perturbation (smooth_fixed has none; stream_field is tested in test_stream_field.py)
 
 
 @pytest.fixture(scope="module")
@@ -76,17 +77,21 @@ def test_fixed_lag_close_to_batch(case):
     """A 2 s window sees the next 2 s of data for every keyframe (> the 2 s velocity correlation time):
     its smoothed output is within a fraction of a degree of the full batch solution."""
     session, cal, batch, batch_err = case
-    r = stream_session(session, cal, StreamOptions(lag_s=2.0, online_calibration=False, fixed_lag_solver="batch"))
+    opt = StreamOptions(lag_s=2.0, online_calibration=False, fixed_lag_solver="batch", field_sigma=None)
+    r = stream_session(session, cal, opt)
     assert _err(r.smoothed, batch, align=False) < 0.5
     assert _err(r.smoothed, session.quat) < batch_err + 0.2
     assert r.counts["failed_updates"] == 0
 
 
-def test_incremental_fixed_lag_close_to_batch(case):
-    """gtsam's IncrementalFixedLagSmoother (iSAM2 inside, weak pose prior) as the --lag solver: no failed
-    update on this session, and the same accuracy bounds as the batch fixed-lag smoother."""
+@pytest.mark.parametrize("solver", ["incremental", "chain"])
+def test_incremental_fixed_lag_close_to_batch(case, solver):
+    """gtsam's IncrementalFixedLagSmoother (iSAM2 inside, weak pose prior), or the chain-ordered lag of
+    stream_lag, as the --lag solver: no failed update on this session, and the same accuracy bounds as the
+    batch fixed-lag smoother."""
     session, cal, batch, batch_err = case
-    r = stream_session(session, cal, StreamOptions(lag_s=2.0, online_calibration=False, fixed_lag_solver="incremental"))
+    opt = StreamOptions(lag_s=2.0, online_calibration=False, fixed_lag_solver=solver, field_sigma=None)
+    r = stream_session(session, cal, opt)
     assert r.counts["failed_updates"] == 0
     assert _err(r.smoothed, batch, align=False) < 0.5
     assert _err(r.smoothed, session.quat) < batch_err + 0.2

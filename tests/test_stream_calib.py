@@ -46,20 +46,33 @@ def test_refit_before_data_keeps_the_start():
     assert oc.add(np.full((4, 3), np.nan), np.tile(np.eye(3), (4, 1, 1))) == 0
 
 
-def test_final_graph_reissues_every_magnetometer_factor():
-    """iSAM2 mode: the recorded factor indices are the magnetometer factors, and the end-of-stream graph
-    holds the same number of factors with those rebuilt on the final calibration."""
+@pytest.mark.parametrize("field", [None, (0.015, 0.003, 0.015)])
+def test_final_graph_reissues_every_magnetometer_factor(field):
+    """iSAM2 mode: the recorded factor indices are the magnetometer factors (MagPoseFactorPose3; with the field
+    perturbation its linearised form on the keyframe's pose and d_k), and the end-of-stream graph holds the same
+    number of factors with those rebuilt on the final calibration (with the field: the exact CustomFactor)."""
     import gtsam
+
+    from imugraph.graphs.cpp_velocity import pose_key
+    from imugraph.graphs.stream_field import field_key
 
     session, truth = distorted_session(3, 12.0, 50.0)
     cal = truth.to_calibration()
-    sm = StreamSmoother(cal, 50.0, StreamOptions(calib_every_s=2.0))
+    sm = StreamSmoother(cal, 50.0, StreamOptions(calib_every_s=2.0, field_sigma=field))
     for i in range(session.n):
         sm.push(session.t[i], session.gyr[i], session.acc[i], session.mag[i])
     factors = sm._solver.getFactorsUnsafe()
-    assert all(isinstance(factors.at(i), gtsam.MagPoseFactorPose3) for i in sm._mag_index.values())
+    for k, i in sm._mag_index.items():
+        f = factors.at(i)
+        if field is None:
+            assert isinstance(f, gtsam.MagPoseFactorPose3)
+        else:
+            assert isinstance(f, gtsam.LinearContainerFactor) and set(f.keys()) == {pose_key(k), field_key(k)}
     assert sm.stats.calib_refits >= 4 and len(sm.calibration_history) == sm.stats.calib_refits
-    assert sm._final_graph().size() == factors.size()
+    final = sm._final_graph()
+    assert final.size() == factors.size()
+    if field is not None:
+        assert sum(isinstance(final.at(i), gtsam.CustomFactor) for i in range(final.size())) == len(sm._mag_index)
 
 
 def test_streamed_calibration_converges_to_the_truth():
@@ -83,3 +96,31 @@ def test_streamed_calibration_converges_to_the_truth():
     assert np.abs(np.r_[(est.D - cal.D).ravel(), est.o - cal.o]).max() < 0.25 * err0
     t = [row["t"] for row in sm.calibration_history]
     assert np.all(np.diff(t) > 0) and t[-1] > 85.0
+
+
+@pytest.mark.parametrize("correlated", [False, True])
+def test_whiteness_factor_known_answer(correlated):
+    """Eq. (3) on synthetic residuals: white noise gives F ≈ 1; noise held constant over each 100-sample block
+    (fully correlated within a block) gives F ≈ 100 = the block length, and the reported std is √F times the
+    white-noise std (the calibration's own correlation factor is 1 here)."""
+    session, truth = distorted_session(3, 60.0, 100.0)
+    cal = replace(truth.to_calibration(), coverage={})
+    R = quat_to_rotmat(session.quat)
+    y_clean = np.einsum("ij,nkj,k->ni", cal.D, R, cal.n_mag) + cal.o           # D bRn n + o  (bRn = nRbᵀ)
+    rng = np.random.default_rng(5)
+    oc = OnlineMagCalibration(cal, gate=10.0)
+    blocks = 0
+    for start in range(0, session.n - 100, 100):
+        noise = np.tile(rng.normal(0, 0.3, 3), (100, 1)) if correlated else rng.normal(0, 0.3, (100, 3))
+        oc.add(y_clean[start:start + 100] + noise, R[start:start + 100])
+        oc.end_block()
+        blocks += 1
+    est = oc.refit(60.0)
+    F = oc.last_whiteness
+    assert blocks >= 50 and F is not None
+    if correlated:
+        assert np.all((F > 60) & (F < 140))
+    else:
+        assert np.all((F > 0.6) & (F < 1.6))
+    ratio = np.asarray(est.std["o"]) / np.asarray(oc.std_white["o"])
+    assert np.allclose(ratio, np.sqrt(np.maximum(F, 1.0)), rtol=1e-9)

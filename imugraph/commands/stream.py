@@ -32,7 +32,7 @@ def run_stream(args: argparse.Namespace) -> int:
     path = common.resolve_session_path(args.session, args.data_dir)
     session = common.load(path, progress)
     out = common.out_dir_for(args.out, Path(path).stem)
-    lag_solver = getattr(args, "lag_solver", None) or "incremental"   # `--lag-solver` when the parser offers it
+    lag_solver = getattr(args, "lag_solver", None) or StreamOptions.fixed_lag_solver   # `--lag-solver` if offered
     options = StreamOptions(keyframe_hz=args.keyframe_hz, lag_s=args.lag, fixed_lag_solver=lag_solver,
                             online_calibration=not getattr(args, "fixed_calibration", False))
     with progress.library_output():

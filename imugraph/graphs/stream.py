@@ -1,13 +1,14 @@
-"""Incremental orientation with a known calibration: the graph of `cpp_smoother.smooth_fixed` ("velocity"),
-built keyframe by keyframe and solved by iSAM2 (or, with a lag, gtsam's IncrementalFixedLagSmoother or
-BatchFixedLagSmoother).
+"""Incremental orientation with a known calibration: the graph of `cpp_smoother.smooth_fixed` ("velocity")
+plus the batch model's nav-field perturbation, built keyframe by keyframe and solved by iSAM2 (or, with a
+lag, the chain-ordered fixed lag of stream_lag, gtsam's IncrementalFixedLagSmoother or BatchFixedLagSmoother).
 
-One model, two solvers: every closed keyframe interval k → k+1 adds exactly the factors the batch graph
-holds for it (imugraph.graphs.cpp_velocity) — the two split super-sample `ImuFactor`s (gyro rows, Huber
-velocity rows), the Gauss–Markov bounded-velocity factor, the Huber `MagPoseFactorPose3` on keyframe k's
-averaged calibrated field with its full covariance, a new gyro-bias segment (prior + random walk) when the
-interval starts one — then one `update`. Interval k closes when the first sample of keyframe k+1 arrives
-(keyframes every `stride` samples, as `keyframe_layout`), so its preintegration is that of the batch path.
+One model, two solvers: every closed keyframe interval k → k+1 adds the factors the batch graph holds for it
+(imugraph.graphs.cpp_velocity) — the two split super-sample `ImuFactor`s (gyro rows, Huber velocity rows),
+the Gauss–Markov bounded-velocity factor, the Huber magnetometer factor on keyframe k's averaged calibrated
+field with its full covariance (`MagPoseFactorPose3`; with options.field_sigma against n + d_k, the field
+perturbation of calibration.ml's model, `imugraph.graphs.stream_field`), a new gyro-bias segment (prior +
+random walk) when the interval starts one — then one `update`. Interval k closes when the first sample of
+keyframe k+1 arrives (keyframes every `stride` samples, as `keyframe_layout`): the batch path's preintegration.
 
 Filtered orientation (`push`'s return): the latest estimate of the newest keyframe, carried to the sample
 by the gyro integrated since (with the current bias estimate) — available when the sample arrives.
@@ -48,6 +49,8 @@ from imugraph.graphs.stream_interval import (NAN3 as _NAN3, Q_ID, ArrivalMixin, 
                                              interval_preintegration, qmul, qpos, qstep, row3 as _row3)
 from imugraph.graphs.orientation_init import sample_orientations, triad
 from imugraph.graphs.stream_calib import OnlineMagCalibration
+from imugraph.graphs.stream_field import field_key, field_start_prior, field_step_factor
+from imugraph.graphs.stream_lag import ChainLagSmoother, keyframe_group, window_rotations
 from imugraph.graphs.stream_online import OnlineCalibrationMixin
 from imugraph.graphs.stream_options import SIGMA_WEAK_POSE, StreamOptions, StreamStats, isam2_thresholds
 
@@ -73,8 +76,9 @@ class StreamSmoother(OnlineCalibrationMixin, ArrivalMixin):
     def __init__(self, cal: Calibration, rate: float, options: StreamOptions = StreamOptions(), g0: float = 9.81):
         if not (np.isfinite(rate) and rate > 0):
             raise SessionError("stream", "rate", repr(rate), "a positive sampling rate in Hz")
-        if options.fixed_lag_solver not in ("batch", "incremental"):
-            raise SessionError("stream", "fixed_lag_solver", repr(options.fixed_lag_solver), '"batch" or "incremental"')
+        if options.fixed_lag_solver not in ("batch", "incremental", "chain"):
+            raise SessionError("stream", "fixed_lag_solver", repr(options.fixed_lag_solver),
+                               '"chain", "incremental" or "batch"')
         self.rate, self.opt = float(rate), options
         self.stride = max(1, int(round(rate / options.keyframe_hz)))
         self.stats = StreamStats()
@@ -84,8 +88,8 @@ class StreamSmoother(OnlineCalibrationMixin, ArrivalMixin):
         tau = cal.coverage.get("noise_correlation", {}) if isinstance(cal.coverage, dict) else {}
         self._sig_y = np.asarray(cal.noise.get("mag", np.full(3, 0.01 * scale)), float) * np.sqrt(tau.get("mag", 1.0))
         self._set_calibration(cal)
-        self._online = OnlineMagCalibration(
-            cal, options.calib_prior_rel, estimate_dip=options.calib_dip, use_start_std=options.calib_prior_from_start) if options.online_calibration else None
+        self._online = OnlineMagCalibration(cal, options.calib_prior_rel, estimate_dip=options.calib_dip,
+                                            use_start_std=options.calib_prior_from_start) if options.online_calibration else None
         self._pending: deque = deque()       # intervals not yet folded: (k, t_k, kRb (n,3,3), y (n,3))
         self._next_refit = options.calib_every_s
         self._hist_y: list = []              # iSAM2 + keep_history: per interval y, for the final re-issue
@@ -109,11 +113,11 @@ class StreamSmoother(OnlineCalibrationMixin, ArrivalMixin):
         if options.lag_s is None:
             self._solver = gtsam.ISAM2(params)
         else:
-            # default IncrementalFixedLagSmoother (StreamOptions.fixed_lag_solver): no failed update on the 17 BROAD
-            # trials; gtsam issues #1638/#1680 (a key inside a clique not marginalised) were once seen on BROAD 01
-            # with an earlier graph: a failed update is counted and the prediction kept, never a crash
-            self._solver = (gtsam.IncrementalFixedLagSmoother(float(options.lag_s), params)
-                            if options.fixed_lag_solver == "incremental" else gtsam.BatchFixedLagSmoother(float(options.lag_s)))
+            # StreamOptions.fixed_lag_solver; a failed update is counted and the prediction kept, never a crash
+            lag = float(options.lag_s)
+            self._solver = (ChainLagSmoother(lag, params, keyframe_group) if options.fixed_lag_solver == "chain" else
+                            gtsam.IncrementalFixedLagSmoother(lag, params) if options.fixed_lag_solver == "incremental"
+                            else gtsam.BatchFixedLagSmoother(lag))
         self._weak_pose = gtsam.noiseModel.Isotropic.Sigma(6, SIGMA_WEAK_POSE)
         self._buf: list = []                 # open interval: rows (t, gyr(3), acc(3), mag(3) or NaN)
         self._k = 0                          # index of the open interval's keyframe
@@ -131,6 +135,8 @@ class StreamSmoother(OnlineCalibrationMixin, ArrivalMixin):
         self._smoothed_kf: dict = {}         # fixed lag: keyframe → last estimate inside the window
         self._b_gyr_est = None               # latest gyro-bias estimate (None: the calibration's)
         self._b_now = tuple(float(v) for v in self._b_hat)     # the same as floats, for the filtered output
+        self._field = options.field_sigma is not None          # nav-field perturbation d_k (stream_field)
+        self._d = np.zeros(3)                # latest estimate of keyframe k's d_k
         self._finished = False
 
     # ------------------------------------------------------------------ arrival
@@ -217,6 +223,10 @@ class StreamSmoother(OnlineCalibrationMixin, ArrivalMixin):
         for model in split_noise(cov[None], np.array([sig_dv]), self.opt.acc_huber_k)[0]:
             graph.add(f.cloneWithNewNoiseModel(model))
         graph.add(gauss_markov_factor(keys.vel(k), keys.vel(k + 1), dt_k, self.opt.velocity_sigma, self.opt.velocity_tau))
+        if self._field:                              # d_{k+1} = φ_k d_k + w_k (stream_field eq. 2)
+            graph.add(field_step_factor(field_key(k), field_key(k + 1), dt_k, self.opt.field_sigma, self.opt.field_tau))
+            values.insert(field_key(k + 1), np.exp(-dt_k / self.opt.field_tau) * self._d)
+            stamps[field_key(k + 1)] = t_next - self._t0
         if ok.any():
             if self.opt.lag_s is None:               # for the final re-issue (iSAM2 keeps every factor)
                 self._mag_index[k] = self._n_factors + graph.size()
@@ -227,7 +237,7 @@ class StreamSmoother(OnlineCalibrationMixin, ArrivalMixin):
         R_next = nRk @ delta_R
         values.insert(pose_key(k + 1), gtsam.Pose3(gtsam.Rot3(R_next), self._p + self._v * dt_k + 0.5 * c * dt_k))
         values.insert(keys.vel(k + 1), self._v + c)
-        if self.opt.lag_s is None or self.opt.fixed_lag_solver == "incremental":     # iSAM2 inside
+        if self.opt.lag_s is None or self.opt.fixed_lag_solver != "batch":     # iSAM2 inside
             graph.add(gtsam.PriorFactorPose3(pose_key(k + 1), values.atPose3(pose_key(k + 1)), self._weak_pose))
         for key in (pose_key(k + 1), keys.vel(k + 1), imu_bias_key(seg)) + ((G_KEY,) if self._estimate_g else ()):
             stamps[key] = t_next - self._t0
@@ -263,6 +273,10 @@ class StreamSmoother(OnlineCalibrationMixin, ArrivalMixin):
             values.insert(G_KEY, n_grav)
             graph.add(gtsam.PriorFactorVector(G_KEY, n_grav, gtsam.noiseModel.Diagonal.Sigmas(SIGMA_G)))
         stamps[pose_key(0)] = stamps[keys.vel(0)] = 0.0
+        if self._field:
+            values.insert(field_key(0), np.zeros(3))
+            graph.add(field_start_prior(field_key(0), self.opt.field_sigma))
+            stamps[field_key(0)] = 0.0
 
     def _new_segment(self, graph, values, seg: int, elapsed: float) -> None:
         """A gyro-bias segment: prior about the calibration's bias, random walk from the previous one."""
@@ -281,11 +295,22 @@ class StreamSmoother(OnlineCalibrationMixin, ArrivalMixin):
 
     def _update(self, graph, values, stamps, k_new: int, seg: int, R_pred) -> None:
         try:
-            if self.opt.lag_s is None:
-                self._solver.update(graph, values)
-                est_pose = self._solver.calculateEstimatePose3(pose_key(k_new))
-                est_v = self._solver.calculateEstimateVector(keys.vel(k_new))
-                est_b = self._solver.calculateEstimateConstantBias(imu_bias_key(seg))
+            chain = self.opt.lag_s is not None and self.opt.fixed_lag_solver == "chain"
+            if self.opt.lag_s is None or chain:
+                if chain:      # only the keyframes leaving the window are read back (their smoothed output)
+                    left = self._solver.update(graph, values, stamps)
+                    self._smoothed_kf.update(left or {})
+                    if left and not self.opt.keep_history:       # constant memory: what calibration awaits
+                        lo = self._pending[0][0] if self._pending else k_new
+                        for old in [key for key in self._smoothed_kf if key < lo]:
+                            del self._smoothed_kf[old]
+                else:
+                    self._solver.update(graph, values)
+                isam = self._solver.isam if chain else self._solver
+                est_pose = isam.calculateEstimatePose3(pose_key(k_new))
+                est_v = isam.calculateEstimateVector(keys.vel(k_new))
+                est_b = isam.calculateEstimateConstantBias(imu_bias_key(seg))
+                est_d = isam.calculateEstimateVector(field_key(k_new)) if self._field else None
             else:
                 ts = gtsam.FixedLagSmootherKeyTimestampMap()
                 for key, s in stamps.items():
@@ -302,17 +327,21 @@ class StreamSmoother(OnlineCalibrationMixin, ArrivalMixin):
                         del self._smoothed_kf[old]
                 est_pose, est_v = est.atPose3(pose_key(k_new)), est.atVector(keys.vel(k_new))
                 est_b = est.atConstantBias(imu_bias_key(seg))
+                est_d = est.atVector(field_key(k_new)) if self._field else None
         except (RuntimeError, IndexError, ValueError):
             # an ill-conditioned or failed update (counted): keep the prediction
             self.stats.failed_updates += 1
-            if self.opt.lag_s is not None:       # the smoothed output of a lag: the prediction where none
+            if self.opt.lag_s is not None and not chain:     # smoothed output of a lag: the prediction where none
                 self._smoothed_kf.setdefault(k_new - 1, self._nRk.matrix())
                 self._smoothed_kf.setdefault(k_new, np.asarray(R_pred))
             self._nRk = gtsam.Rot3(R_pred)
             self._q_nk = tuple(_quat(self._nRk))
+            self._d = np.exp(-self.stride / self.rate / self.opt.field_tau) * self._d if self._field else self._d
             return
         self._nRk, self._p, self._v = est_pose.rotation(), est_pose.translation(), est_v
         self._b_gyr_est = est_b.gyroscope()
+        if est_d is not None:
+            self._d = np.asarray(est_d, float)
         self._b_now = tuple(float(v) for v in self._b_gyr_est)
         self._q_nk = tuple(_quat(self._nRk))
 
@@ -325,6 +354,10 @@ class StreamSmoother(OnlineCalibrationMixin, ArrivalMixin):
             last = self._buf.pop()
             self._close(last[0])
             self._buf = [last]
+        if self.opt.lag_s is not None and self.opt.fixed_lag_solver == "chain" and self._k > 0:
+            # the keyframes still in the window: their latest estimate (the others' is the one they left with)
+            for k, R in window_rotations(self._solver).items():
+                self._smoothed_kf.setdefault(k, R)
         if self._online is not None and self._k > 0:
             self._calibrate(self._kf_t[-1] - self._t0, flush=True)
         if self.opt.lag_s is None and self._k > 0:
@@ -333,9 +366,7 @@ class StreamSmoother(OnlineCalibrationMixin, ArrivalMixin):
             # the end-of-stream smoothing: Levenberg–Marquardt on iSAM2's own factors from its estimate
             # (iSAM2 relinearises only past a threshold and can stop short of the batch optimum), with every
             # magnetometer factor re-issued with the final calibration when it was re-estimated online
-            lm = gtsam.LevenbergMarquardtOptimizer(self._final_graph(), self._solver.calculateEstimate(),
-                                                   gtsam.LevenbergMarquardtParams())
-            self._final = lm.optimize()
+            self._final = self._final_lm(self._final_graph(), self._solver.calculateEstimate())
         self._finished = True
 
     def keyframe_rotations(self) -> np.ndarray:

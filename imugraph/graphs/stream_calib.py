@@ -1,7 +1,7 @@
 """Online magnetometer calibration of a stream: running sums, closed-form refit of D, o and the dip.
 
 Model (Kok & Schön): y_i = D·bRn_i·n_mag(δ) + o + e_i, with n_mag(δ) = (cos δ, 0, −sin δ). For given
-orientations nRb_i write bRn_i·n_mag = cos δ·u_i + sin δ·w_i with u_i = bRn_i·e_x and w_i = −bRn_i·e_z.
+orientations nRb_i write bRn_i·n_mag = cos δ·u_i + sin δ·w_i with u_i = bRn_i·e_x and w_i = −bRn_i·e_z .
 For a fixed δ the model is linear in the calibration, and each magnetometer axis j is a separate regression
 with the same design x_i = (b_i, 1):
 
@@ -18,6 +18,17 @@ information Λ (per axis) keeps the refit defined while the data hold too little
 1-D search. Marginal standard deviations: of θ_j from the inverse of (2)'s matrix (scaled by the reduced χ²
 when the residuals are larger than the nominal noise, and by the magnetometer's noise correlation time), of δ
 from the curvature of the profile cost, var δ = 2 s² / SSE''(δ).
+
+Residual whiteness: (2)'s covariance treats the residuals as white. Indoors they are not (the field varies
+with position; the orientations carry errors of their own — errors in variables — that persist for seconds),
+so the reported std is scaled by the batch-means factor of the residuals over the blocks b between refits
+(calib_every_s, 2 s):
+
+    F_j = Σ_b (Σ_{i∈b} r_ij)² / Σ_i r_ij²,   r_ij = y_ij − θ_jᵀ x_i                                 (3)
+
+(1 for white residuals, up to the block length in samples for fully correlated ones), computed at the refit's θ
+from running sums of the blocks' (Σu, Σw, n, Σy) — constant memory. A constant orientation error stays
+invisible (D absorbs it as a misalignment). The swap decision keeps the white-noise std (`std_white`).
 
 Which orientations: the stream folds a keyframe interval in once its keyframe is final enough (it left the
 fixed-lag window, or it is `delay_s` old under iSAM2), with its samples' orientations nRk·kRb_i.
@@ -65,25 +76,41 @@ class OnlineMagCalibration:
         self.theta0 = np.hstack([cal0.D, cal0.o[:, None]]).T                   # (4, 3): column j = θ⁰_j
         self.gate = gate * self.scale
         self.current = cal0
-        self.n = 0.0                     # (weighted) number of samples folded in
         self.rejected = 0
-        z3, z33 = np.zeros(3), np.zeros((3, 3))
-        self.Suu, self.Suw, self.Sww = z33.copy(), z33.copy(), z33.copy()
-        self.Su, self.Sw, self.Sy = z3.copy(), z3.copy(), z3.copy()
-        self.Suy, self.Swy, self.Syy = z33.copy(), z33.copy(), z33.copy()
+        # every running sum of (1) in one matrix: S = Σ ξ_i ξ_iᵀ, ξ_i = (u_i, w_i, 1, y_i) (10,): one product per
+        # interval instead of nine (see the properties below)
+        self.S = np.zeros((10, 10))
+        # residual whiteness (3): the open block's raw sums (Σu, Σw, n, Σy) and, over closed blocks, Σ z zᵀ,
+        # Σ z s_yᵀ, Σ s_y² with z = (Σu, Σw, n) of a block
+        self._blk = np.zeros(10)
+        self.Qb, self.Pb, self.Yb, self.blocks = np.zeros((7, 7)), np.zeros((7, 3)), np.zeros(3), 0.0
+        self.std_white = None            # the last refit's std without the whiteness factor (see refit)
+        self.last_whiteness = None       # its factor per axis (eq. 3; None before 5 blocks)
         self.history: list = []
 
     # ------------------------------------------------------------------ data
     def forget(self, factor: float) -> None:
         """Down-weight everything folded so far by `factor` (0..1): exponential forgetting of samples whose
         orientations were estimated with an older calibration."""
-        for name in ("Suu", "Suw", "Sww", "Su", "Sw", "Sy", "Suy", "Swy", "Syy"):
+        for name in ("S", "Qb", "Pb", "Yb", "blocks"):
             setattr(self, name, getattr(self, name) * factor)
-        self.n *= factor
+
+    # the running sums of (1), views into S
+    n = property(lambda self: self.S[6, 6], doc="(weighted) number of samples folded in")
+    Suu = property(lambda self: self.S[:3, :3])
+    Suw = property(lambda self: self.S[:3, 3:6])
+    Sww = property(lambda self: self.S[3:6, 3:6])
+    Su = property(lambda self: self.S[:3, 6])
+    Sw = property(lambda self: self.S[3:6, 6])
+    Sy = property(lambda self: self.S[6, 7:])
+    Suy = property(lambda self: self.S[:3, 7:])
+    Swy = property(lambda self: self.S[3:6, 7:])
+    Syy = property(lambda self: self.S[7:, 7:])
 
     def add(self, y: np.ndarray, nRb: np.ndarray) -> int:
         """Fold in raw field samples y (n, 3) (NaN rows: none) with their orientations nRb (n, 3, 3);
-        returns the number used."""
+        returns the number used. (The stream's field perturbation d_k is not used: it is zero-mean, and
+        folding the graph's d_k in kept the start calibration's error, see stream_online.)"""
         y = np.asarray(y, float).reshape(-1, 3)
         ok = np.all(np.isfinite(y), axis=1)
         if not ok.any():
@@ -94,18 +121,37 @@ class OnlineMagCalibration:
         pred = (np.cos(c.dip_rad) * u + np.sin(c.dip_rad) * w) @ c.D.T + c.o
         keep = np.linalg.norm(y - pred, axis=1) <= self.gate
         self.rejected += int((~keep).sum())
-        y, u, w = y[keep], u[keep], w[keep]
-        self.n += len(y)
-        self.Suu += u.T @ u
-        self.Suw += u.T @ w
-        self.Sww += w.T @ w
-        self.Su += u.sum(0)
-        self.Sw += w.sum(0)
-        self.Sy += y.sum(0)
-        self.Suy += u.T @ y
-        self.Swy += w.T @ y
-        self.Syy += y.T @ y
-        return len(y)
+        xi = np.hstack([u[keep], w[keep], np.ones((int(keep.sum()), 1)), y[keep]])      # (m, 10)
+        self.S += xi.T @ xi
+        self._blk += xi.sum(0)
+        return len(xi)
+
+    def end_block(self) -> None:
+        """Close the current block of samples (the stream closes one at every refit) for the whiteness factor."""
+        z, s_y = self._blk[:7], self._blk[7:]
+        if z[6] > 0:
+            self.Qb += np.outer(z, z)
+            self.Pb += np.outer(z, s_y)
+            self.Yb += s_y**2
+            self.blocks += 1.0
+        self._blk = np.zeros(10)
+
+    def whiteness(self, theta: np.ndarray, dip: float) -> np.ndarray | None:
+        """Per axis j, F_j = Σ_b (Σ_{i∈b} r_ij)² / Σ_i r_ij² (eq. 3) at θ (4×3), δ; None with < 5 blocks."""
+        if self.blocks < 5:
+            return None
+        c, s = np.cos(dip), np.sin(dip)
+        M = np.zeros((4, 7))
+        M[:3, :3], M[:3, 3:6], M[3, 6] = c * np.eye(3), s * np.eye(3), 1.0       # x_b = M z_b
+        A, r = self._normal(dip)
+        Qx, Px = M @ self.Qb @ M.T, M @ self.Pb
+        out = np.empty(3)
+        for j in range(3):
+            th = theta[:, j]
+            blk = self.Yb[j] - 2 * th @ Px[:, j] + th @ Qx @ th
+            sse = self.Syy[j, j] - 2 * th @ r[:, j] + th @ A @ th
+            out[j] = blk / sse if sse > 0 else 1.0
+        return out
 
     # ------------------------------------------------------------------ refit
     def _normal(self, dip: float) -> tuple[np.ndarray, np.ndarray]:
@@ -143,7 +189,15 @@ class OnlineMagCalibration:
         theta, sse, inv = self._solve(dip)
         chi2 = max(1.0, sse / max(3 * self.n - 13, 1))        # reduced χ² (≥ 1: never shrink the std)
         var_scale = chi2 * self.corr
-        std_th = np.sqrt(np.array([np.diag(m) for m in inv]) * var_scale)      # (3, 4): row j = axis j
+        var_th = np.array([np.diag(m) for m in inv])                            # (3, 4): row j = axis j
+        self.std_white = {"D": np.sqrt(var_th[:, :3] * var_scale), "o": np.sqrt(var_th[:, 3] * var_scale)}
+        self.end_block()
+        F = self.whiteness(theta, dip)
+        self.last_whiteness = None if F is None else np.maximum(F, self.corr)
+        # residuals correlated over seconds (field inhomogeneity, orientation errors: errors in variables):
+        # the variance of θ grows by F_j over the white-noise formula; never below the calibration's own factor
+        factor = np.full(3, self.corr) if F is None else np.maximum(F, self.corr)
+        std_th = np.sqrt(var_th * chi2 * factor[:, None])
         h = 1e-3                                                               # profile curvature of SSE
         curv = (self._solve(dip + h)[1] - 2 * sse + self._solve(dip - h)[1]) / h ** 2
         std_dip = float(np.sqrt(2.0 * var_scale / curv)) if curv > 0 else float("inf")
@@ -159,4 +213,7 @@ class OnlineMagCalibration:
         return {"t": float(t), "D": cal.D.tolist(), "o": cal.o.tolist(), "dip_deg": float(cal.dip_deg),
                 "std": None if std is None else {"D": np.asarray(std["D"]).tolist(), "o": np.asarray(std["o"]).tolist(),
                                                   "dip_deg": std["dip_deg"]},
+                "whiteness": None if std is None or self.last_whiteness is None else self.last_whiteness.tolist(),
+                "std_white": None if std is None or self.std_white is None else
+                {k: np.asarray(v).tolist() for k, v in self.std_white.items()},
                 "samples": float(self.n), "rejected": int(self.rejected)}

@@ -22,8 +22,11 @@ from dataclasses import replace
 import gtsam
 import numpy as np
 
+from imugraph import keys
+
 from imugraph.calibration.result import Calibration
 from imugraph.graphs.cpp_velocity import pose_key, robust
+from imugraph.graphs.stream_field import field_key, field_mag_factor, linearized_once
 
 
 class OnlineCalibrationMixin:
@@ -45,10 +48,11 @@ class OnlineCalibrationMixin:
 
     def _keyframe_R(self, k: int) -> np.ndarray | None:
         """Latest estimate of keyframe k's nRb (the one it left the window with, under a lag)."""
-        if self.opt.lag_s is not None:
+        chain = self.opt.lag_s is not None and self.opt.fixed_lag_solver == "chain"
+        if self.opt.lag_s is not None and (not chain or k in self._smoothed_kf):
             return self._smoothed_kf.get(k)
-        try:
-            return self._solver.calculateEstimatePose3(pose_key(k)).rotation().matrix()
+        try:           # iSAM2, or a keyframe still in the chain lag's window
+            return (self._solver.isam if chain else self._solver).calculateEstimatePose3(pose_key(k)).rotation().matrix()
         except RuntimeError:
             return None
 
@@ -61,13 +65,19 @@ class OnlineCalibrationMixin:
             if self.opt.calib_memory_s:      # w = exp(−Δt/T) per interval
                 self._online.forget(float(np.exp(-self.stride / self.rate / self.opt.calib_memory_s)))
             if nRk is not None:
+                # without d_k: folding the graph's d_k in kept the start calibration's error (d absorbs it, ~1 %
+                # of the field, within σ_d) — simulation, tests/test_stream_calib.py: D 16 std off the truth
                 self._online.add(y, nRk @ kRb)       # nRb_i = nRk · kRb_i
         if flush or elapsed >= self._next_refit:
             self._next_refit = elapsed + self.opt.calib_every_s
             cal = self._online.refit(elapsed)
             # swap in only a well-determined refit: a poorly conditioned early one would bias the next
             # orientations, which feed the next refit (measured on simulation: D drifted 20 std off the truth)
-            applied = bool(self.opt.calib_swap and cal.std and self._well_determined(cal.std))
+            # judged on the reported std (with the whiteness factor, stream_calib eq. 3), or with
+            # calib_swap_white on the white-noise one
+            std = self._online.std_white if self.opt.calib_swap_white else cal.std
+            applied = bool(self.opt.calib_swap and cal.std and self._online.std_white is not None
+                           and self._well_determined(std))
             if applied:
                 self._set_calibration(replace(self.cal, D=cal.D, o=cal.o, dip_deg=cal.dip_deg, std=cal.std))
             self._online.history[-1]["applied"] = applied
@@ -97,15 +107,33 @@ class OnlineCalibrationMixin:
             if i not in old and factors.exists(i):
                 graph.add(factors.at(i))
         for k in self._mag_index:
-            graph.add(self._mag_factor(k, quat_to_rotmat(self._hist_kRb[k]), self._hist_y[k]))
+            graph.add(self._mag_factor(k, quat_to_rotmat(self._hist_kRb[k]), self._hist_y[k], exact=True))
         return graph
 
-    def _mag_factor(self, k: int, kRb: np.ndarray, y: np.ndarray):
+    def _mag_factor(self, k: int, kRb: np.ndarray, y: np.ndarray, exact: bool = False):
         """Huber MagPoseFactorPose3 on keyframe k: the interval's calibrated field D⁻¹(y − o) rotated into
-        keyframe k and averaged (full covariance), against the current n_mag."""
+        keyframe k and averaged (full covariance), against the current n_mag. With the field perturbation:
+        stream_field's factor against n + d_k, linearised once at keyframe k's latest estimate (exact=False,
+        for the incremental solvers; see stream_field.linearized_once) or the exact CustomFactor."""
         m_cal = (y - self.cal.o) @ self._D_inv.T
         ok = np.all(np.isfinite(m_cal), axis=1)
         m_avg = np.einsum("mij,mj->i", kRb[ok], m_cal[ok]) / ok.sum()
         cov = np.einsum("mij,jl,mkl->ik", kRb[ok], self._S_m, kRb[ok]) / ok.sum() ** 2
         mdl = robust(gtsam.noiseModel.Gaussian.Covariance(cov), self.opt.huber_k)
+        if self._field:          # against n + d_k (imugraph.graphs.stream_field eq. 3)
+            f = field_mag_factor(pose_key(k), field_key(k), m_avg, self.cal.n_mag, mdl)
+            return f if exact else linearized_once(f, pose_key(k), gtsam.Pose3(self._nRk, self._p), field_key(k), self._d)
         return gtsam.MagPoseFactorPose3(pose_key(k), m_avg, 1.0, self.cal.n_mag, np.zeros(3), mdl)
+
+    def _final_lm(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values) -> gtsam.Values:
+        """The end-of-stream Levenberg–Marquardt (iSAM2). With the field perturbation the graph holds Python
+        CustomFactors, which gtsam's C++ optimizer would call with a copy of every Values (O(K²),
+        GTSAM_NOTES.md): then the Python-driven loop of imugraph.graphs.solver, keyframes in time order."""
+        if not self._field:
+            return gtsam.LevenbergMarquardtOptimizer(graph, values, gtsam.LevenbergMarquardtParams()).optimize()
+        from imugraph.graphs.solver import chain_ordering, optimize
+
+        chain = set(values.keys())
+        order = [key for k in range(self._k + 1) for key in (pose_key(k), keys.vel(k), field_key(k)) if key in chain]
+        rest = [key for key in values.keys() if key not in set(order)]
+        return optimize(graph, [], values, chain_ordering(order, rest))[0]

@@ -16,10 +16,13 @@ class StreamOptions:
     Attributes:
         keyframe_hz: keyframes per second (stride = round(rate / keyframe_hz) samples).
         lag_s: None: iSAM2 over the whole stream; a number: fixed-lag smoother keeping lag_s seconds.
-        fixed_lag_solver: with lag_s, "incremental" (default: gtsam.IncrementalFixedLagSmoother, iSAM2 inside, with
-            the weak pose prior and the iSAM2 settings) or "batch" (gtsam.BatchFixedLagSmoother). Measured on BROAD
-            01 / 02 (2 s, online calibration): filtered 2.59 / 0.63°, smoothed 2.48 / 0.58°, 27–30× real time in CPU
-            time, against batch 2.62 / 0.65°, 2.51 / 0.59°, 10–19×, one failed update each.
+        fixed_lag_solver: with lag_s, "chain" (default: `imugraph.graphs.stream_lag.ChainLagSmoother`, iSAM2 with the
+            keyframes eliminated in time order, marginalising every second: the window holds lag_s to lag_s + 1 s),
+            "incremental" (gtsam.IncrementalFixedLagSmoother, iSAM2 inside; with the weak pose prior and the iSAM2
+            settings in both) or "batch" (gtsam.BatchFixedLagSmoother). With the field perturbation "chain" costs
+            ≈ 2.5× less per update than "incremental" (stream_lag); earlier, without it, on BROAD 01 / 02 (2 s,
+            online calibration): incremental filtered 2.59 / 0.63°, 27–30× real time in CPU time, against batch
+            2.62 / 0.65°, 10–19×, one failed update each.
         g: gravity, m/s², held fixed; None: estimated (started at `g0`, the caller's median |acc|).
         final_updates: relinearising iSAM2 updates at `finish` (iSAM2 only).
         relinearize_threshold: iSAM2's relinearisation threshold (tangent-space step).
@@ -32,7 +35,8 @@ class StreamOptions:
             where it has one, e.g. a bootstrap's); calib_memory_s: time constant of the exponential forgetting
             of folded samples (None: none); calib_every_s refits; calib_swap: a well-determined refit (all std
             of D, o < calib_swap_rel × scale; with calib_beat_start also ≤ the start's std) becomes the
-            calibration of new magnetometer factors; calib_dip: re-estimate the dip too (off: it drifted on
+            calibration of new magnetometer factors — judged on the reported std, which carries the residuals'
+            whiteness factor (stream_calib eq. 3), or with calib_swap_white on the white-noise std; calib_dip: re-estimate the dip too (off: it drifted on
             simulation, see stream_online).
         factorization: of iSAM2 (also inside the incremental fixed lag), "QR" or "CHOLESKY". QR by default: on
             BROAD 30 (bootstrap dip 86°: a nearly vertical field) Cholesky threw IndeterminantLinearSystem at the
@@ -40,12 +44,16 @@ class StreamOptions:
             dead reckoning); QR solved every update (the trial's 77° error then was its bad bootstrap, see
             stream_run.bootstrap_calibration), for ≈ 10 % more CPU (BROAD 01, 60 s: incremental
             lag 34.1× → 30.9× real time in CPU time, iSAM2 18.6× → 16.6×; filtered error unchanged).
+        field_sigma, field_tau: the nav-field Gauss–Markov perturbation d_k per keyframe of the batch model
+            (imugraph.factors.field, `calibration.ml.Options`' defaults; σ_d per nav axis, x along the horizontal
+            field, y across it, z up; τ_d s); magnetometer factors use n + d_k (`imugraph.graphs.stream_field`).
+            None: no perturbation (the field is n_mag exactly, as `smooth_fixed`).
         Other fields: as `smooth_fixed`.
     """
 
     keyframe_hz: float = 10.0
     lag_s: float | None = None
-    fixed_lag_solver: str = "incremental"
+    fixed_lag_solver: str = "chain"
     g: float | None = None
     huber_k: float = 2.0
     gyro_rate_error: float = 0.01
@@ -71,6 +79,9 @@ class StreamOptions:
     calib_beat_start: bool = False
     calib_memory_s: float | None = 20.0
     calib_swap_rel: float = 0.002
+    calib_swap_white: bool = False
+    field_sigma: float | tuple | None = (0.015, 0.003, 0.015)
+    field_tau: float = 1.0
 
 
 @dataclass
@@ -120,4 +131,5 @@ def isam2_thresholds(rot_threshold: float) -> "gtsam.ISAM2ThresholdMap":
     m.insert(("v", np.full(3, 0.5)))
     m.insert(("b", np.r_[np.full(3, 1e-3), np.full(3, rot_threshold / 10)]))
     m.insert(("g", np.full(3, 0.1)))
+    m.insert(("f", np.full(3, 0.05)))      # field perturbation d_k (unit-field units; σ_d 0.003–0.015)
     return m

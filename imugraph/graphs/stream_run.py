@@ -77,7 +77,9 @@ def bootstrap_calibration(session: Session, bootstrap_s: float, keyframe_hz: flo
                                "at least 2 s of data")
         last = n >= session.n
         try:
-            est = calibrate(session.slice(0, n), Options(keyframe_hz=keyframe_hz), allow_weak=last and allow_weak)
+            # gyro_map off: the stream does not apply a gyro scale/misalignment, so the bootstrap must not fit one
+            est = calibrate(session.slice(0, n), Options(keyframe_hz=keyframe_hz, gyro_map=False),
+                            allow_weak=last and allow_weak)
             if last or b_rest is None or np.max(np.abs(est.calibration.gyro_bias - b_rest)) <= BIAS_TOL:
                 return est.calibration, n
         except CalibrationError:
@@ -91,18 +93,21 @@ def bootstrap_calibration(session: Session, bootstrap_s: float, keyframe_hz: flo
 BIAS_TOL = 0.02
 
 
-def rest_gyro_bias(session: Session, rest_s: float = 2.0, max_dev: float = 0.05) -> np.ndarray | None:
-    """Mean gyro over the first rest_s seconds if the sensor rests there (every axis within max_dev rad/s of
-    its median, the accelerometer norm within 0.5 m/s² of its median), else None."""
+def rest_gyro_bias(session: Session, rest_s: float = 2.0, min_fraction: float = 0.9) -> np.ndarray | None:
+    """Mean gyro over the rest samples of the first rest_s seconds if the sensor rests there (at least
+    min_fraction of them at rest by `imugraph.calibration.rest.detect_rest`, its default thresholds), else None."""
+    from imugraph.calibration.rest import detect_rest
+
     n = int(np.searchsorted(session.t, session.t[0] + rest_s, side="right"))
     if n < 10:
         return None
-    w, a = session.gyr[:n], np.linalg.norm(session.acc[:n], axis=1)
-    if not (np.all(np.isfinite(w)) and np.all(np.isfinite(a))):
+    part = session.slice(0, n)
+    if not (np.all(np.isfinite(part.gyr)) and np.all(np.isfinite(part.acc))):
         return None
-    if np.max(np.abs(w - np.median(w, axis=0))) > max_dev or np.max(np.abs(a - np.median(a))) > 0.5:
+    rest = detect_rest(part)
+    if rest.mean() < min_fraction:
         return None
-    return w.mean(axis=0)
+    return part.gyr[rest].mean(axis=0)
 
 
 def timing_summary(update_s, seconds: float, n_samples: int, rate: float, update_cpu_s=None,
