@@ -228,14 +228,15 @@ def test_gyro_map_gate_leaves_e_at_zero():
 
 
 def test_gyro_map_unsettled_falls_back_to_plain_model():
-    """E still moving when the ML rounds stop (here: one round allowed): the result is the plain model's,
-    orientation identical to a run without E, and the gate records why."""
+    """E still moving when the ML rounds stop (here: one round allowed): with the "restart" fallback the
+    result is the plain model's, orientation identical to a run without E, and the gate records why (the
+    default "warm" fallback: tests/test_gyro_map_fallback.py)."""
     from imugraph.calibration.ml import Options, calibrate
     from imugraph.sim.scenario import distorted_session
 
     s, _ = distorted_session(2, 20.0, 100.0)
     base = dict(max_outer=1, gyro_map_min_turns=0.0)
-    est = calibrate(s, Options(gyro_map=True, **base))
+    est = calibrate(s, Options(gyro_map=True, gyro_map_fallback="restart", **base))
     plain = calibrate(s, Options(gyro_map=False, **base))
     gate = est.info["gyro_map_gate"]
     assert gate["estimated"] is False and "settle" in gate["reason"]

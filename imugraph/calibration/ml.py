@@ -118,6 +118,8 @@ def calibrate(session: Session, options: Options | None = None, initial=None,
     round_solver = opt.solver if opt.round_relative_tol is None else replace(
         opt.solver, relative_tol=opt.round_relative_tol)
 
+    if opt.gyro_map_fallback not in ("warm", "restart"):
+        raise ValueError(f"Options.gyro_map_fallback: found {opt.gyro_map_fallback!r}, expected 'warm' or 'restart'")
     gate, clean = coverage_gate(session, g, skf, len(kf) - 1, opt) if opt.gyro_map else ({"estimated": False}, None)
     gyro = GyroMapState(opt.gyro_map_sigma, clean if gate["estimated"] else None)
 
@@ -240,12 +242,17 @@ def calibrate(session: Session, options: Options | None = None, initial=None,
             # determined by the joint solve (BROAD 24, tapping: an off-diagonal crept to −0.8 %, 0.51 → 0.73°;
             # zeroing Ê for the final solve alone still gave 0.72°): the plain model's result instead
             gate.update(estimated=False, reason=f"E did not settle in the ML rounds (contraction "
-                        f"{gate['contraction']})", E_unsettled=gyro.E.copy(), rounds=list(history))
-            bias, noise, nRk, theta, tau_fixed = start[0], start[1], None, theta0, None
-            vel_state.update(start[2]); mag_state.update(start[3]); windows[:] = start[4]
+                        f"{gate['contraction']})", E_unsettled=gyro.E.copy(), rounds=list(history),
+                        fallback=opt.gyro_map_fallback)
+            if opt.gyro_map_fallback == "restart":     # the plain rounds from step 1's state: bit-identical
+                bias, noise, nRk, theta, tau_fixed, values = start[0], start[1], None, theta0, None, None
+                vel_state.update(start[2]); mag_state.update(start[3]); windows[:] = start[4]
+            # "warm": the plain rounds continue from the E rounds' state (rotations, bias, θ, noise, τ,
+            # velocities, windows) with Ê = 0 — the plain model's ML fixed point from a nearer start
             del history[:]
             gyro.E, phase["map"] = np.zeros((3, 3)), False
-    if not phase["map"]:
+            bias, noise, nRk, theta, values, converged = ml_rounds(bias, noise, nRk, theta, values)
+    else:
         bias, noise, nRk, theta, values, converged = ml_rounds(bias, noise, nRk, theta, None)
     gate.setdefault("contraction", None)
 
