@@ -14,7 +14,7 @@ the fitted trajectory, which a delayed channel bends):
                                            body), τ_c by `calibration.alignment.estimate_mag_delay`      (T2)
 
 for acc and mag (the field with the fitted hard iron removed); gyr: −τ_acc; every lag of the search
-grid solved at once by its 9×9 normal equations (T3, `gyro_delay`), windows across a held-out block
+grid solved at once by its 9×9 normal equations (T3, in `estimate_mag_delay`), windows across a held-out block
 dropped. The candidate (channel, τ) whose shift lowers the whitened training cost most wins (1 parameter
 + the choice; the channels' costs are summed relative to the base fit's, each channel counting alike).
 The gyro candidates (whose exact evaluation re-integrates the trajectory) are skipped when the
@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from imugraph.calibration.alignment import estimate_mag_delay
 from imugraph.diagnose.effects.base import (Correction, Effect, check_train, gyro_exact, gyro_refit, noise_scale,
                                              replace_session, shift_signal)
 
@@ -55,7 +56,7 @@ def _relative_cost(fit, res: dict, train: np.ndarray, channels) -> float:
 
 def gyro_referenced_delays(fit, train: np.ndarray) -> dict:
     """channel → τ (s) from the raw measurements and the gyro only (T2), training samples only: acc and
-    mag by `gyro_delay` (the estimator of `imugraph.calibration.alignment.estimate_mag_delay`: a constant
+    mag by `imugraph.calibration.alignment.estimate_mag_delay` (a constant
     nav-frame vector seen from the turning body obeys ẏ = y × ω; the delay is the gyro shift that best
     explains the channel's change over 40 ms windows, a free 3×3 map absorbing scale and misalignment) —
     gravity for acc, the field with the fitted hard iron removed for mag; gyr: −τ_acc (a late gyro makes
@@ -68,75 +69,12 @@ def gyro_referenced_delays(fit, train: np.ndarray) -> dict:
     try:
         D = np.asarray(fit.calibration.D, float)
         m = np.linalg.solve(D, (s.mag - np.asarray(fit.calibration.o, float)).T).T
-        out["mag"] = gyro_delay(s.t, np.where(hide, np.nan, m), w, max_delay_s=MAX_DELAY_S)
-        out["acc"] = gyro_delay(s.t, np.where(hide, np.nan, s.acc), w, max_delay_s=MAX_DELAY_S)
+        out["mag"] = estimate_mag_delay(s.t, np.where(hide, np.nan, m), w, max_delay_s=MAX_DELAY_S)
+        out["acc"] = estimate_mag_delay(s.t, np.where(hide, np.nan, s.acc), w, max_delay_s=MAX_DELAY_S)
         out["gyr"] = -out["acc"]
     except (np.linalg.LinAlgError, ValueError):
         return {}
     return out
-
-
-def gyro_delay(t: np.ndarray, y: np.ndarray, b_gyr: np.ndarray, max_delay_s: float = 0.05,
-               window_s: float = 0.04, max_rows: int = 4000) -> float:
-    """Delay τ (s, > 0: y lags the gyro) of a constant nav-frame vector y seen in the body frame — the
-    same estimator, rows and grid as `imugraph.calibration.alignment.estimate_mag_delay`, with every lag
-    of the grid solved at once through the 9×9 normal equations instead of one 4000×9 least squares per lag
-    (the delay search was a third of the diagnosis' time).
-
-    Over a window [t_j − h, t_j + h] (alignment.py): y(t_j + h) − y(t_j − h) ≈ [y_j]× A (Ω(t_j + h − τ) −
-    Ω(t_j − h − τ)), Ω the integrated gyro, A a free 3×3 map. With S_j = [y_j]×, ΔΩ_j(τ) and Δy_j the row
-    block of vec(A) (row-major) is S_j ⊗ ΔΩ_jᵀ, so
-
-        G(τ) = Σ_j (S_jᵀS_j) ⊗ (ΔΩ_j ΔΩ_jᵀ),   b(τ) = Σ_j (S_jᵀΔy_j) ⊗ ΔΩ_j,
-        RSS(τ) = Σ_j |Δy_j|² − b(τ)ᵀ G(τ)⁺ b(τ)                                              (T3)
-
-    and τ minimises RSS on the grid of one sample (parabolic refinement). Returns 0.0 when the data hold
-    too little rotation for a clear optimum (fit explains < 10 % of Σ|Δy|², or the optimum at the edge).
-
-    Unlike alignment.py, a window spanning a gap of y (the held-out blocks of a cross-validation fold,
-    set to NaN) is dropped: its Δy is the change over the whole gap (seconds, not 40 ms), far outside the
-    small-angle model, and a handful of such rows decided τ (BROAD 01 + 5.9 ms gyro delay, field: 4.3 ms
-    on all samples, −0.4 and 0.0 ms on two folds' training samples). Without gaps the two agree to
-    rounding (test_diagnose_time_offset)."""
-    from imugraph.geometry import skew
-
-    t = np.asarray(t, float)
-    j = np.flatnonzero(np.all(np.isfinite(y), axis=1))
-    if j.size < 20:
-        return 0.0
-    tj, yj = t[j], np.asarray(y, float)[j]
-    step_y = float(np.median(np.diff(tj)))
-    h = max(1, int(round(0.5 * window_s / step_y)))
-    lo, mid, hi = np.arange(0, tj.size - 2 * h), np.arange(h, tj.size - h), np.arange(2 * h, tj.size)
-    whole = tj[hi] - tj[lo] < 1.5 * 2 * h * step_y           # windows that span no gap (hidden block)
-    lo, mid, hi = lo[whole], mid[whole], hi[whole]
-    if mid.size < 20:
-        return 0.0
-    keep = np.linspace(0, mid.size - 1, min(mid.size, max_rows)).round().astype(int)
-    lo, mid, hi = lo[keep], mid[keep], hi[keep]
-    dy = yj[hi] - yj[lo]
-    w_dt = np.nan_to_num(np.asarray(b_gyr, float)[:-1]) * np.diff(t)[:, None]
-    omega = np.concatenate([np.zeros((1, 3)), np.cumsum(w_dt, axis=0)])           # Ω(t_k)
-    step = float(np.median(np.diff(t)))
-    taus = np.arange(-max_delay_s, max_delay_s + 0.5 * step, step)
-    q_hi = (tj[hi][None, :] - taus[:, None]).ravel()
-    q_lo = (tj[lo][None, :] - taus[:, None]).ravel()
-    d_om = np.stack([np.interp(q_hi, t, omega[:, i]) - np.interp(q_lo, t, omega[:, i]) for i in range(3)],
-                    axis=1).reshape(taus.size, -1, 3)                               # ΔΩ_j(τ) (L, M, 3)
-    S = skew(yj[mid])                                                               # (M, 3, 3)
-    StS = np.einsum("nik,nil->nkl", S, S).reshape(-1, 9)                            # (k, k') flattened
-    Sdy = np.einsum("nik,ni->nk", S, dy)                                            # S_jᵀ Δy_j
-    outer = (d_om[:, :, :, None] * d_om[:, :, None, :]).reshape(taus.size, -1, 9)   # (l, l') flattened
-    G = np.matmul(StS.T[None], outer).reshape(taus.size, 3, 3, 3, 3)               # Σ_j over rows (BLAS)
-    G = G.transpose(0, 1, 3, 2, 4).reshape(taus.size, 9, 9)                         # [(k,l), (k',l')]
-    b = np.matmul(Sdy.T[None], d_om).reshape(taus.size, 9)                          # [(k,l)]
-    total = float(np.sum(dy * dy))
-    r = np.array([total - float(bl @ np.linalg.lstsq(Gl, bl, rcond=None)[0]) for Gl, bl in zip(G, b)])  # (T3)
-    k = int(np.argmin(r))
-    if 1.0 - r[k] / total < 0.1 or k in (0, taus.size - 1):
-        return 0.0
-    den = r[k - 1] - 2 * r[k] + r[k + 1]
-    return float(taus[k] + (0.5 * step * (r[k - 1] - r[k + 1]) / den if den > 0 else 0.0))
 
 
 def _first_order_floor(fit, r0: dict, J: dict, train: np.ndarray, channels) -> float:
