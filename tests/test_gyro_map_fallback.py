@@ -64,7 +64,7 @@ def test_warm_fallback_reaches_the_plain_optimum():
     s, _ = distorted_session(1, 40.0, 100.0)
     s = replace(s, gyr=s.gyr @ np.linalg.inv(np.eye(3) + E_true).T)
     forced = dict(gyro_map=True, gyro_map_min_turns=0.0, gyro_map_max_contraction=0.0)
-    warm = calibrate(s, Options(**forced))
+    warm = calibrate(s, Options(gyro_map_fallback="warm", **forced))
     plain = calibrate(s, Options(gyro_map=False))
     gate = warm.info["gyro_map_gate"]
     assert gate["estimated"] is False and gate["fallback"] == "warm" and len(gate["rounds"]) == 2

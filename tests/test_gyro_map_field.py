@@ -228,9 +228,9 @@ def test_gyro_map_gate_leaves_e_at_zero():
 
 
 def test_gyro_map_unsettled_falls_back_to_plain_model():
-    """E still moving when the ML rounds stop (here: one round allowed): with the "restart" fallback the
-    result is the plain model's, orientation identical to a run without E, and the gate records why (the
-    default "warm" fallback: tests/test_gyro_map_fallback.py)."""
+    """E still moving when the ML rounds stop (here: one round allowed): with the "restart" fallback (the
+    default) the result is the plain model's, orientation identical to a run without E, and the gate
+    records why (the "warm" fallback: tests/test_gyro_map_fallback.py)."""
     from imugraph.calibration.ml import Options, calibrate
     from imugraph.sim.scenario import distorted_session
 
