@@ -62,12 +62,13 @@ def run_trial(path: Path, lag: float | None, bootstrap_s: float, batch: bool = T
     runs = [(f"{label} {'online' if on else 'fixed'} cal", lag_s, on) for label, lag_s in runs for on in online]
     cal_full = None
     if compare_cal and any(on for *_, on in runs):
-        from imugraph.calibration.ml import calibrate
+        from imugraph.calibration.ml import Options, calibrate
         from imugraph.errors import CalibrationError
+        same_model = Options(gyro_map=False)               # the stream has no gyro scale/misalignment
         try:
-            cal_full = calibrate(s).calibration            # the batch calibration of the whole trial
+            cal_full = calibrate(s, same_model).calibration            # the batch calibration of the whole trial
         except CalibrationError:                           # too little rotation (10, 12, 15, 16): regularised
-            cal_full = calibrate(s, allow_weak=True).calibration
+            cal_full = calibrate(s, same_model, allow_weak=True).calibration
     for label, lag_s, on in runs:
         r = stream_session(s, cal, StreamOptions(lag_s=lag_s, online_calibration=on, fixed_lag_solver=lag_solver))
         tm = r.timing
