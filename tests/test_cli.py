@@ -87,7 +87,8 @@ def test_orientation_npz_contract_and_accuracy(runs, truth, folder):
 def test_calibrate_prints_the_table(tmp_path, runs, capsys):
     assert main(["calibrate", str(runs["session"]), "--out", str(tmp_path), "--keyframe-hz", "5"]) == 0
     out, err = capsys.readouterr()
-    for label in ("D", "o", "dip", "gyro bias °/s", "noise mag", "converged", "field norm RMS", "orientation"):
+    for label in ("D", "o", "dip", "gyro bias °/s", "gyro map E", "noise mag", "converged", "field norm RMS",
+                  "orientation"):
         assert f"\n  {label}" in out, label
     assert "calibrating" in err                                   # progress on stderr, not stdout
     assert "ML round 1" not in out                                # the ML loop's own lines too

@@ -52,7 +52,8 @@ def score_lines(scores: Scores) -> list[str]:
 
 
 def calibration_table(cal: Calibration, scores: Scores, title: str) -> str:
-    """The calibrate command's table: D rows, o, dip, gyro bias, noise, marginal std, loop state, scores.
+    """The calibrate command's table: D rows, o, dip, gyro bias, gyro scale/misalignment E (%), noise,
+    marginal std, loop state, scores.
 
     Args:
         cal: imugraph.calibration.result.Calibration.
@@ -71,6 +72,12 @@ def calibration_table(cal: Calibration, scores: Scores, title: str) -> str:
     std_dip = cal.std.get("dip_deg") if isinstance(cal.std, dict) else None
     lines.append(_row("dip", f"{cal.dip_deg:.3f}°" + ("" if std_dip is None else f"  ± {float(std_dip):.3f}°")))
     lines.append(_row("gyro bias °/s", f"{vec(np.rad2deg(cal.gyro_bias), '9.4f')}  ± {vec(std_b, '7.4f')}"))
+    E = np.asarray(getattr(cal, "gyro_map", np.zeros((3, 3))), float)   # ω = (I + E)·b_gyr − b (gyro_map.py)
+    if np.any(E != 0.0):
+        for i in range(3):
+            lines.append(_row("gyro map E %" if i == 0 else "", vec(100.0 * E[i], "9.4f")))
+    else:
+        lines.append(_row("gyro map E", "not estimated (too few turns, or did not settle; see info)"))
     units = {"gyr": "rad/s", "acc": "m/s²", "mag": "mag unit"}
     for key, unit in units.items():
         if key in cal.noise:
