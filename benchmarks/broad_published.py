@@ -46,6 +46,10 @@ def main(argv: list[str]) -> int:
                      "identifiable": bool(est.calibration.coverage.get("identifiable", True)),
                      "t_imugraph_s": round(t_ig, 2), "t_offline_vqf_s": round(t_off, 3)})
         print(rows[-1], flush=True)
+    if not rows:
+        print(f"broad_published: no BROAD trial matches {argv[0]!r} (expected trial numbers like 01,04; options "
+              "as --opt FIELD=VALUE, --keyframe-hz HZ)", file=sys.stderr)
+        return 2
     print_table(rows, list(rows[0].keys()))
     means = {k: float(np.mean([r[k] for r in rows])) for k in ("imugraph", "offline_vqf", "vqf")}
     worse = [r["trial"] for r in rows if r["imugraph"] > r["offline_vqf"]]
