@@ -47,6 +47,11 @@ MIN_EPISODES = 2             # (C2): the rail is reached in ≥ 2 separate episo
 MIN_CLIPPED = 5              # relevance: ≥ 5 samples on a rail (fewer is a chance repeat of a maximum)
 
 
+def on_rail(y: np.ndarray, level: float) -> np.ndarray:
+    """Samples of y exactly at a rail `level` (to 1e-9 relative: a held value, not a nearby one)."""
+    return np.abs(y - level) <= 1e-9 * max(1.0, abs(level))
+
+
 def find_rails(y: np.ndarray, mask: np.ndarray) -> list:
     """[(axis, sign, level)] of the rails of y (N, 3) over the samples in mask (module doc)."""
     out = []
@@ -56,8 +61,7 @@ def find_rails(y: np.ndarray, mask: np.ndarray) -> list:
         if len(v) < 10:
             continue
         for sign, level in ((1.0, float(np.max(v))), (-1.0, float(np.min(v)))):
-            tol = 1e-9 * max(1.0, abs(level))
-            hit = mask & (np.abs(y[:, a] - level) <= tol)
+            hit = mask & on_rail(y[:, a], level)
             a0, a1 = runs(hit)
             if hit.sum() >= MIN_COUNT and np.any(a1 - a0 >= MIN_RUN):
                 out.append((a, sign, level))
@@ -69,7 +73,7 @@ def reconstruct_peaks(t: np.ndarray, y: np.ndarray, rails: list) -> np.ndarray:
     rail)."""
     out = y.copy()
     for a, sign, level in rails:
-        hit = np.abs(y[:, a] - level) <= 1e-9 * max(1.0, abs(level))
+        hit = on_rail(y[:, a], level)
         r0, r1 = runs(hit)
         for i0, i1 in zip(r0, r1):
             nb = np.r_[np.arange(max(0, i0 - CONTEXT), i0), np.arange(i1, min(len(y), i1 + CONTEXT))]
@@ -86,7 +90,7 @@ def reconstruct_peaks(t: np.ndarray, y: np.ndarray, rails: list) -> np.ndarray:
 def separate_runs(y: np.ndarray, level: float, t: np.ndarray, gap_s: float = 0.1) -> int:
     """Number of separate episodes (runs of ≥ MIN_RUN samples at exactly `level`, more than `gap_s`
     apart) of one axis."""
-    a0, a1 = runs(np.abs(y - level) <= 1e-9 * max(1.0, abs(level)))
+    a0, a1 = runs(on_rail(y, level))
     keep = [(i0, i1) for i0, i1 in zip(a0, a1) if i1 - i0 >= MIN_RUN]
     n, last = 0, -np.inf
     for i0, i1 in keep:
@@ -103,7 +107,7 @@ def clipped_support(s, rails: dict) -> np.ndarray:
     for c, rr in rails.items():
         y = getattr(s, c)
         for a, _sign, level in rr:
-            hit |= np.abs(y[:, a] - level) <= 1e-9 * max(1.0, abs(level))
+            hit |= on_rail(y[:, a], level)
     half = max(1, int(round(SUPPORT_S * s.rate)))
     return np.convolve(hit.astype(float), np.ones(2 * half + 1), "same") > 0
 
@@ -117,7 +121,7 @@ class SaturationCorrection(Correction):
             y_new = reconstruct_peaks(s.t, s.gyr, rails["gyr"])
             out = gyro_exact(fit, y_new - s.gyr)
         for a, sign, level in rails.get("acc", []):
-            out["acc"][np.abs(s.acc[:, a] - level) <= 1e-9 * max(1.0, abs(level))] = np.nan   # censored
+            out["acc"][on_rail(s.acc[:, a], level)] = np.nan                                  # censored
         return out
 
 
@@ -172,7 +176,7 @@ class Saturation(Effect):
         for c, rails in corr.deltas.get("rails", {}).items():
             y = getattr(s, c)
             for a, _sign, level in rails:
-                n += int(np.sum(np.abs(y[:, a] - level) <= 1e-9 * max(1.0, abs(level))))
+                n += int(np.sum(on_rail(y[:, a], level)))
         return {"value": float(n), "threshold": float(MIN_CLIPPED), "unit": "clipped samples"}
 
 
