@@ -169,15 +169,14 @@ class TimeOffset(Effect):
                 if tau_c is None:
                     continue
                 corr = TimeOffsetCorrection(self.name, {"channel": c, "tau_s": float(tau_c)}, 2, channel=c)
-                cost = _relative_cost(fit, corr.raw_residuals(fit), train, channels)
+                res = corr.raw_residuals(fit)       # (a gyro shift re-integrates the trajectory: kept, not redone)
+                cost = _relative_cost(fit, res, train, channels)
                 if best is None or cost < best[0]:
-                    best = (cost, corr)
-        corr = best[1]
+                    best = (cost, corr, res)
+        _, corr, res = best
         if corr.channel == "gyr":
             corr.deltas["d_omega"] = np.nan_to_num(shift_signal(s.t, s.gyr, -corr.params["tau_s"]) - s.gyr)
-        corr.params["train_cost_reduction"] = float(1.0 - _cost(fit, corr.raw_residuals(fit), train, channels)
-                                                    / max(base_cost, 1e-30))
-        res = corr.raw_residuals(fit)
+        corr.params["train_cost_reduction"] = float(1.0 - _cost(fit, res, train, channels) / max(base_cost, 1e-30))
         corr.deltas["noise_scale"] = noise_scale(fit, res, train, [corr.channel])
         return corr
 
