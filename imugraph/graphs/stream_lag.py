@@ -61,11 +61,7 @@ class ChainLagSmoother:
         # marginalizeLeaves needs leaves (it crashed, not raised, on a key that was not one): this update
         # re-eliminates the whole window with those keys first, then they are marginalised
         self.isam.update(graph, values, [], self._groups(old), None, existing)
-        left = {}
-        for k in old:
-            sym = gtsam.Symbol(k)
-            if chr(sym.chr()) == "x":
-                left[sym.index()] = self.isam.calculateEstimatePose3(k).rotation().matrix()
+        left = _pose_rotations(self.isam, old)
         self.isam.marginalizeLeaves(_key_list(old))
         for k in old:
             del self.stamps[k]
@@ -103,9 +99,14 @@ def _key_list(keys) -> gtsam.KeyList:
 
 def window_rotations(smoother: ChainLagSmoother) -> dict:
     """Keyframe index → nRb (3×3) of every pose key still in the window (latest estimate)."""
+    return _pose_rotations(smoother.isam, smoother.stamps)
+
+
+def _pose_rotations(isam: gtsam.ISAM2, keys) -> dict:
+    """Keyframe index → nRb (3×3), iSAM2's latest estimate, of the pose keys (x) among `keys`."""
     out = {}
-    for k in smoother.stamps:
+    for k in keys:
         sym = gtsam.Symbol(k)
         if chr(sym.chr()) == "x":
-            out[sym.index()] = smoother.isam.calculateEstimatePose3(k).rotation().matrix()
+            out[sym.index()] = isam.calculateEstimatePose3(k).rotation().matrix()
     return out

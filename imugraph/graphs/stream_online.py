@@ -23,7 +23,6 @@ import gtsam
 import numpy as np
 
 from imugraph import keys
-
 from imugraph.calibration.result import Calibration
 from imugraph.graphs.cpp_velocity import pose_key, robust
 from imugraph.graphs.stream_field import field_key, field_mag_factor, linearized_once
@@ -133,7 +132,8 @@ class OnlineCalibrationMixin:
             return gtsam.LevenbergMarquardtOptimizer(graph, values, gtsam.LevenbergMarquardtParams()).optimize()
         from imugraph.graphs.solver import chain_ordering, optimize
 
-        chain = set(values.keys())
-        order = [key for k in range(self._k + 1) for key in (pose_key(k), keys.vel(k), field_key(k)) if key in chain]
-        rest = [key for key in values.keys() if key not in set(order)]
+        present = set(values.keys())
+        order = [key for k in range(self._k + 1) for key in (pose_key(k), keys.vel(k), field_key(k)) if key in present]
+        in_order = set(order)
+        rest = [key for key in values.keys() if key not in in_order]
         return optimize(graph, [], values, chain_ordering(order, rest))[0]
