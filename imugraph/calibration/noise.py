@@ -56,11 +56,11 @@ def field_dof(G_dd: np.ndarray, dt_k: np.ndarray, sigma_d, tau_d: float) -> floa
 
     (tridiagonal: d_0/σ_d and (d_{k+1} − φ_k d_k)/σ_w,k). Cross-axis and rotation couplings are neglected.
     G_dd: (K, 3, 3) whitened data information of d_k; dt_k (K−1,) keyframe intervals, s."""
-    from imugraph.factors.field import field_prior_terms
+    from imugraph.factors.field import field_sigmas, field_steps
 
     K = G_dd.shape[0]
-    _, _, phi, sigma_w = field_prior_terms(np.zeros((K, 3)), np.asarray(dt_k, float), sigma_d, tau_d)
-    sig = np.broadcast_to(np.asarray(sigma_d, float), (3,))
+    phi, sigma_w = field_steps(dt_k, sigma_d, tau_d)
+    sig = field_sigmas(sigma_d)
     total = 0.0
     for a in range(3):
         h = np.clip(G_dd[:, a, a], 0.0, None)

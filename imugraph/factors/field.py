@@ -39,14 +39,25 @@ def field_key(k: int) -> int:
     return gtsam.symbol("f", int(k))
 
 
+def field_sigmas(sigma_d) -> np.ndarray:
+    """σ_d as (3,) per nav axis (x along the horizontal field, y horizontal across it, z up) from a scalar or
+    3 values."""
+    return np.broadcast_to(np.asarray(sigma_d, float), (3,)).copy()
+
+
+def field_steps(dt_k: np.ndarray, sigma_d, tau_d: float) -> tuple[np.ndarray, np.ndarray]:
+    """The Gauss–Markov transitions of the prior: φ_k = exp(−Δt_k/τ_d) (K−1,) and the increments' std
+    σ_w,k = σ_d √(1 − φ_k²) (K−1, 3), for keyframe intervals dt_k (K−1,) s."""
+    phi, unit_w = gauss_markov(np.asarray(dt_k, float), 1.0, tau_d)
+    return phi, unit_w[:, None] * field_sigmas(sigma_d)[None, :]
+
+
 def field_prior_terms(d: np.ndarray, dt_k: np.ndarray, sigma_d, tau_d: float):
     """Whitened Gauss–Markov residuals of d (K, 3): the start term d_0/σ_d (3,), the increments
     (d_{k+1} − φ_k d_k)/σ_w,k (K−1, 3), and φ (K−1,), σ_w (K−1, 3).
 
-    sigma_d: a scalar, or (3,) per nav axis (x along the horizontal field, y horizontal across it, z up)."""
-    sig = np.broadcast_to(np.asarray(sigma_d, float), (3,))
-    phi, unit_w = gauss_markov(dt_k, 1.0, tau_d)
-    sigma_w = unit_w[:, None] * sig[None, :]
-    start = d[0] / sig
+    sigma_d: a scalar, or (3,) per nav axis (`field_sigmas`)."""
+    phi, sigma_w = field_steps(dt_k, sigma_d, tau_d)
+    start = d[0] / field_sigmas(sigma_d)
     steps = (d[1:] - phi[:, None] * d[:-1]) / sigma_w
     return start, steps, phi, sigma_w

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import gtsam
 import numpy as np
 
-from imugraph.factors.field import field_key, field_prior_terms
+from imugraph.factors.field import field_key, field_prior_terms, field_sigmas
 from imugraph.graphs.solver import keyframe_vectors, state_keys
 
 
@@ -48,7 +48,7 @@ class FieldBlock:
         start, steps, phi, sigma_w = field_prior_terms(d, self.dt_k, self.sigma_d, self.tau_d)
         unit = gtsam.noiseModel.Unit.Create(3)
         gfg = gtsam.GaussianFactorGraph()
-        sig = np.broadcast_to(np.asarray(self.sigma_d, float), (3,))
+        sig = field_sigmas(self.sigma_d)
         fk = state_keys(field_key, self.n_keyframes)
         eye = np.eye(3)
         A0 = -(phi[:, None] / sigma_w)[:, :, None] * eye       # diag(−φ_k/σ_w,k) (K−1, 3, 3)

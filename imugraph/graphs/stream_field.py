@@ -23,17 +23,11 @@ from __future__ import annotations
 import gtsam
 import numpy as np
 
-from imugraph.factors.field import field_key
-from imugraph.factors.velocity import gauss_markov
+from imugraph.factors.field import field_key, field_sigmas, field_steps
 
 __all__ = ["field_key", "field_mag_factor", "field_start_prior", "field_step_factor", "field_sigmas", "linearized_once"]
 
 _ZERO3, _UNIT3 = np.zeros(3), gtsam.noiseModel.Unit.Create(3)
-
-
-def field_sigmas(sigma_d) -> np.ndarray:
-    """σ_d as (3,) per nav axis (x along the horizontal field, y across it, z up) from a scalar or 3 values."""
-    return np.broadcast_to(np.asarray(sigma_d, float), (3,)).copy()
 
 
 def field_mag_factor(pose_k: int, field_k: int, m_avg: np.ndarray, n_mag: np.ndarray, model) -> gtsam.CustomFactor:
@@ -59,8 +53,8 @@ def field_start_prior(field_0: int, sigma_d) -> gtsam.PriorFactorVector:
 
 def field_step_factor(field_k: int, field_next: int, dt_k: float, sigma_d, tau_d: float) -> gtsam.LinearContainerFactor:
     """(d_{k+1} − φ_k d_k)/σ_w,k ~ N(0, I), φ_k = exp(−Δt_k/τ_d), σ_w,k = σ_d √(1 − φ_k²): eq. (2), exact."""
-    phi, unit_w = gauss_markov(np.array([float(dt_k)]), 1.0, tau_d)
-    sig_w = unit_w[0] * field_sigmas(sigma_d)
+    phi, sigma_w = field_steps(np.array([float(dt_k)]), sigma_d, tau_d)
+    sig_w = sigma_w[0]
     jf = gtsam.JacobianFactor(field_k, np.diag(-phi[0] / sig_w), field_next, np.diag(1.0 / sig_w), _ZERO3, _UNIT3)
     lin = gtsam.Values()
     lin.insert(field_k, _ZERO3)
