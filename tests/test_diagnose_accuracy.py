@@ -11,7 +11,8 @@ import pytest
 from imugraph.diagnose.bench import simulated_session
 from imugraph.diagnose.effects import EFFECTS
 from imugraph.diagnose.effects.linear_acceleration import HAND_LEVER_M, STANDARD_G, ordinary_level
-from imugraph.diagnose.effects.magnetic_disturbance import FieldRemoved, PAD_S, STEP_FLOOR, step_windows
+from imugraph.diagnose.effects.magnetic_disturbance import (_ALTERNATION, PAD_S, STEP_FLOOR, FieldRemoved,
+                                                             step_windows)
 from imugraph.diagnose.fit import fit_base
 
 
@@ -91,9 +92,8 @@ def test_weak_magnet_found_by_its_step_and_refitted_with_its_own_window(weak_mag
 
 def test_magnet_correction_removes_the_field_and_leaves_only_the_ramps_out(weak_magnet):
     s2, truth, f = weak_magnet
-    E = EFFECTS["magnetic_disturbance"]
-    corr = E.fit(f, np.ones(f.n, bool))
-    corr.__class__ = FieldRemoved                     # the correction of the diagnosis' refit
+    corr = _ALTERNATION.fit(f, np.ones(f.n, bool))    # the correction of the diagnosis' refit
+    assert isinstance(corr, FieldRemoved)
     y = corr.corrected(f)["mag"]
     t = f.session.t
     gone = ~np.all(np.isfinite(y), axis=1) & np.all(np.isfinite(s2.mag), axis=1)

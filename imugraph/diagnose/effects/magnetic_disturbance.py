@@ -101,6 +101,7 @@ class MagneticDisturbance(Effect):
     # imugraph.calibration.disturbance (windows from the field norm): what refit.refit_effect fits when
     # called on this effect directly; the diagnosis refits by `refit` (the effect's own windows)
     joint_options = {"disturbance_windows": True}
+    correction = MagneticCorrection        # the Correction `fit` returns (FieldRemoved in `refit`)
 
     def inject(self, session, rng, *, window=None, strength=None):
         """Add (M1)'s field over a window. strength: field in µT-equivalent (default: random in range)."""
@@ -157,7 +158,7 @@ class MagneticDisturbance(Effect):
         d_window = np.einsum("nij,j->ni", J[:, :, 12:], theta[12:])                  # Δo_w + D bRn Δn_w
         res = {c: fit.residuals[c].copy() for c in fit.residuals}
         res["mag"] = r - delta
-        corr = MagneticCorrection(
+        corr = self.correction(
             self.name, {"offset_change": theta[:3].tolist(),
                         "D_change": theta[3:12].reshape(3, 3).tolist(),
                         "windows": [{"t_start": a, "t_end": b, "body_offset": theta[12 + 6 * i:15 + 6 * i].tolist(),
@@ -184,7 +185,7 @@ class MagneticDisturbance(Effect):
 
     def refit(self, real, rounds: int = 2, window=None):
         """Full refit (docs/diagnose.md §3 (F1)) of (M1) with the effect's OWN windows: the alternation of
-        imugraph.diagnose.refit with the windows' field samples left out (`MagneticCorrection.corrected`).
+        imugraph.diagnose.refit with the windows' fitted field removed from the data (`FieldRemoved.corrected`).
         The joint calibration (`joint_options`, imugraph.calibration.disturbance) finds its windows by the
         field norm, which a magnet weaker than ~15 % of |m| crosses only at some orientations (BROAD 36,
         0.12 |m|: 24 fragments over 36–127 s, half of them unmodelled, and a θ* whose gyro gap rose from 13
@@ -292,11 +293,7 @@ class _Alternation(MagneticDisturbance):
     that remove the windows' field (`FieldRemoved`)."""
 
     joint_options = None
-
-    def fit(self, fit, train, window=None) -> Correction:
-        corr = super().fit(fit, train, window)
-        corr.__class__ = FieldRemoved
-        return corr
+    correction = FieldRemoved
 
 
 _ALTERNATION = _Alternation()
