@@ -20,7 +20,7 @@ vertical: 8–12° of heading the gyro gets wrong. A strongly weighted magnetome
 gyro bias (segments spanning 0.9 °/s on trial 01, against ≈ 0.07 °/s from the optical fit). Correcting the
 gyro with the optical M: heading RMS 1.34 → 0.94° (01), 1.15 → 0.38° (04).
 
-Safety (B5, measured on BROAD): estimated from every interval, E ran away on fast trials (16: +7 % per
+Safety (measured on BROAD, benchmarks/b5_gyro_map_trace.py): estimated from every interval, E ran away on fast trials (16: +7 % per
 ML round to +40 %, 16.8°; κ = 0 changes nothing; with the accelerometer as gravity-plus-noise −88 % in
 round 1): E's regressor is the rate, which correlates with the unmodelled linear/centripetal acceleration
 of fast motion, and E soaked it up. So (1) only intervals whose specific force stays within acc_tol of g
@@ -28,7 +28,7 @@ inform E (clean_intervals: 16 → 0.97°, 06 → 0.82°, still worse than withou
 E is estimated only when those intervals hold enough rotation (clean_turns; BROAD 01/02/04/24 have
 20–29 turns, 06/07 11/9, translation trials < 8), else E stays 0.
 
-Why the gates are physical, not fitted (B6, measured with benchmarks/b6_gyro_coverage.py and
+Why the gates are physical, not fitted (measured with benchmarks/b6_gyro_coverage.py and
 b5_gyro_map_trace.py):
   * clean intervals: E's regressor is ω; the unmodelled part of the specific force (centripetal ω²r,
     tangential ω̇r, velocity-model errors) grows with the same motion, so only where |b_acc| ≈ g is the
@@ -50,14 +50,14 @@ windows) — BROAD 24 against gyro_map=False: orientation ≤ 1.3e-4° apart, θ
 discrete decisions can differ: on a simulated attached magnet (tests/test_disturbance.py) the warm rounds
 start from the E rounds' inflated σ_mag and end with the window "not modelled", so it is not the default.
 
-Cost (B7, `benchmarks/b6_profile.py TRIAL --opt gyro_map=… --repeat 2 --top 0`, CPU, one BLAS thread, shared
+Cost (`benchmarks/b6_profile.py TRIAL --opt gyro_map=… --repeat 2 --top 0`, CPU, one BLAS thread, shared
 machine): only the trials that pass the coverage gate pay (the gate itself is a few ms). Where E settles, the
 extra is one or two ML rounds (E's steps shrink 0.12–0.39 per round down to gyro_map_tol: 3 rounds on 02/04,
 4 on 01, against 2 without E) and the β_k/e keys in each round's graph (e joins every clique's separator):
 04 2.29 → 2.60 s. Where it does not settle (BROAD 24), the two rounds with E were thrown away and the plain
 rounds run in full: 2.35 → 4.26 s (the default); continued warm the plain rounds take 3 LM iterations instead of 7
-(LM total 19 → 15, against 12 without E): 3.00 s, same machine 1.94 s without E. map_jacobian reads kRb_j Exp(θ_j) J_r(θ_j)Δt_j formed inside the
-preintegration's recursion (Preintegration.steps).
+(LM total 19 → 15, against 12 without E): 3.00 s, same machine 1.94 s without E. map_jacobian reads
+kRb_j Exp(θ_j) J_r(θ_j)Δt_j formed inside the preintegration's recursion (Preintegration.steps).
 """
 
 from __future__ import annotations
@@ -65,6 +65,11 @@ from __future__ import annotations
 import numpy as np
 
 from imugraph.factors.gyro import Preintegration, exp_and_right_jacobian, preintegrate
+
+
+def corrected_rate(b_gyr: np.ndarray, E: np.ndarray) -> np.ndarray:
+    """(I + E)·b_gyr (N, 3): the gyro with its scale/misalignment E removed (the model's ω before the bias)."""
+    return b_gyr + b_gyr @ np.asarray(E, float).T
 
 
 def map_jacobian(b_gyr: np.ndarray, dt: np.ndarray, pre: Preintegration, bias_rows: np.ndarray) -> np.ndarray:
@@ -163,7 +168,7 @@ class GyroMapState:
 
     def corrected(self, b_gyr: np.ndarray) -> np.ndarray:
         """(I + Ê) b_gyr."""
-        return b_gyr + b_gyr @ self.E.T
+        return corrected_rate(b_gyr, self.E)
 
     def model(self, g_c: np.ndarray, dt: np.ndarray, pre: Preintegration, bias_rows: np.ndarray):
         """The graph's GyroMapModel at this preintegration (g_c: the corrected gyro it integrated)."""

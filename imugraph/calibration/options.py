@@ -58,10 +58,10 @@ class Options:
     #   from the intervals where the accelerometer sees gravity only, behind a coverage gate and a settling
     #   gate (else the plain model's result). Ungated, E ran to +40 % on BROAD 16 (16.8°): it absorbed
     #   unmodelled linear acceleration. Gated: BROAD 17-trial mean 0.83° → 0.77° (01 1.23 → 0.755°,
-    #   04 1.17 → 0.548°, 02 0.424 → 0.470°, others identical). Until the final solve's fix (B6: it kept
+    #   04 1.17 → 0.548°, 02 0.424 → 0.470°, others identical). Until the final solve was fixed (it kept
     #   the rounds' β_k/e keys, met an indeterminate system at every λ and returned the last round's
     #   thinned-field solution) these were 0.793° / 0.524° / 0.443°, mean also 0.77°.
-    #   The default since B7 (its cost: one more ML round where the gates pass, β_k/e keys in the rounds)
+    #   On by default (its cost: one more ML round where the gates pass, β_k/e keys in the rounds)
     gyro_map_sigma: float = 0.02      # prior std of the entries of E
     gyro_map_acc_tol: float | None = 2.0   # m/s²: only keyframe intervals with | |b_acc| − g | below this
     #   inform E (calibration/gyro_map.clean_intervals; None: all intervals)

@@ -75,9 +75,10 @@ class Calibration:
     def corrected_gyro(self, b_gyr: np.ndarray) -> np.ndarray:
         """(I + E)·b_gyr, (N, 3) → (N, 3): the gyro with its scale/misalignment removed (not its bias), as
         calibration.ml preintegrated it (gyro_map.GyroMapState.corrected); b_gyr itself when E = 0."""
+        from imugraph.calibration.gyro_map import corrected_rate
+
         b_gyr = np.asarray(b_gyr, float)
-        E = np.asarray(self.gyro_map, float)
-        return b_gyr + b_gyr @ E.T if np.any(E) else b_gyr
+        return corrected_rate(b_gyr, self.gyro_map) if np.any(self.gyro_map) else b_gyr
 
     def to_dict(self) -> dict:
         def arr(x):

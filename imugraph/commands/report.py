@@ -72,8 +72,8 @@ def calibration_table(cal: Calibration, scores: Scores, title: str) -> str:
     std_dip = cal.std.get("dip_deg") if isinstance(cal.std, dict) else None
     lines.append(_row("dip", f"{cal.dip_deg:.3f}°" + ("" if std_dip is None else f"  ± {float(std_dip):.3f}°")))
     lines.append(_row("gyro bias °/s", f"{vec(np.rad2deg(cal.gyro_bias), '9.4f')}  ± {vec(std_b, '7.4f')}"))
-    E = np.asarray(getattr(cal, "gyro_map", np.zeros((3, 3))), float)   # ω = (I + E)·b_gyr − b (gyro_map.py)
-    if np.any(E != 0.0):
+    E = np.asarray(cal.gyro_map, float)          # ω = (I + E)·b_gyr − b (calibration/gyro_map.py)
+    if np.any(E):
         for i in range(3):
             lines.append(_row("gyro map E %" if i == 0 else "", vec(100.0 * E[i], "9.4f")))
     else:

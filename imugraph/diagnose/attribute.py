@@ -361,4 +361,4 @@ def verdict(results: list, null_gap: dict, opt: AttributionOptions = Attribution
     the rest of the same recording) comes first, then the best-ranked (A2) global one (V)."""
     ok = [r for r in results if significant(r, null_gap, opt) and r.relevant]
     local = [r for r in ok if r.support_fraction < LOCAL_FRACTION]
-    return (local or ok or [None])[0].name if ok else NONE
+    return (local or ok)[0].name if ok else NONE

@@ -105,7 +105,7 @@ class Preintegration:
     cov: np.ndarray
     dt: np.ndarray
     bias_hat: np.ndarray
-    steps: tuple | None = None
+    steps: np.ndarray | None = None
 
 
 def preintegrate(b_gyr: np.ndarray, dt: np.ndarray, kf_samples: np.ndarray, sample_kf: np.ndarray,
