@@ -25,6 +25,7 @@ from imugraph.calibration.result import Calibration
 from imugraph.factors.gyro import keyframe_layout, preintegrate
 from imugraph.calibration.disturbance import apply_windows, detect_windows, fit_offsets
 from imugraph.calibration.result import n_mag_from_dip
+from imugraph.calibration.solution import marginal_covariances, per_sample_residuals  # noqa: F401 (public here)
 from imugraph.factors.velocity import gravity_from_velocity
 from imugraph.geometry import quat_to_rotmat
 from imugraph.factors.theta import THETA_DIM, pack_theta, unpack_theta
@@ -32,7 +33,7 @@ from imugraph.graphs.orientation_init import complementary_keyframes, sample_ori
 from imugraph.calibration.gyro_map import GyroMapState, coverage_gate
 from imugraph.calibration.initial import weak_initial  # noqa: F401  (re-exported: diagnose.fit uses it)
 from imugraph.factors.field import field_key
-from imugraph.graphs.single_imu import (FieldModel, Noise, Problem, VelocityModel, build_problem,
+from imugraph.graphs.single_imu import (FieldModel, Noise, VelocityModel, build_problem,
                                         keyframe_rotations)
 from imugraph.graphs.gyro_map_block import without_map_keys
 from imugraph.graphs.solver import keyframe_vectors, optimize
@@ -379,30 +380,3 @@ def _theta_prior_sigma(theta0: np.ndarray, tight: bool = False) -> np.ndarray:
     s = float(np.cbrt(abs(np.linalg.det(D0)))) or 1.0
     f = 0.05 if tight else 1.0
     return np.concatenate([np.full(9, f * s), np.full(3, 2.0 * f * s), [np.pi / 2]])
-
-
-def marginal_covariances(prob: Problem, values: gtsam.Values) -> tuple[np.ndarray, np.ndarray]:
-    """Marginal covariances of θ (13×13) and the gyro bias (3×3) at the solution."""
-    gfg = prob.graph.linearize(values)
-    for b in prob.blocks:
-        gfg.push_back(b.linearize(values))
-    K = prob.block.n_keyframes
-    others = [k for k in prob.ordering_keys if k not in (keys.CALIB, keys.BIAS)]
-    bn = gfg.marginalMultifrontalBayesNet(gtsam.Ordering([keys.CALIB, keys.BIAS]), gtsam.Ordering(others))
-    marg = gtsam.GaussianFactorGraph()
-    marg.push_back(bn)
-    info = marg.augmentedHessian(gtsam.Ordering([keys.CALIB, keys.BIAS]))[:-1, :-1]
-    cov = np.linalg.inv(info)
-    return cov[:THETA_DIM, :THETA_DIM], cov[THETA_DIM:, THETA_DIM:]
-
-
-def per_sample_residuals(prob: Problem, nRk: np.ndarray, theta: np.ndarray, session: Session) -> dict:
-    """Whitened residuals per channel as (N, 3) arrays with NaN rows where a channel has no sample."""
-    out = {}
-    res = prob.block.residuals(nRk, theta)
-    for name, src in (("acc", session.acc), ("mag", session.mag)):
-        if name in res:
-            full = np.full((session.n, 3), np.nan)
-            full[np.all(np.isfinite(src), axis=1)] = res[name]
-            out[name] = full
-    return out
