@@ -1,7 +1,7 @@
 """`imugraph stream SESSION`: the session fed sample by sample, in arrival order, to iSAM2 (or a fixed-lag
 smoother with --lag), starting from a short batch bootstrap calibration (or --calibration FILE) that is
-re-estimated online (held fixed with `--fixed-calibration` when the parser offers it; `--lag-solver
-batch` selects gtsam's BatchFixedLagSmoother instead of the IncrementalFixedLagSmoother for --lag, likewise).
+re-estimated online (held fixed with `--fixed-calibration` when the parser offers it; `--lag-solver` picks
+the fixed-lag solver for --lag: chain (default), incremental or batch, `StreamOptions.fixed_lag_solver`).
 
 Writes (DESIGN.md): orientation.npz (smoothed, at the end), orientation_filtered.npz (the estimate available
 when each sample arrived), calibration.json (the calibration at the end), calibration_history.json (the

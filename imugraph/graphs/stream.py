@@ -50,9 +50,9 @@ from imugraph.graphs.stream_interval import (NAN3 as _NAN3, Q_ID, ArrivalMixin, 
 from imugraph.graphs.orientation_init import sample_orientations, triad
 from imugraph.graphs.stream_calib import OnlineMagCalibration
 from imugraph.graphs.stream_field import field_key, field_start_prior, field_step_factor
-from imugraph.graphs.stream_lag import ChainLagSmoother, keyframe_group, window_rotations
+from imugraph.graphs.stream_lag import window_rotations
 from imugraph.graphs.stream_online import OnlineCalibrationMixin
-from imugraph.graphs.stream_options import SIGMA_WEAK_POSE, StreamOptions, StreamStats, isam2_thresholds
+from imugraph.graphs.stream_options import SIGMA_WEAK_POSE, StreamOptions, StreamStats, make_solver
 
 __all__ = ["StreamOptions", "StreamSmoother", "StreamStats"]
 
@@ -101,23 +101,7 @@ class StreamSmoother(OnlineCalibrationMixin, ArrivalMixin):
         self._estimate_g = options.g is None
         self._g = float(options.g if options.g is not None else g0)
         self._pim_params = gtsam.PreintegrationParams.MakeSharedU(self._g)
-        params = gtsam.ISAM2Params()
-        if options.factorization not in ("QR", "CHOLESKY"):
-            raise SessionError("stream", "factorization", repr(options.factorization), '"QR" or "CHOLESKY"')
-        params.setFactorization(options.factorization)        # QR: see StreamOptions.factorization
-        params.setRelinearizeThreshold(isam2_thresholds(options.relinearize_threshold))
-        params.relinearizeSkip = 1
-        # check only the variables the update touches (and their ancestors) for relinearisation: the full
-        # check computes the whole delta, O(K) per update (measured: 10 ms at 100 keyframes → 0.4 ms)
-        params.enablePartialRelinearizationCheck = True
-        if options.lag_s is None:
-            self._solver = gtsam.ISAM2(params)
-        else:
-            # StreamOptions.fixed_lag_solver; a failed update is counted and the prediction kept, never a crash
-            lag = float(options.lag_s)
-            self._solver = (ChainLagSmoother(lag, params, keyframe_group) if options.fixed_lag_solver == "chain" else
-                            gtsam.IncrementalFixedLagSmoother(lag, params) if options.fixed_lag_solver == "incremental"
-                            else gtsam.BatchFixedLagSmoother(lag))
+        self._solver = make_solver(options)   # a failed update is counted and the prediction kept, never a crash
         self._weak_pose = gtsam.noiseModel.Isotropic.Sigma(6, SIGMA_WEAK_POSE)
         self._buf: list = []                 # open interval: rows (t, gyr(3), acc(3), mag(3) or NaN)
         self._k = 0                          # index of the open interval's keyframe
@@ -300,10 +284,8 @@ class StreamSmoother(OnlineCalibrationMixin, ArrivalMixin):
                 if chain:      # only the keyframes leaving the window are read back (their smoothed output)
                     left = self._solver.update(graph, values, stamps)
                     self._smoothed_kf.update(left or {})
-                    if left and not self.opt.keep_history:       # constant memory: what calibration awaits
-                        lo = self._pending[0][0] if self._pending else k_new
-                        for old in [key for key in self._smoothed_kf if key < lo]:
-                            del self._smoothed_kf[old]
+                    if left:
+                        self._forget_smoothed(k_new)
                 else:
                     self._solver.update(graph, values)
                 isam = self._solver.isam if chain else self._solver
@@ -321,10 +303,7 @@ class StreamSmoother(OnlineCalibrationMixin, ArrivalMixin):
                 first = k_new + 1 - poses.shape[0]
                 for i, row in enumerate(poses):
                     self._smoothed_kf[first + i] = row[:9].reshape(3, 3).copy()
-                if not self.opt.keep_history:        # constant memory: keep the window and what calibration awaits
-                    lo = min(first, self._pending[0][0]) if self._pending else first
-                    for old in [key for key in self._smoothed_kf if key < lo]:
-                        del self._smoothed_kf[old]
+                self._forget_smoothed(first)
                 est_pose, est_v = est.atPose3(pose_key(k_new)), est.atVector(keys.vel(k_new))
                 est_b = est.atConstantBias(imu_bias_key(seg))
                 est_d = est.atVector(field_key(k_new)) if self._field else None
@@ -344,6 +323,15 @@ class StreamSmoother(OnlineCalibrationMixin, ArrivalMixin):
             self._d = np.asarray(est_d, float)
         self._b_now = tuple(float(v) for v in self._b_gyr_est)
         self._q_nk = tuple(_quat(self._nRk))
+
+    def _forget_smoothed(self, keep_from: int) -> None:
+        """Without keep_history (constant memory): drop the smoothed keyframes before `keep_from` that the
+        online calibration no longer awaits (its oldest pending interval)."""
+        if self.opt.keep_history:
+            return
+        lo = min(keep_from, self._pending[0][0]) if self._pending else keep_from
+        for old in [key for key in self._smoothed_kf if key < lo]:
+            del self._smoothed_kf[old]
 
     # ------------------------------------------------------------------ end
     def finish(self) -> None:
