@@ -7,7 +7,7 @@ import pytest
 
 from imugraph import keys
 from imugraph.factors.gyro import keyframe_layout, preintegrate
-from imugraph.factors.velocity import gauss_markov, velocity_increments, velocity_model
+from imugraph.factors.velocity import gauss_markov, gauss_markov_axes, velocity_increments, velocity_model
 from imugraph.geometry import expmap
 from imugraph.graphs.velocity_block import VelocityBlock
 from imugraph.factors.robust import Kernel
@@ -50,12 +50,14 @@ def test_velocity_residual_zero_for_consistent_motion():
 
 @pytest.mark.parametrize("with_bias", [False, True])
 @pytest.mark.parametrize("with_rest", [False, True])
-def test_block_linearisation_is_gradient_of_cost(with_bias, with_rest):
+@pytest.mark.parametrize("per_axis", [False, True])
+def test_block_linearisation_is_gradient_of_cost(with_bias, with_rest, per_axis):
     rng = np.random.default_rng(5)
     K = 7
     nRk, v, dv, dt_k = _random_state(rng, K)
     B = expmap(rng.normal(size=(K - 1, 3))) * 0.1 if with_bias else None
-    block = VelocityBlock(dv, np.full(K - 1, 0.05), dt_k, 9.81, sigma_v=0.7, tau_v=1.5,
+    sigma_v, tau_v = (np.array([0.7, 0.7, 1.2]), np.array([1.5, 1.5, 0.4])) if per_axis else (0.7, 1.5)
+    block = VelocityBlock(dv, np.full(K - 1, 0.05), dt_k, 9.81, sigma_v=sigma_v, tau_v=tau_v,
                           kernel=Kernel("huber", 2.0), B=B, bias_sigma0=0.2, bias_rw=0.01,
                           rest=np.array([True, True, False, False, False, True, False]) if with_rest else None)
     if with_bias:
@@ -139,3 +141,14 @@ def test_heading_block_linearisation_is_gradient_along_the_vertical():
         Gk = G[3 * k:3 * k + 3, 3 * k:3 * k + 3]
         tilt = np.cross(yaw, rng.normal(size=3))        # a rotation about a horizontal nav axis
         assert abs(tilt @ Gk @ tilt) < 1e-9 * np.trace(Gk) and abs(grad[3 * k:3 * k + 3] @ tilt) < 1e-9
+
+
+def test_gauss_markov_axes_is_the_scalar_chain_per_axis():
+    dt_k = np.array([0.05, 0.2, 1.0])
+    phi, sig_w = gauss_markov_axes(dt_k, np.array([0.5, 0.5, 1.1]), np.array([2.0, 2.0, 0.3]))
+    for axis, (s, t) in enumerate([(0.5, 2.0), (0.5, 2.0), (1.1, 0.3)]):
+        p1, w1 = gauss_markov(dt_k, s, t)
+        np.testing.assert_allclose(phi[:, axis], p1, rtol=1e-14)
+        np.testing.assert_allclose(sig_w[:, axis], w1, rtol=1e-14)
+    p_iso, w_iso = gauss_markov_axes(dt_k, 0.5, 2.0)
+    np.testing.assert_allclose(p_iso, np.repeat(gauss_markov(dt_k, 0.5, 2.0)[0][:, None], 3, axis=1))

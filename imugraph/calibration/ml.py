@@ -21,12 +21,14 @@ import numpy as np
 from imugraph import keys
 from imugraph.calibration.noise import field_dof, reestimate
 from imugraph.calibration.options import Options  # noqa: F401  (public here: ml.Options)
+from imugraph.calibration.acc_timing import with_lead
 from imugraph.calibration.result import Calibration
 from imugraph.factors.gyro import keyframe_layout, preintegrate
 from imugraph.calibration.disturbance import apply_windows, detect_windows, fit_offsets
 from imugraph.calibration.result import n_mag_from_dip
 from imugraph.calibration.solution import marginal_covariances, per_sample_residuals  # noqa: F401 (public here)
 from imugraph.factors.velocity import gravity_from_velocity
+from imugraph.calibration.velocity_process import update_velocity_process
 from imugraph.geometry import quat_to_rotmat
 from imugraph.factors.theta import THETA_DIM, pack_theta, unpack_theta
 from imugraph.graphs.orientation_init import complementary_keyframes, sample_orientations
@@ -92,6 +94,8 @@ def calibrate(session: Session, options: Options | None = None, initial=None,
     if delay != 0.0:
         from imugraph.calibration.alignment import undelay_magnetometer
         session = session.with_mag(undelay_magnetometer(session.t, session.mag, delay))
+    if opt.acc_lead_samples:       # accelerometer–gyro sample timing (calibration/acc_timing.py)
+        session = with_lead(session, opt.acc_lead_samples)
     g = gravity_from(session, getattr(init, "rest", None))
     noise = Noise(np.asarray(init.noise["gyr"], float), np.asarray(init.noise["acc"], float),
                   np.asarray(init.noise["mag"], float))
@@ -112,7 +116,8 @@ def calibrate(session: Session, options: Options | None = None, initial=None,
 
     rest_mask = getattr(init, "rest", None) if opt.zero_velocity_at_rest else None
 
-    vel_state = {"v": None, "s": None, "sigma": opt.velocity_sigma, "g": None, "rest": rest_mask}
+    vel_state = {"v": None, "s": None, "sigma": opt.velocity_sigma, "tau": opt.velocity_tau, "g": None,
+                 "rest": rest_mask}
     windows = detect_windows(session.t, m_cal0) if opt.disturbance_windows else []
     mag_state = {"y": session.mag, "w": apply_windows(windows, session.mag)[1] if windows else None}
 
@@ -200,6 +205,10 @@ def calibrate(session: Session, options: Options | None = None, initial=None,
                 change = max(change, abs(np.log(sig_new / vel_state["sigma"])))
                 vel_state["sigma"] = sig_new
                 history[-1]["velocity_sigma"] = sig_new
+            if vel_state["v"] is not None and opt.estimate_velocity_process != "off":   # EM step of σ_v, τ_v
+                change = max(change, update_velocity_process(vel_state, prob.velocity, nRk, history[-1],
+                                                             opt.estimate_velocity_process, opt.velocity_sigma,
+                                                             opt.velocity_tau))
             if windows:
                 # windowed hard iron at the current orientations (linear given them), Kok's o + Δo_w
                 D_, o_, dip_ = unpack_theta(theta)
@@ -276,7 +285,7 @@ def calibrate(session: Session, options: Options | None = None, initial=None,
              "gyro_bias": np.sqrt(np.maximum(np.diag(cov_bias), 0.0))},
         coverage=getattr(init, "coverage", {}) or {}, converged=bool(converged and info.converged),
         iterations=len(history), mag_delay_s=delay, disturbances=[w.as_dict(session.t) for w in windows],
-        gyro_map=gyro.E.copy())
+        gyro_map=gyro.E.copy(), acc_lead_samples=float(opt.acc_lead_samples))
     residuals = per_sample_residuals(prob, nRk, theta, session)
     if opt.heading_only_orientation and prob.block.mag is not None:
         nRk = _heading_stage(session, opt, pre, values, noise, g_used=vel_state["g"] or g,
@@ -289,7 +298,7 @@ def calibrate(session: Session, options: Options | None = None, initial=None,
                      "velocity": vel_state["v"],
                      "acc_bias": (None if vel_state["s"] is None or vel_state["s"].shape[1] < 6
                                   else vel_state["s"][:, 3:].mean(axis=0)),
-                     "velocity_sigma": vel_state["sigma"],
+                     "velocity_sigma": vel_state["sigma"], "velocity_tau": vel_state["tau"],
                      "disturbance_windows": [w.as_dict(session.t) for w in windows], "keyframe_samples": kf,
                      "field_offsets": prob.block.field_offsets, "gyro_map": gyro.E,
                      "gyro_map_gate": gate})
@@ -310,7 +319,7 @@ def _velocity_model(opt: Options, vel: dict) -> VelocityModel | None:
     """The velocity chain's settings for the next solve (None: linear acceleration treated as noise)."""
     if opt.linear_acceleration != "velocity":
         return None
-    return VelocityModel(vel["sigma"], opt.velocity_tau, opt.acc_rate_error, opt.acc_kernel, vel["s"],
+    return VelocityModel(vel["sigma"], vel["tau"], opt.acc_rate_error, opt.acc_kernel, vel["s"],
                          opt.acc_bias, rest=vel["rest"])
 
 

@@ -39,12 +39,26 @@ class Options:
     velocity_sigma: float = 0.5       # σ_v, m/s: stationary std of the sensor's velocity (start value)
     estimate_velocity_sigma: bool = False  # re-estimate σ_v from the velocity states in the ML loop
     velocity_tau: float = 2.0         # τ_v, s: its correlation time
+    estimate_velocity_process: str = "bounded"   # "off", "free"/"bounded"[+"_hv"]: σ_v, τ_v by an EM step per
+    #   ML round from the smoothed velocities (calibration/velocity_process.py; start: the two above; "bounded":
+    #   σ_v ≥, τ_v ≤ them — the settings are a floor on how much the sensor may move; "_hv": horizontal and
+    #   vertical processes apart). Free estimates match the optical velocities on the translation trials
+    #   (σ_v within ~5 %, τ_v ~10 %) but follow unmodelled accelerometer errors on rotation-only trials.
+    #   BROAD 17-trial mean (acc_lead_samples 0) 0.768° → "bounded" 0.763° (16 −0.10°, 21 +0.06°; "bounded_hv"
+    #   the same), "free" 0.774° (32 −0.31°, 04 +0.56°), "free_hv" 0.826° (01 +0.80°); with acc_lead_samples 1:
+    #   0.724° → 0.690° "bounded", no trial worse: benchmarks/v1_velocity_process.py
     acc_rate_error: float = 0.01      # κ_a: accelerometer error growing with the specific force
     zero_velocity_at_rest: bool = False  # v = 0 ± 0.02 m/s at detected rest: BROAD 04 1.79 → 0.92°,
     #                                      but 01 1.59 → 1.99°, 30 1.11 → 2.01° (acc errors then tilt)
     acc_bias: bool = False            # a slowly varying accelerometer bias in the velocity state: off,
     #                                   on BROAD it absorbed the linear acceleration of the translation trials
     compensate_mag_delay: bool = True # pair each field sample with the orientation when it was sensed
+    acc_lead_samples: float = 0.5     # δ: accelerometer row j paired with the strapdown orientation of row
+    #   j + δ (calibration/acc_timing.py; ½: instantaneous samples under the forward rule — the default, from
+    #   first principles, not fitted; 1: VQF's gyro-then-acc order; 0: rows as recorded). BROAD 17-trial
+    #   mean 0.768° (0) → 0.736° (½) / 0.724° (1): 28 1.27 → 0.97 / 0.78°, 30 1.06 → 0.92 / 0.85°, 21 1.10 →
+    #   1.05 / 1.08° (one-way spins about a horizontal axis); largest loss 04 +0.02 / +0.04°.
+    #   Not estimated: in the graph δ trades with the tilt about the spin axis (benchmarks/c1_timing.py)
     disturbance_windows: bool = True  # windowed hard-iron offsets (imugraph.calibration.disturbance)
     heading_only_orientation: bool = False  # final orientations with the field as heading only
     #                                        (graphs.heading_block): BROAD mean 1.13° vs 1.06° joint, off

@@ -31,6 +31,9 @@ class Calibration:
             {"t_start", "t_end" (s), "offset" (3, raw unit, or None), "modelled"}; `corrected` applies them.
         gyro_map: (3, 3) gyro scale/misalignment E (`imugraph.calibration.gyro_map`): the rate is
             ω = (I + E)·b_gyr − gyro_bias; zero when not estimated. `corrected_gyro` applies it.
+        acc_lead_samples: δ, accelerometer row j paired with the strapdown orientation of row j + δ
+            (`imugraph.calibration.acc_timing`; a setting of the sensor, recorded so that smoothing with
+            this calibration pairs the rows the same way).
     """
 
     D: np.ndarray
@@ -45,6 +48,7 @@ class Calibration:
     mag_delay_s: float = 0.0
     disturbances: list = field(default_factory=list)
     gyro_map: np.ndarray = field(default_factory=lambda: np.zeros((3, 3)))
+    acc_lead_samples: float = 0.0
 
     @property
     def dip_rad(self) -> float:
@@ -91,7 +95,7 @@ class Calibration:
             "coverage": self.coverage, "converged": bool(self.converged),
             "iterations": int(self.iterations), "mag_delay_s": float(self.mag_delay_s),
             "disturbances": [dict(d) for d in self.disturbances],
-            "gyro_map": arr(self.gyro_map),
+            "gyro_map": arr(self.gyro_map), "acc_lead_samples": float(self.acc_lead_samples),
         }
 
     @classmethod
@@ -105,6 +109,7 @@ class Calibration:
             iterations=int(d.get("iterations", 0)), mag_delay_s=float(d.get("mag_delay_s", 0.0)),
             disturbances=list(d.get("disturbances", [])),
             gyro_map=_gyro_map(d.get("gyro_map")),
+            acc_lead_samples=float(d.get("acc_lead_samples", 0.0)),
         )
 
 

@@ -19,6 +19,9 @@ stationary with standard deviation σ_v and correlation time τ_v:
 
     v_0 ~ N(0, σ_v² I),   v_{k+1} = φ_k v_k + w_k,   φ_k = exp(−Δt_k/τ_v),   w_k ~ N(0, σ_v² (1 − φ_k²) I)
 
+(σ_v, τ_v may also differ per nav axis — a horizontal and a vertical process — each axis its own chain;
+they can be estimated in the ML loop: imugraph.calibration.velocity_process.)
+
 An accelerometer bias b_a (sensor frame, slowly varying) would otherwise make the integrated velocity
 drift as the sensor turns, which the bounded-velocity prior can only answer with a tilt error. It enters
 the increment linearly, with B_k = Σ_j ΔR_kj dt_j:
@@ -88,6 +91,16 @@ def gauss_markov(dt_k: np.ndarray, sigma_v: float, tau_v: float) -> tuple[np.nda
     """φ_k = exp(−Δt_k/τ_v) and the std of w_k, σ_v √(1 − φ_k²), for each keyframe interval."""
     phi = np.exp(-np.asarray(dt_k, float) / max(tau_v, 1e-9))
     return phi, sigma_v * np.sqrt(np.maximum(1.0 - phi**2, 1e-12))
+
+
+def gauss_markov_axes(dt_k: np.ndarray, sigma_v, tau_v) -> tuple[np.ndarray, np.ndarray]:
+    """`gauss_markov` per nav axis: σ_v, τ_v scalars or (3,) (x, y, z), e.g. one horizontal and one vertical
+    process; returns φ and σ_w as (K−1, 3)."""
+    dt = np.asarray(dt_k, float)[:, None]
+    tau = np.maximum(np.broadcast_to(np.asarray(tau_v, float), (3,)), 1e-9)[None, :]
+    phi = np.exp(-dt / tau)
+    sigma = np.broadcast_to(np.asarray(sigma_v, float), (3,))[None, :]
+    return phi, sigma * np.sqrt(np.maximum(1.0 - phi**2, 1e-12))
 
 
 def gravity_from_velocity(nRk: np.ndarray, dv: np.ndarray, dt_k: np.ndarray) -> float:

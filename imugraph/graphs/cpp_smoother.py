@@ -53,7 +53,8 @@ def smooth_fixed(session: Session, cal: Calibration, keyframe_hz: float = 5.0, h
                  linear_acceleration: str = "velocity", velocity_sigma: float = 0.5, velocity_tau: float = 2.0,
                  acc_rate_error: float = 0.01, acc_huber_k: float | None = 2.0, acc_bias_sigma: float = 1e-4,
                  bias_segment_s: float = 5.0, bias_rw: float = 2e-4, bias_prior_sigma: float = 0.01,
-                 max_iterations: int = 100, rotation_tol_deg: float = 0.05) -> np.ndarray:
+                 max_iterations: int = 100, rotation_tol_deg: float = 0.05,
+                 acc_lead_samples: float | None = None) -> np.ndarray:
     """Smoothed per-sample orientation (N, 4) w,x,y,z for a session with a known calibration.
 
     Args:
@@ -76,6 +77,8 @@ def smooth_fixed(session: Session, cal: Calibration, keyframe_hz: float = 5.0, h
         density, rad/s/√s; bias_prior_sigma: std of each segment's gyro bias about cal.gyro_bias, rad/s;
         max_iterations: Levenberg–Marquardt iterations at most; rotation_tol_deg: stop when no keyframe
         orientation moves more than this in an iteration.
+      both: acc_lead_samples: δ, accelerometer row i paired with the orientation of row i + δ
+        (calibration/acc_timing.py; None: the calibration's `acc_lead_samples`, as calibrate used it).
 
     Raises:
         SessionError: unknown `linear_acceleration`, or a session too short for two keyframes.
@@ -83,6 +86,11 @@ def smooth_fixed(session: Session, cal: Calibration, keyframe_hz: float = 5.0, h
     name = session.name or "session"
     if linear_acceleration not in MODES:
         raise SessionError(name, "linear_acceleration", repr(linear_acceleration), " or ".join(MODES))
+    if acc_lead_samples is None:
+        acc_lead_samples = cal.acc_lead_samples
+    if acc_lead_samples:
+        from imugraph.calibration.acc_timing import with_lead
+        session = with_lead(session, acc_lead_samples)
     stride = max(1, int(round(session.rate / keyframe_hz)))
     kf, skf = keyframe_layout(session.n, stride)
     if len(kf) < 2:

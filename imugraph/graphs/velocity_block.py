@@ -19,7 +19,7 @@ import numpy as np
 
 from imugraph import keys
 from imugraph.factors.robust import QUADRATIC, Kernel
-from imugraph.factors.velocity import gauss_markov, velocity_model
+from imugraph.factors.velocity import gauss_markov_axes, velocity_model
 from imugraph.graphs.solver import keyframe_rotations, keyframe_vectors, state_keys
 
 
@@ -35,8 +35,8 @@ class VelocityBlock:
     sigma_dv: np.ndarray
     dt_k: np.ndarray
     g: float
-    sigma_v: float = 0.5
-    tau_v: float = 2.0
+    sigma_v: float | np.ndarray = 0.5     # m/s, scalar or (3,) per nav axis (x, y, z)
+    tau_v: float | np.ndarray = 2.0       # s, scalar or (3,)
     kernel: Kernel = QUADRATIC
     B: np.ndarray | None = None
     bias_sigma0: float = 0.3
@@ -63,8 +63,8 @@ class VelocityBlock:
         e, J_R = velocity_model(nRk, v, self.dv, self.dt_k, self.g, b, self.B)
         r = e / self.sigma_dv[:, None]
         w = self.kernel.weight(np.linalg.norm(r, axis=1))
-        phi, sigma_w = gauss_markov(self.dt_k, self.sigma_v, self.tau_v)
-        gm = (v[1:] - phi[:, None] * v[:-1]) / sigma_w[:, None]
+        phi, sigma_w = gauss_markov_axes(self.dt_k, self.sigma_v, self.tau_v)      # (K−1, 3) each
+        gm = (v[1:] - phi * v[:-1]) / sigma_w
         walk = None if b is None else (b[1:] - b[:-1]) / self._sigma_rw()[:, None]
         return r, J_R, w, phi, sigma_w, gm, walk
 
@@ -72,7 +72,8 @@ class VelocityBlock:
         return np.maximum(self.bias_rw, 1e-9) * np.sqrt(self.dt_k)
 
     def _prior_sigma(self) -> np.ndarray:
-        return np.r_[np.full(3, self.sigma_v), np.full(self.state_dim - 3, self.bias_sigma0)]
+        return np.r_[np.broadcast_to(np.asarray(self.sigma_v, float), (3,)),
+                     np.full(self.state_dim - 3, self.bias_sigma0)]
 
     def cost_at(self, nRk: np.ndarray, s: np.ndarray) -> float:
         r, _, _, _, _, gm, walk = self.terms(nRk, s)
@@ -104,7 +105,7 @@ class VelocityBlock:
         rhs = np.zeros((n, rows))
         A_R[:, :3] = J_R * sw
         A0[:, :3, :3] = -eye * sw; A1[:, :3, :3] = eye * sw
-        A0[:, 3:6, :3] = -(phi / sigma_w)[:, None, None] * eye; A1[:, 3:6, :3] = eye / sigma_w[:, None, None]
+        A0[:, 3:6, :3] = -(phi / sigma_w)[:, :, None] * eye; A1[:, 3:6, :3] = (1.0 / sigma_w)[:, :, None] * eye
         rhs[:, :3] = -r * np.sqrt(w)[:, None]
         rhs[:, 3:6] = -gm
         if walk is not None:
