@@ -186,3 +186,40 @@ def test_horizontal_and_vertical_processes_recovered_separately():
     sz, tz = fit_gauss_markov(s0[:, 2:], s1[:, 2:], dt_k)
     assert abs(sh / 0.3 - 1) < 0.06 and abs(th / 0.9 - 1) < 0.1
     assert abs(sz / 1.0 - 1) < 0.06 and abs(tz / 0.3 - 1) < 0.1
+
+
+def test_estimated_process_is_recorded_in_the_calibration_and_used_by_smoothing():
+    """calibrate records the estimated σ_v, τ_v in the Calibration (and calibration.json); smooth_fixed with
+    that calibration uses them unless told otherwise; bad values in the file fail by name."""
+    from imugraph.calibration.ml import Options, calibrate
+    from imugraph.calibration.result import Calibration
+    from imugraph.graphs.cpp_smoother import smooth_fixed
+    from imugraph.sim.motion import random_rotation_motion
+    from imugraph.sim.sensors import SensorParams, simulate_imu
+
+    rng = np.random.default_rng(8)
+    rate = 50.0
+    motion = random_rotation_motion(40.0, rate, rng, rest_s=2.0)
+    n = len(motion.t)
+    ramp = np.clip(np.minimum(motion.t - 2.0, motion.t[-1] - 2.0 - motion.t) / 0.5, 0.0, 1.0)
+    v = _ar1(rng, np.full(n - 1, 1 / rate), 0.8, 0.4) * ramp[:, None]
+    n_acc = np.vstack([np.diff(v, axis=0) * rate, np.zeros((1, 3))])
+    params = SensorParams(gyro_noise=np.full(3, 0.003), acc_noise=np.full(3, 0.03), mag_noise=np.full(3, 0.005))
+    s = simulate_imu(motion.t, motion.nRb, motion.b_omega, n_acc, params, rng)
+    est = calibrate(s, Options(gyro_map=False, max_outer=4))            # default: "bounded"
+    cal = est.calibration
+    assert cal.velocity_sigma == pytest.approx(est.info["velocity_sigma"])
+    assert cal.velocity_tau == pytest.approx(est.info["velocity_tau"])
+    assert cal.velocity_sigma >= 0.5 - 1e-12 and cal.velocity_tau <= 2.0 + 1e-12   # the bounds
+    assert cal.velocity_sigma > 0.55                                # moved: the sensor moves more than 0.5 m/s
+    back = Calibration.from_dict(cal.to_dict())
+    assert (back.velocity_sigma, back.velocity_tau) == (cal.velocity_sigma, cal.velocity_tau)
+    q_default = smooth_fixed(s, cal, max_iterations=10)
+    q_given = smooth_fixed(s, cal, velocity_sigma=cal.velocity_sigma, velocity_tau=cal.velocity_tau,
+                           max_iterations=10)
+    q_start = smooth_fixed(s, cal, velocity_sigma=0.5, velocity_tau=2.0, max_iterations=10)
+    np.testing.assert_array_equal(q_default, q_given)
+    assert np.max(np.abs(q_default - q_start)) > 1e-9
+    assert Calibration.from_dict({**cal.to_dict(), "velocity_sigma": None}).velocity_sigma is None
+    with pytest.raises(ValueError, match="positive number"):
+        Calibration.from_dict({**cal.to_dict(), "velocity_tau": -1.0})

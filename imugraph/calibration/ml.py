@@ -199,12 +199,6 @@ def calibrate(session: Session, options: Options | None = None, initial=None,
             history[-1]["tau"] = taus
             taus = tau_fixed or taus
             change = max(float(np.max(np.abs(np.log(new[c] / getattr(noise, c))))) for c in new)
-            if vel_state["v"] is not None and opt.estimate_velocity_sigma:
-                # ML of the stationary std given the smoothed velocities: σ_v² = mean |v_k|² / 3
-                sig_new = float(np.clip(np.sqrt(np.mean(vel_state["v"] ** 2)), 0.01, 5.0))
-                change = max(change, abs(np.log(sig_new / vel_state["sigma"])))
-                vel_state["sigma"] = sig_new
-                history[-1]["velocity_sigma"] = sig_new
             if vel_state["v"] is not None and opt.estimate_velocity_process != "off":   # EM step of σ_v, τ_v
                 change = max(change, update_velocity_process(vel_state, prob.velocity, nRk, history[-1],
                                                              opt.estimate_velocity_process, opt.velocity_sigma,
@@ -285,7 +279,8 @@ def calibrate(session: Session, options: Options | None = None, initial=None,
              "gyro_bias": np.sqrt(np.maximum(np.diag(cov_bias), 0.0))},
         coverage=getattr(init, "coverage", {}) or {}, converged=bool(converged and info.converged),
         iterations=len(history), mag_delay_s=delay, disturbances=[w.as_dict(session.t) for w in windows],
-        gyro_map=gyro.E.copy(), acc_lead_samples=float(opt.acc_lead_samples))
+        gyro_map=gyro.E.copy(), acc_lead_samples=float(opt.acc_lead_samples),
+        **_velocity_process(opt, vel_state))
     residuals = per_sample_residuals(prob, nRk, theta, session)
     if opt.heading_only_orientation and prob.block.mag is not None:
         nRk = _heading_stage(session, opt, pre, values, noise, g_used=vel_state["g"] or g,
@@ -313,6 +308,13 @@ def _thinned(y: np.ndarray, every: int) -> np.ndarray:
     idx = np.flatnonzero(np.all(np.isfinite(y), axis=1))[::every]
     out[idx] = y[idx]
     return out
+
+
+def _velocity_process(opt: Options, vel: dict) -> dict:
+    """σ_v, τ_v for the Calibration when the ML loop estimated them as scalars (else {}: not recorded)."""
+    if opt.estimate_velocity_process == "off" or np.ndim(vel["sigma"]) or np.ndim(vel["tau"]):
+        return {}
+    return {"velocity_sigma": float(vel["sigma"]), "velocity_tau": float(vel["tau"])}
 
 
 def _velocity_model(opt: Options, vel: dict) -> VelocityModel | None:

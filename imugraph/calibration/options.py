@@ -37,7 +37,6 @@ class Options:
     linear_acceleration: str = "velocity"   # "velocity": keyframe velocities with a bounded-velocity
     #                                         prior (imugraph.factors.velocity); "noise": per-sample gravity factor
     velocity_sigma: float = 0.5       # σ_v, m/s: stationary std of the sensor's velocity (start value)
-    estimate_velocity_sigma: bool = False  # re-estimate σ_v from the velocity states in the ML loop
     velocity_tau: float = 2.0         # τ_v, s: its correlation time
     estimate_velocity_process: str = "bounded"   # "off", "free"/"bounded"[+"_hv"]: σ_v, τ_v by an EM step per
     #   ML round from the smoothed velocities (calibration/velocity_process.py; start: the two above; "bounded":

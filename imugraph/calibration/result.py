@@ -34,6 +34,9 @@ class Calibration:
         acc_lead_samples: δ, accelerometer row j paired with the strapdown orientation of row j + δ
             (`imugraph.calibration.acc_timing`; a setting of the sensor, recorded so that smoothing with
             this calibration pairs the rows the same way).
+        velocity_sigma, velocity_tau: σ_v (m/s) and τ_v (s) of the sensor's velocity process as the ML loop
+            estimated them (`imugraph.calibration.velocity_process`), None when not estimated or per axis;
+            smoothing with this calibration uses them.
     """
 
     D: np.ndarray
@@ -49,6 +52,8 @@ class Calibration:
     disturbances: list = field(default_factory=list)
     gyro_map: np.ndarray = field(default_factory=lambda: np.zeros((3, 3)))
     acc_lead_samples: float = 0.0
+    velocity_sigma: float | None = None
+    velocity_tau: float | None = None
 
     @property
     def dip_rad(self) -> float:
@@ -96,6 +101,7 @@ class Calibration:
             "iterations": int(self.iterations), "mag_delay_s": float(self.mag_delay_s),
             "disturbances": [dict(d) for d in self.disturbances],
             "gyro_map": arr(self.gyro_map), "acc_lead_samples": float(self.acc_lead_samples),
+            "velocity_sigma": _opt_float(self.velocity_sigma), "velocity_tau": _opt_float(self.velocity_tau),
         }
 
     @classmethod
@@ -110,7 +116,21 @@ class Calibration:
             disturbances=list(d.get("disturbances", [])),
             gyro_map=_gyro_map(d.get("gyro_map")),
             acc_lead_samples=float(d.get("acc_lead_samples", 0.0)),
+            velocity_sigma=_opt_float(d.get("velocity_sigma")), velocity_tau=_opt_float(d.get("velocity_tau")),
         )
+
+
+def _opt_float(value) -> float | None:
+    """An optional positive number of calibration.json (absent or null → None)."""
+    if value is None:
+        return None
+    try:
+        x = float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"{str(value)[:60]!r}, expected a positive number or null") from None
+    if not (np.isfinite(x) and x > 0):
+        raise ValueError(f"{x!r}, expected a positive number or null")
+    return x
 
 
 def _gyro_map(value) -> np.ndarray:

@@ -50,7 +50,8 @@ MODES = ("velocity", "noise")
 
 def smooth_fixed(session: Session, cal: Calibration, keyframe_hz: float = 5.0, huber_k: float = 2.0,
                  g: float | None = None, gyro_rate_error: float = 0.01, *,
-                 linear_acceleration: str = "velocity", velocity_sigma: float = 0.5, velocity_tau: float = 2.0,
+                 linear_acceleration: str = "velocity", velocity_sigma: float | None = None,
+                 velocity_tau: float | None = None,
                  acc_rate_error: float = 0.01, acc_huber_k: float | None = 2.0, acc_bias_sigma: float = 1e-4,
                  bias_segment_s: float = 5.0, bias_rw: float = 2e-4, bias_prior_sigma: float = 0.01,
                  max_iterations: int = 100, rotation_tol_deg: float = 0.05,
@@ -88,6 +89,10 @@ def smooth_fixed(session: Session, cal: Calibration, keyframe_hz: float = 5.0, h
         raise SessionError(name, "linear_acceleration", repr(linear_acceleration), " or ".join(MODES))
     if acc_lead_samples is None:
         acc_lead_samples = cal.acc_lead_samples
+    if velocity_sigma is None:           # the calibration's estimate (calibration/velocity_process.py), else 0.5
+        velocity_sigma = cal.velocity_sigma or 0.5
+    if velocity_tau is None:
+        velocity_tau = cal.velocity_tau or 2.0
     if acc_lead_samples:
         from imugraph.calibration.acc_timing import with_lead
         session = with_lead(session, acc_lead_samples)
