@@ -10,7 +10,10 @@ Per trial (read once, not timed):
     online VQF                  benchmarks.peers.vqf_online (VQF(Ts).updateBatch) on the published field
 Reported: real-time factor (samples per second streamed ÷ sampling rate; the bootstrap not included),
 per-update latency p50/p99 (ms; one update per keyframe), the same from CPU time (`cpu_rt`, `p99_cpu_ms`:
-process / thread CPU, not inflated by other processes on a shared machine), and the orientation error vs opt_quat over
+process / thread CPU, not inflated by other processes on a shared machine; `max_cpu_ms`), the periodic work done on
+samples between keyframes (`p99_btw_cpu_ms`, `max_btw_cpu_ms`: the chain lag's marginalisation / relinearisation
+and the online refits, StreamSmoother._between_keyframes), the largest entry of the bootstrap's gyro map E
+(`E_max`; applied to the gyro), and the orientation error vs opt_quat over
 `movement` (imugraph.evaluate.orientation_error: best heading offset and time shift) of the filtered
 (causal) and smoothed outputs. The filtered rows of the bootstrap window are a replay with the bootstrap
 calibration (see docs/stream.md). Wall times; the machine may be shared: compare ratios in one run.
@@ -64,22 +67,27 @@ def run_trial(path: Path, lag: float | None, bootstrap_s: float, batch: bool = T
     if compare_cal and any(on for *_, on in runs):
         from imugraph.calibration.ml import Options, calibrate
         from imugraph.errors import CalibrationError
-        same_model = Options(gyro_map=False)               # the stream has no gyro scale/misalignment
+        same_model = Options()          # the batch default (gyro map E on), as the bootstrap; the stream applies
+        #                                 the bootstrap's E and re-estimates D, o only
         try:
-            cal_full = calibrate(s, same_model).calibration            # the batch calibration of the whole trial
+            est_full = calibrate(s, same_model)            # the batch calibration of the whole trial
         except CalibrationError:                           # too little rotation (10, 12, 15, 16): regularised
-            cal_full = calibrate(s, same_model, allow_weak=True).calibration
+            est_full = calibrate(s, same_model, allow_weak=True)
+        cal_full = est_full.calibration
+        f_batch = _whiteness(est_full.residuals.get("mag"), s.t)
     for label, lag_s, on in runs:
         r = stream_session(s, cal, StreamOptions(lag_s=lag_s, online_calibration=on, fixed_lag_solver=lag_solver))
         tm = r.timing
         rows.append({"trial": name, "method": label, "rt_factor": tm["realtime_factor"], "p50_ms": tm["p50_ms"],
                      "p99_ms": tm["p99_ms"], "cpu_rt": tm.get("cpu_realtime_factor"), "p99_cpu_ms": tm.get("p99_cpu_ms"),
+                     "max_cpu_ms": tm.get("max_cpu_ms"), "p99_btw_cpu_ms": tm.get("p99_between_cpu_ms"),
+                     "max_btw_cpu_ms": tm.get("max_between_cpu_ms"), "E_max": float(np.abs(cal.gyro_map).max()),
                      "filtered_deg": _err(r.filtered, s), "smoothed_deg": _err(r.smoothed, s),
                      "vs_batch_deg": orientation_error(r.smoothed, q_batch, None, s.rate, heading=False,
                                                        max_shift=0.0).rms_deg if batch else None,
                      "seconds": tm["seconds"], "bootstrap_s": boot, "failed": r.counts["failed_updates"],
                      **(_cal_agreement(r.calibration, cal_full) if on and cal_full is not None else {}),
-                     **(_last_refit(r.calibration_history, r.calibration, cal_full) if on and cal_full is not None else {}),
+                     **(_last_refit(r.calibration_history, r.calibration, cal_full, f_batch) if on and cal_full is not None else {}),
                      **(_white_z(r.calibration_history, r.calibration, cal_full) if on and cal_full is not None else {})})
     if batch:
         rows.append({"trial": name, "method": "batch smooth", "smoothed_deg": _err(q_batch, s), "seconds": t_batch,
@@ -105,8 +113,23 @@ def _cal_agreement(cal, ref) -> dict:
     return {"cal_z": float(np.max(np.concatenate(z))), "cal_dD_rel": float(np.abs(cal.D - ref.D).max() / scale)}
 
 
-def _last_refit(history: list, cal, ref) -> dict:
-    """The last online refit (applied or not) against the batch calibration, and how many were applied."""
+def _whiteness(r, t, block: float = 2.0):
+    """Batch-means whiteness factor per axis of the batch's whitened magnetometer residuals r (N, 3) over
+    `block`-second blocks (stream_calib eq. 3: 1 for white residuals), floored at 1; None without residuals."""
+    if r is None:
+        return None
+    ok = np.all(np.isfinite(r), axis=1)
+    r, t = r[ok], t[ok]
+    b = np.floor((t - t[0]) / block).astype(int)
+    sums = np.zeros((b.max() + 1, 3))
+    np.add.at(sums, b, r)
+    return np.maximum((sums ** 2).sum(0) / (r ** 2).sum(0), 1.0)
+
+
+def _last_refit(history: list, cal, ref, f_batch=None) -> dict:
+    """The last online refit (applied or not) against the batch calibration, and how many were applied; with
+    f_batch (per magnetometer axis, `_whiteness` of the batch's residuals) also `refit_z_bF`: the batch std of
+    row j of D and o_j scaled by sqrt(F_j) (the batch's covariance assumes white residuals)."""
     from dataclasses import replace
 
     rows = [h for h in history if h.get("std")]
@@ -115,8 +138,13 @@ def _last_refit(history: list, cal, ref) -> dict:
     h = rows[-1]
     last = replace(cal, D=np.asarray(h["D"]), o=np.asarray(h["o"]), std={k: np.asarray(v) for k, v in h["std"].items()})
     a = _cal_agreement(last, ref)
-    return {"refit_z": a["cal_z"], "refit_dD_rel": a["cal_dD_rel"], "applied": sum(bool(x.get("applied")) for x in history),
-            "refits": len(history)}
+    out = {"refit_z": a["cal_z"], "refit_dD_rel": a["cal_dD_rel"], "applied": sum(bool(x.get("applied")) for x in history),
+           "refits": len(history)}
+    if f_batch is not None and ref.std:
+        k = np.sqrt(f_batch)
+        ref_f = replace(ref, std={"D": np.asarray(ref.std["D"]) * k[:, None], "o": np.asarray(ref.std["o"]) * k})
+        out.update(refit_z_bF=_cal_agreement(last, ref_f)["cal_z"], F_batch_max=float(np.max(f_batch)))
+    return out
 
 
 def _white_z(history: list, cal, ref) -> dict:
@@ -146,7 +174,7 @@ def _means(rows: list[dict]) -> list[dict]:
             return max(v) if v else None
         out.append({"method": m, "trials": len(sel), "filtered_deg": mean("filtered_deg"),
                     "smoothed_deg": mean("smoothed_deg"), "rt_factor": mean("rt_factor"), "p99_ms": worst("p99_ms"),
-                    "cpu_rt": mean("cpu_rt"), "p99_cpu_ms": worst("p99_cpu_ms")})
+                    "cpu_rt": mean("cpu_rt"), "p99_cpu_ms": worst("p99_cpu_ms"), "p99_btw_cpu_ms": worst("p99_btw_cpu_ms")})
     return out
 
 
@@ -177,12 +205,15 @@ def main(argv=None) -> int:
         online = {"online": (True,), "fixed": (False,), "both": (True, False)}[a.calibration]
         rows += run_trial(p, lag, a.bootstrap_s, not a.no_batch, online, not a.no_cal_compare, a.lag_solver, a.lag_only)
         print(f"trial {trial_number(p):02d} done", file=sys.stderr, flush=True)
-    cols = ["trial", "method", "rt_factor", "p50_ms", "p99_ms", "cpu_rt", "p99_cpu_ms", "filtered_deg", "smoothed_deg", "vs_batch_deg",
-            "seconds", "bootstrap_s", "failed", "cal_z", "cal_z_white", "whiteness", "cal_dD_rel", "refit_z", "refit_dD_rel",
+    cols = ["trial", "method", "rt_factor", "p50_ms", "p99_ms", "cpu_rt", "p99_cpu_ms", "max_cpu_ms", "p99_btw_cpu_ms",
+            "max_btw_cpu_ms", "filtered_deg", "smoothed_deg", "vs_batch_deg", "E_max",
+            "seconds", "bootstrap_s", "failed", "cal_z", "cal_z_white", "whiteness", "cal_dD_rel", "refit_z", "refit_z_bF",
+            "F_batch_max", "refit_dD_rel",
             "applied", "refits"]
     print_table(rows, cols)
     means = _means(rows)
-    print_table(means, ["method", "trials", "filtered_deg", "smoothed_deg", "rt_factor", "p99_ms", "cpu_rt", "p99_cpu_ms"])
+    print_table(means, ["method", "trials", "filtered_deg", "smoothed_deg", "rt_factor", "p99_ms", "cpu_rt", "p99_cpu_ms",
+                        "p99_btw_cpu_ms"])
     print(f"peak memory {peak_memory_mb():.0f} MB")
     write_json("stream_speed.json", {"rows": rows, "means": means, "lag_s": lag, "bootstrap_s": a.bootstrap_s,
                                 "command": " ".join(sys.argv)})

@@ -45,6 +45,32 @@ def test_linear_chain_newest_equals_batch():
     assert len(sm.stamps) < 20                                  # keys were marginalised
 
 
+def test_deferred_maintain_between_updates_is_exact():
+    """Deferred mode (the stream's): updates only add factors and solve; `maintain` between them relinearises
+    and marginalises. On the linear Gaussian chain the newest estimate still equals the full least-squares
+    solution after every update, the window stays bounded, and the marginalisations happened in `maintain`."""
+    rng = np.random.default_rng(1)
+    steps = _chain(60, rng)
+    sm = ChainLagSmoother(1.0, gtsam.ISAM2Params(), keyframe_group, hold_s=0.3, deferred=True)
+    full = gtsam.NonlinearFactorGraph()
+    init = gtsam.Values()
+    in_maintain = 0
+    for k, g in enumerate(steps):
+        v = gtsam.Values()
+        v.insert(gtsam.symbol("v", k), np.zeros(3))
+        assert sm.update(g, v, {gtsam.symbol("v", k): 0.1 * k}) is None      # never marginalises itself here
+        full.push_back(g)
+        init.insert(gtsam.symbol("v", k), np.zeros(3))
+        ref = gtsam.GaussNewtonOptimizer(full, init).optimize().atVector(gtsam.symbol("v", k))
+        assert np.allclose(sm.calculateEstimate().atVector(gtsam.symbol("v", k)), ref, atol=1e-8)
+        due = sm.due()
+        n_before = len(sm.stamps)
+        sm.maintain()
+        in_maintain += due and len(sm.stamps) < n_before
+        assert len(sm.stamps) <= int(round((1.0 + 0.3) / 0.1)) + 2
+    assert in_maintain >= 5
+
+
 def test_keyframe_group():
     from imugraph import keys
     from imugraph.graphs.cpp_velocity import G_KEY, imu_bias_key, pose_key
@@ -98,3 +124,24 @@ def test_chain_without_history_holds_constant_state(sim):
     per_kf = 3                                            # pose, velocity, field perturbation
     bound = per_kf * (int(round((opt.lag_s + 1.0) * opt.keyframe_hz)) + 2) + 3   # + gravity and bias segments
     assert sm._k > 200 and max(sizes) <= bound and sm.stats.failed_updates == 0
+
+
+def test_between_keyframe_steps_and_stride_one(sim):
+    """The stream runs the chain lag's `maintain` once per keyframe interval on a sample between keyframes
+    (timed apart), so the marginalisations happen there; with one sample per keyframe (no sample between)
+    the updates do that work themselves and the window stays bounded the same."""
+    from imugraph.graphs.stream_run import stream_session
+
+    session, cal = sim
+    part = session.slice(0, int(20 * session.rate))
+    r = stream_session(part, cal, StreamOptions(lag_s=1.0, online_calibration=False))
+    tm, n_kf = r.timing, r.timing["updates"]
+    assert tm["between_steps"] == n_kf - 1 or tm["between_steps"] == n_kf      # one per interval (the last open)
+    assert r.counts["marginal_steps"] >= int((20.0 - 1.5) / 0.6) - 1     # every lag_hold_s + one keyframe
+    opt = StreamOptions(lag_s=1.0, online_calibration=False, keyframe_hz=session.rate / 1.0)
+    small = session.slice(0, int(4 * session.rate))
+    sm = StreamSmoother(cal, small.rate, opt)
+    for i in range(small.n):
+        sm.push(small.t[i], small.gyr[i], small.acc[i], small.mag[i])
+    assert sm.stride == 1 and len(sm.stats.between_s) == 0 and sm.stats.failed_updates == 0
+    assert len(sm._solver.stamps) <= 3 * int(round(1.5 * small.rate) + 2) + 3

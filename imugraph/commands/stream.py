@@ -6,7 +6,8 @@ the fixed-lag solver for --lag: chain (default), incremental or batch, `StreamOp
 Writes (DESIGN.md): orientation.npz (smoothed, at the end), orientation_filtered.npz (the estimate available
 when each sample arrived), calibration.json (the calibration at the end), calibration_history.json (the
 start calibration and one row per online refit: t, D, o, dip_deg, std), timing.json (updates, seconds,
-p50_ms, p99_ms, plus max_ms, realtime_factor, bootstrap_seconds, bootstrap_samples and the arrival counters).
+p50_ms, p99_ms, plus max_ms, realtime_factor, the CPU-time figures, the between-keyframe steps'
+p50/p99/max, bootstrap_seconds, bootstrap_samples and the arrival counters; docs/stream.md).
 """
 
 from __future__ import annotations

@@ -9,6 +9,11 @@ field with its full covariance (`MagPoseFactorPose3`; with options.field_sigma a
 perturbation of calibration.ml's model, `imugraph.graphs.stream_field`), a new gyro-bias segment (prior +
 random walk) when the interval starts one — then one `update`. Interval k closes when the first sample of
 keyframe k+1 arrives (keyframes every `stride` samples, as `keyframe_layout`): the batch path's preintegration.
+The gyro is taken as ω = (I + E)·b_gyr − b with the calibration's gyro map E (`Calibration.gyro_map`, as
+`smooth --calibration` does through `Calibration.corrected_gyro`).
+
+Periodic work (the chain lag's marginalisation and relinearisation step, the online refits) runs on a sample
+between keyframes, timed apart from the keyframe updates (`_between_keyframes`; docs/stream.md "Latency").
 
 Filtered orientation (`push`'s return): the latest estimate of the newest keyframe, carried to the sample
 by the gyro integrated since (with the current bias estimate) — available when the sample arrives.
@@ -41,18 +46,17 @@ import numpy as np
 from imugraph import keys
 from imugraph.calibration.result import Calibration
 from imugraph.errors import SessionError
-from imugraph.factors.gyro import Preintegration
 from imugraph.graphs.cpp_velocity import (G_KEY, SIGMA_ACC_BIAS_RW, SIGMA_G, SIGMA_POS, gauss_markov_factors,
-                                          imu_bias_key, pose_key, split_noise, super_sample_pim,
-                                          super_samples)
+                                          imu_bias_key, pose_key, split_noise, super_sample_pim)
 from imugraph.graphs.stream_interval import (NAN3 as _NAN3, Q_ID, ArrivalMixin, gauss_markov_factor,
                                              interval_preintegration, qmul, qpos, qstep, row3 as _row3)
-from imugraph.graphs.orientation_init import sample_orientations, triad
+from imugraph.graphs.orientation_init import triad
 from imugraph.graphs.stream_calib import OnlineMagCalibration
 from imugraph.graphs.stream_field import field_key, field_start_prior, field_step_factor
 from imugraph.graphs.stream_lag import window_rotations
 from imugraph.graphs.stream_online import OnlineCalibrationMixin
 from imugraph.graphs.stream_options import SIGMA_WEAK_POSE, StreamOptions, StreamStats, make_solver
+from imugraph.graphs.stream_output import StreamOutputMixin
 
 __all__ = ["StreamOptions", "StreamSmoother", "StreamStats"]
 
@@ -64,7 +68,7 @@ def _quat(R: gtsam.Rot3) -> np.ndarray:
     return -out if out[0] < 0 else out
 
 
-class StreamSmoother(OnlineCalibrationMixin, ArrivalMixin):
+class StreamSmoother(OnlineCalibrationMixin, ArrivalMixin, StreamOutputMixin):
     """Push samples in arrival order; get the filtered orientation of each at once, the smoothed ones at the end.
 
     Args:
@@ -81,8 +85,12 @@ class StreamSmoother(OnlineCalibrationMixin, ArrivalMixin):
                                '"chain", "incremental" or "batch"')
         self.rate, self.opt = float(rate), options
         self.stride = max(1, int(round(rate / options.keyframe_hz)))
+        self._mid = self.stride // 2 + 1 if self.stride >= 2 else 0     # see _between_keyframes
+        self._chain = options.lag_s is not None and options.fixed_lag_solver == "chain"
+        self._maintained = not self._chain   # the chain lag's `maintain` ran in the open interval
         self.stats = StreamStats()
         self._cal0 = replace(cal, mag_delay_s=0.0)       # disturbance windows only; the lag is shifted here
+        self._windows = [(float(d["t_start"]), float(d["t_end"])) for d in cal.disturbances]
         self._mag_shift = int(round(cal.mag_delay_s * rate))
         scale = float(np.cbrt(abs(np.linalg.det(cal.D))))
         tau = cal.coverage.get("noise_correlation", {}) if isinstance(cal.coverage, dict) else {}
@@ -92,12 +100,15 @@ class StreamSmoother(OnlineCalibrationMixin, ArrivalMixin):
                                             use_start_std=options.calib_prior_from_start) if options.online_calibration else None
         self._pending: deque = deque()       # intervals not yet folded: (k, t_k, kRb (n,3,3), y (n,3))
         self._next_refit = options.calib_every_s
+        self._refit_due = False              # a refit waits for the next sample between keyframes
         self._hist_y: list = []              # iSAM2 + keep_history: per interval y, for the final re-issue
         self._mag_index: dict = {}           # keyframe → index of its magnetometer factor in iSAM2
         self._n_factors = 0
         self._sig_g = np.asarray(cal.noise.get("gyr", np.full(3, 0.005)), float)
         self._sig_acc = np.asarray(cal.noise.get("acc", np.full(3, 0.05)), float)
         self._b_hat = np.asarray(cal.gyro_bias, float)
+        E = np.asarray(cal.gyro_map, float)   # ω = (I + E)·b_gyr − b, as smooth --calibration (Calibration.corrected_gyro)
+        self._IE = tuple(tuple(float(v) for v in row) for row in np.eye(3) + E) if np.any(E) else None
         self._estimate_g = options.g is None
         self._g = float(options.g if options.g is not None else g0)
         self._pim_params = gtsam.PreintegrationParams.MakeSharedU(self._g)
@@ -129,6 +140,9 @@ class StreamSmoother(OnlineCalibrationMixin, ArrivalMixin):
         sample: that of the newest accepted one; NaN before any sample)."""
         t = float(t)
         gx, gy, gz = _row3(gyr)
+        if self._IE is not None:              # (I + E)·b_gyr: the calibration's gyro scale/misalignment
+            (a, b, c), (d, e, f), (g, h, i) = self._IE
+            gx, gy, gz = a * gx + b * gy + c * gz, d * gx + e * gy + f * gz, g * gx + h * gy + i * gz
         ax, ay, az = _row3(acc)
         m = _NAN3 if mag is None else _row3(mag)
         # one sum is finite iff all its terms are (an inf − inf is NaN)
@@ -162,7 +176,35 @@ class StreamSmoother(OnlineCalibrationMixin, ArrivalMixin):
         self._buf.append(row)
         if self._mag_shift > 0:
             self._attach_delayed_mag(m, has_mag)
+        if self._mid and len(self._buf) >= self._mid and (self._refit_due or not self._maintained):
+            self._between_keyframes()
         return self._filtered()
+
+    def _between_keyframes(self) -> None:
+        """Periodic work done on the samples between two keyframes (from halfway on), one job per sample, off
+        the keyframe updates' latency and timed apart (stats.between_s / between_cpu_s): the chain lag's
+        `maintain` (its due marginalisation, which re-eliminates the window, else its relinearisation step;
+        stream_lag), then the online calibration's due refit (stream_online: the same data as at the keyframe)."""
+        if self._chain and not self._maintained:
+            self._maintained = True
+            start, start_cpu = time.perf_counter(), time.thread_time()
+            due = self._solver.due()
+            try:
+                left = self._solver.maintain()
+            except (RuntimeError, IndexError, ValueError):     # counted; the next keyframe update retries
+                self.stats.failed_updates += 1
+                left = None
+            self._smoothed_kf.update(left or {})
+            if left:
+                self._forget_smoothed(self._k)
+            self.stats.marginal_steps += int(due)
+        elif self._refit_due:
+            start, start_cpu = time.perf_counter(), time.thread_time()
+            self._refit(self._kf_t[-1] - self._t0)
+        else:
+            return
+        self.stats.between_s.append(time.perf_counter() - start)
+        self.stats.between_cpu_s.append(time.thread_time() - start_cpu)
 
     def _filtered(self) -> np.ndarray:
         if self._q_nk is None:
@@ -190,7 +232,9 @@ class StreamSmoother(OnlineCalibrationMixin, ArrivalMixin):
         # of this one interval, equal to it (stream_interval)
         kRb, delta_R, cov, dt_k, dv, sig_dv, q_kRb = interval_preintegration(
             t, w, a, self._b_hat, self._sig_g, self.opt.gyro_rate_error, self._sig_acc, self.opt.acc_rate_error)
-        y = self._cal0.corrected(t[:-1], m_raw) if self._cal0.disturbances else m_raw
+        # disturbance windows (Calibration.corrected; delay 0: a copy) only where one overlaps this interval
+        hit = any(ts <= t[-2] and te >= t[0] for ts, te in self._windows)
+        y = self._cal0.corrected(t[:-1], m_raw) if hit else m_raw
         ok = ~np.isnan(y[:, 0])
         graph, values, stamps = gtsam.NonlinearFactorGraph(), gtsam.Values(), {}
         if k == 0:
@@ -200,8 +244,9 @@ class StreamSmoother(OnlineCalibrationMixin, ArrivalMixin):
         if seg != self._seg:
             self._new_segment(graph, values, seg, t_next - self._t0)
         # gyro and velocity rows of the batch path's super-sample ImuFactor, Gauss–Markov, magnetometer
-        omega, acc_s = super_samples(delta_R[None], dv[None], np.array([dt_k]), self._b_hat[None])
-        pim = super_sample_pim(self._pim_params, omega[0], acc_s[0], dt_k, self._b_hat)
+        # cpp_velocity.super_samples for one interval: ω = Log ΔR / Δt + b̂, a = Δv / Δt
+        omega = gtsam.Rot3.Logmap(gtsam.Rot3(delta_R)) / dt_k + self._b_hat
+        pim = super_sample_pim(self._pim_params, omega, dv / dt_k, dt_k, self._b_hat)
         ends = (pose_key(k), keys.vel(k), pose_key(k + 1), keys.vel(k + 1), imu_bias_key(seg))
         f = gtsam.ImuFactorWithGravityVector(*ends, G_KEY, pim) if self._estimate_g else gtsam.ImuFactor(*ends, pim)
         for model in split_noise(cov[None], np.array([sig_dv]), self.opt.acc_huber_k)[0]:
@@ -235,6 +280,7 @@ class StreamSmoother(OnlineCalibrationMixin, ArrivalMixin):
             if self.opt.lag_s is None:
                 self._hist_y.append(y)
         self._k = k + 1
+        self._maintained = not self._chain
         if self._online is not None:
             self._pending.append((k, self._kf_t[k] - self._t0, kRb, y))
             self._calibrate(t_next - self._t0)
@@ -324,15 +370,6 @@ class StreamSmoother(OnlineCalibrationMixin, ArrivalMixin):
         self._b_now = tuple(float(v) for v in self._b_gyr_est)
         self._q_nk = tuple(_quat(self._nRk))
 
-    def _forget_smoothed(self, keep_from: int) -> None:
-        """Without keep_history (constant memory): drop the smoothed keyframes before `keep_from` that the
-        online calibration no longer awaits (its oldest pending interval)."""
-        if self.opt.keep_history:
-            return
-        lo = min(keep_from, self._pending[0][0]) if self._pending else keep_from
-        for old in [key for key in self._smoothed_kf if key < lo]:
-            del self._smoothed_kf[old]
-
     # ------------------------------------------------------------------ end
     def finish(self) -> None:
         """Close the last interval (its newest sample becomes the last keyframe, as `keyframe_layout`)."""
@@ -356,40 +393,3 @@ class StreamSmoother(OnlineCalibrationMixin, ArrivalMixin):
             # magnetometer factor re-issued with the final calibration when it was re-estimated online
             self._final = self._final_lm(self._final_graph(), self._solver.calculateEstimate())
         self._finished = True
-
-    def keyframe_rotations(self) -> np.ndarray:
-        """(K, 3, 3) smoothed nRb of every keyframe (after `finish`)."""
-        self.finish()
-        if self._k == 0:
-            return (self._nRk.matrix() if self._nRk is not None else np.eye(3))[None]
-        if self.opt.lag_s is None:
-            return gtsam.utilities.extractPose3(self._final)[:, :9].reshape(-1, 3, 3)
-        if not self.opt.keep_history:
-            raise SessionError("stream", "keep_history", "False", "True to keep every keyframe of a fixed lag")
-        return np.stack([self._smoothed_kf[k] for k in range(self._k + 1)])
-
-    def smoothed(self) -> np.ndarray:
-        """(N, 4) smoothed nRb w,x,y,z of every accepted sample in time order (needs keep_history)."""
-        from imugraph.geometry import quat_to_rotmat
-
-        if not self.opt.keep_history:
-            raise SessionError("stream", "keep_history", "False", "True to reconstruct per-sample orientations")
-        nRk = self.keyframe_rotations()
-        if self._k == 0:
-            return np.array([self._filtered()] * self.stats.accepted).reshape(-1, 4)
-        # after finish() the buffer holds the last keyframe's own sample only
-        lengths = np.array([len(q) for q in self._hist_kRb] + [1])
-        kRb = quat_to_rotmat(np.vstack(self._hist_kRb + [np.array([[1.0, 0.0, 0.0, 0.0]])]))
-        kf_samples = np.r_[0, np.cumsum(lengths[:-1])]
-        sample_kf = np.repeat(np.arange(len(lengths)), lengths)
-        pre = Preintegration(kf_samples, sample_kf, kRb, np.array(self._hist_dR), None, None, None, None)
-        return sample_orientations(nRk, pre)
-
-    def times(self) -> np.ndarray:
-        """Keyframe times, s (K,)."""
-        return np.asarray(self._kf_t)
-
-    def sample_times(self) -> np.ndarray:
-        """Times of the accepted samples in time order, s: the rows of `smoothed()` (after `finish`)."""
-        self.finish()
-        return np.concatenate(self._hist_t + [np.array([r[0] for r in self._buf])])

@@ -39,7 +39,7 @@ _EYE3, _ZERO3, _UNIT3 = np.eye(3), np.zeros(3), gtsam.noiseModel.Unit.Create(3)
 def row3(x) -> tuple:
     """Three floats from a 3-vector (array, list, tuple; a (1, 3) array too)."""
     try:
-        a, b, c = x
+        a, b, c = x.tolist() if isinstance(x, np.ndarray) else x      # tolist: Python floats at once
         return float(a), float(b), float(c)
     except (TypeError, ValueError):
         a, b, c = np.asarray(x, float).reshape(3)

@@ -1,4 +1,5 @@
-"""A fixed-lag smoother over gtsam.ISAM2 for the stream: incremental updates, marginalisation once per hold_s.
+"""A fixed-lag smoother over gtsam.ISAM2 for the stream: incremental updates, marginalisation once per hold_s
+(between updates, in deferred mode).
 
 gtsam's IncrementalFixedLagSmoother does, per update: stamp the new keys, find the keys older than the lag,
 update iSAM2 with those keys constrained to be eliminated first (all the others in one group: COLAMD), then
@@ -15,6 +16,18 @@ linearised at every update). Here:
   and the old keys are marginalised. `marginalizeLeaves` crashed the process (no exception) on keys that were
   not leaves, so this re-elimination is not optional; the Python wheel does not expose the Bayes tree to
   check. The window holds lag_s to lag_s + hold_s.
+
+Deferred mode (`deferred=True`, what the stream uses): the periodic work leaves the keyframe updates. An update
+then only adds its factors and solves (iSAM2 relinearisation off); `maintain`, which the stream calls once per
+keyframe interval on a sample between keyframes, does the due marginalisation above or else iSAM2's
+relinearisation step (`force_relinearize`: the same check an update makes before adding its factors, on the
+previous update's delta — same results), keeping the last update's keys (newest keyframe, g, b) at the root.
+Why (BROAD 34, first 150 s, iSAM2 result counters): the p99 of the updates came from (i) the marginalisation
+update (whole window re-eliminated, ≈ +3 ms, 9 % of updates) and (ii) updates where a relinearised old
+variable re-eliminated its path to the root, i.e. the window (14 % of updates re-eliminated > 60 of ≈ 96
+variables, 3–6 ms; after moving relinearisation into `maintain` without the root constraint, the next update
+re-eliminated the window again, COLAMD having put the newest keys deep). With both in `maintain`, no update
+re-eliminates more than 52 variables (median 18).
 
 Measured (simulation, 286 Hz, 30 s, lag 2 s, field on, CPU time): the smoother's calls 0.78 s
 (IncrementalFixedLagSmoother: update + calculateEstimate) → 0.25 s, the whole stream 20.6× → 34.3× real time;
@@ -35,37 +48,82 @@ class ChainLagSmoother:
     Interface as used by `StreamSmoother`: update(graph, values, stamps: dict key → time s), calculateEstimate().
     """
 
-    def __init__(self, lag_s: float, params: gtsam.ISAM2Params, group_of, hold_s: float = 1.0):
-        self.lag_s, self.hold_s = float(lag_s), float(hold_s)
+    def __init__(self, lag_s: float, params: gtsam.ISAM2Params, group_of, hold_s: float = 1.0, deferred: bool = False):
+        self.lag_s, self.hold_s, self.deferred = float(lag_s), float(hold_s), bool(deferred)
+        if deferred:          # relinearisation only in `maintain` (or an update with no maintain before it)
+            params.enableRelinearization = False
         self.isam = gtsam.ISAM2(params)
         self.group_of = group_of
         self.stamps: dict = {}
         self.group: dict = {}            # key → group_of(key), cached (symbol parsing costs ~1 µs)
+        self._due = False                # a marginalisation is due (see due)
+        self._maintained = True          # `maintain` ran since the last update
+        self._last_keys: list = []       # the keys stamped by the last update
 
     def update(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, stamps: dict) -> dict | None:
-        """Add factors and new values; once the oldest key is more than lag_s + hold_s older than the newest
-        stamp, marginalise every key older than lag_s. Returns None, or after a marginalisation the keyframe
-        rotations (nRb 3×3 by keyframe index) of the marginalised pose keys as they left the window."""
-        new = set(values.keys())
+        """Add factors and new values; when a marginalisation is due (`due`), do it in this update.
+
+        With `deferred` the caller runs `maintain` between updates: this update then only adds the factors and
+        solves (no relinearisation, no marginalisation) unless no `maintain` ran since the last update, in
+        which case it does that work itself. Returns None, or after a marginalisation the keyframe rotations
+        (nRb 3×3 by keyframe index) of the marginalised pose keys as they left the window."""
         for k in stamps:
             if k not in self.stamps:
                 self.group[k] = self.group_of(k)
         self.stamps.update(stamps)
-        now = max(self.stamps.values())
-        if min(self.stamps.values()) >= now - self.lag_s - self.hold_s:
+        self._last_keys = list(stamps)
+        missed = self.deferred and not self._maintained
+        self._maintained = False
+        self._check_due()
+        if not self._due or (self.deferred and not missed):
             # iSAM2's own order for an incremental update: the new factors' keys last (at the root)
-            self.isam.update(graph, values)
+            self.isam.update(graph, values, [], None, None, None, missed)
             return None
+        return self._marginalize(graph, values)
+
+    def due(self) -> bool:
+        """A marginalisation is due: the oldest stamp is more than lag_s + hold_s older than the newest."""
+        return self._due
+
+    def _check_due(self) -> None:
+        stamps = self.stamps.values()
+        self._due = bool(self.stamps) and min(stamps) < max(stamps) - self.lag_s - self.hold_s
+
+    def maintain(self) -> dict | None:
+        """Between two updates (no new factors; the stream calls it on a sample between keyframes, so that
+        this work does not add to a keyframe update's latency): the due marginalisation (the window's
+        re-elimination), else iSAM2's relinearisation step — the same relinearisation check an update makes
+        before adding its factors (on the delta of the previous update), so the results are the same; a
+        relinearised old variable re-eliminates its path to the root, i.e. most of the window. Returns None,
+        or after a marginalisation as `update`."""
+        self._maintained = True
+        if self._due:
+            return self._marginalize(gtsam.NonlinearFactorGraph(), gtsam.Values())
+        # the keys of the last update (newest keyframe, gravity, bias segment) stay last, at the root, where the
+        # next update adds its factors: unconstrained, COLAMD put them deep in the re-eliminated part and the
+        # next update re-eliminated the window again (BROAD 34: 14 % of the updates, 3–6 ms each)
+        last = gtsam.KeyGroupMap()
+        for key in self._last_keys:
+            last.insert2(key, 1)
+        self.isam.update(gtsam.NonlinearFactorGraph(), gtsam.Values(), [], last, None, None, self.deferred)
+        return None
+
+    def _marginalize(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values) -> dict:
+        """One update that re-eliminates the whole window (keys older than lag_s first), then their
+        marginalisation."""
+        now = max(self.stamps.values())
+        new = set(values.keys())
         old = {k for k, s in self.stamps.items() if s < now - self.lag_s}
         existing = _key_list(k for k in self.stamps if k not in new)
         # marginalizeLeaves needs leaves (it crashed, not raised, on a key that was not one): this update
         # re-eliminates the whole window with those keys first, then they are marginalised
-        self.isam.update(graph, values, [], self._groups(old), None, existing)
+        self.isam.update(graph, values, [], self._groups(old), None, existing, self.deferred)
         left = _pose_rotations(self.isam, old)
         self.isam.marginalizeLeaves(_key_list(old))
         for k in old:
             del self.stamps[k]
             del self.group[k]
+        self._check_due()
         return left
 
     def _groups(self, first: set) -> gtsam.KeyGroupMap:

@@ -69,18 +69,26 @@ class OnlineCalibrationMixin:
                 self._online.add(y, nRk @ kRb)       # nRb_i = nRk · kRb_i
         if flush or elapsed >= self._next_refit:
             self._next_refit = elapsed + self.opt.calib_every_s
-            cal = self._online.refit(elapsed)
-            # swap in only a well-determined refit: a poorly conditioned early one would bias the next
-            # orientations, which feed the next refit (measured on simulation: D drifted 20 std off the truth)
-            # judged on the reported std (with the whiteness factor, stream_calib eq. 3), or with
-            # calib_swap_white on the white-noise one
-            std = self._online.std_white if self.opt.calib_swap_white else cal.std
-            applied = bool(self.opt.calib_swap and cal.std and self._online.std_white is not None
-                           and self._well_determined(std))
-            if applied:
-                self._set_calibration(replace(self.cal, D=cal.D, o=cal.o, dip_deg=cal.dip_deg, std=cal.std))
-            self._online.history[-1]["applied"] = applied
-            self.stats.calib_refits += 1
+            if flush or not self._mid:
+                self._refit(elapsed)
+            else:       # on the next sample between keyframes (StreamSmoother._between_keyframes): same data
+                self._refit_due = True
+
+    def _refit(self, elapsed: float) -> None:
+        """A refit recorded in the history, and the calibration of new magnetometer factors when well determined."""
+        self._refit_due = False
+        cal = self._online.refit(elapsed)
+        # swap in only a well-determined refit: a poorly conditioned early one would bias the next
+        # orientations, which feed the next refit (measured on simulation: D drifted 20 std off the truth)
+        # judged on the reported std (with the whiteness factor, stream_calib eq. 3), or with
+        # calib_swap_white on the white-noise one
+        std = self._online.std_white if self.opt.calib_swap_white else cal.std
+        applied = bool(self.opt.calib_swap and cal.std and self._online.std_white is not None
+                       and self._well_determined(std))
+        if applied:
+            self._set_calibration(replace(self.cal, D=cal.D, o=cal.o, dip_deg=cal.dip_deg, std=cal.std))
+        self._online.history[-1]["applied"] = applied
+        self.stats.calib_refits += 1
 
     def _well_determined(self, std: dict) -> bool:
         """All of the refit's D and o std below calib_swap_rel × field scale (and below the start

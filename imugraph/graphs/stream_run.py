@@ -47,7 +47,7 @@ class StreamResult:
 
 
 def bootstrap_calibration(session: Session, bootstrap_s: float, keyframe_hz: float = 10.0,
-                          allow_weak: bool = True, grow: float = 1.5) -> tuple[Calibration, int]:
+                          allow_weak: bool = True, grow: float = 1.5, gyro_map: bool | None = None) -> tuple[Calibration, int]:
     """ML calibration of the first seconds of the stream: (calibration, number of samples used).
 
     Starts with `bootstrap_s` seconds and, while that window holds too little rotation to identify D and o
@@ -60,6 +60,9 @@ def bootstrap_calibration(session: Session, bootstrap_s: float, keyframe_hz: flo
     (a magnet in the room) the 45 s bootstrap returned a gyro bias of 0.27 rad/s (the rest says 0.003) and a
     dip of 86° (69° over the whole trial); streaming with it scored 77° RMS filtered, with the whole-trial
     calibration 1.25° (the calibration itself is imugraph.calibration.ml's; this only refuses its result).
+
+    gyro_map: estimate the gyro scale/misalignment E (`calibration.ml.Options.gyro_map`; None: its default,
+    as the batch path); the stream applies (I + E) to every incoming gyro sample (`StreamSmoother.push`).
 
     Raises:
         SessionError: a bootstrap window shorter than 2 s of data.
@@ -77,9 +80,8 @@ def bootstrap_calibration(session: Session, bootstrap_s: float, keyframe_hz: flo
                                "at least 2 s of data")
         last = n >= session.n
         try:
-            # gyro_map off: the stream does not apply a gyro scale/misalignment, so the bootstrap must not fit one
-            est = calibrate(session.slice(0, n), Options(keyframe_hz=keyframe_hz, gyro_map=False),
-                            allow_weak=last and allow_weak)
+            opt = Options(keyframe_hz=keyframe_hz) if gyro_map is None else Options(keyframe_hz=keyframe_hz, gyro_map=gyro_map)
+            est = calibrate(session.slice(0, n), opt, allow_weak=last and allow_weak)
             if last or b_rest is None or np.max(np.abs(est.calibration.gyro_bias - b_rest)) <= BIAS_TOL:
                 return est.calibration, n
         except CalibrationError:
@@ -111,11 +113,14 @@ def rest_gyro_bias(session: Session, rest_s: float = 2.0, min_fraction: float = 
 
 
 def timing_summary(update_s, seconds: float, n_samples: int, rate: float, update_cpu_s=None,
-                   cpu_seconds: float | None = None) -> dict:
-    """timing.json: `updates`, `seconds` (streaming wall time), `p50_ms`, `p99_ms`, `max_ms` per update, and
-    `realtime_factor` (samples per second processed ÷ sampling rate); with CPU times (thread CPU per update,
-    process CPU of the whole stream) also `p50_cpu_ms`, `p99_cpu_ms`, `cpu_seconds`, `cpu_realtime_factor`:
-    the same figures without the time other processes took on a shared machine."""
+                   cpu_seconds: float | None = None, between_s=None, between_cpu_s=None) -> dict:
+    """timing.json: `updates`, `seconds` (streaming wall time), `p50_ms`, `p99_ms`, `max_ms` per keyframe update,
+    and `realtime_factor` (samples per second processed ÷ sampling rate); with CPU times (thread CPU per update,
+    process CPU of the whole stream) also `p50_cpu_ms`, `p99_cpu_ms`, `max_cpu_ms`, `cpu_seconds`,
+    `cpu_realtime_factor`: the same figures without the time other processes took on a shared machine.
+    With the work done between keyframes (StreamSmoother._between_keyframes: the chain lag's marginalisation /
+    relinearisation, the online refits; each on a sample of its own): `between_steps`, `p50_between_ms`,
+    `p99_between_ms`, `max_between_ms` and the same in CPU time — a push waits for at most one of either."""
     def pct(x, q):
         return float(np.percentile(x, q)) if x.size else None
     ms = np.asarray(update_s, float) * 1e3
@@ -124,9 +129,15 @@ def timing_summary(update_s, seconds: float, n_samples: int, rate: float, update
            "realtime_factor": float(n_samples / max(seconds, 1e-9) / rate)}
     if update_cpu_s is not None:
         cpu = np.asarray(update_cpu_s, float) * 1e3
-        out.update(p50_cpu_ms=pct(cpu, 50), p99_cpu_ms=pct(cpu, 99))
+        out.update(p50_cpu_ms=pct(cpu, 50), p99_cpu_ms=pct(cpu, 99), max_cpu_ms=pct(cpu, 100))
     if cpu_seconds is not None:
         out.update(cpu_seconds=float(cpu_seconds), cpu_realtime_factor=float(n_samples / max(cpu_seconds, 1e-9) / rate))
+    for tag, x in (("", between_s), ("_cpu", between_cpu_s)):
+        if x is not None:
+            b = np.asarray(x, float) * 1e3
+            out["between_steps"] = int(b.size)
+            out.update({f"p50_between{tag}_ms": pct(b, 50), f"p99_between{tag}_ms": pct(b, 99),
+                        f"max_between{tag}_ms": pct(b, 100)})
     return out
 
 
@@ -161,8 +172,9 @@ def stream_session(session: Session, cal: Optional[Calibration] = None, options:
     smoother.finish()
     seconds, cpu_seconds = time.perf_counter() - start, time.process_time() - start_cpu
     smoothed = smoother.smoothed()
-    timing = timing_summary(smoother.stats.update_s, seconds, session.n, session.rate, smoother.stats.update_cpu_s,
-                            cpu_seconds)
+    st = smoother.stats
+    timing = timing_summary(st.update_s, seconds, session.n, session.rate, st.update_cpu_s, cpu_seconds,
+                            st.between_s, st.between_cpu_s)
     timing["bootstrap_seconds"] = boot_s
     return StreamResult(session.t, filtered, smoothed, smoother.cal, timing, smoother.stats.counts(), n_boot,
                         smoother.calibration_history, cal)

@@ -1,0 +1,61 @@
+"""The outputs of `StreamSmoother` (imugraph.graphs.stream): the smoothed keyframes and samples at the end, and
+the constant-memory pruning of the fixed lag's smoothed keyframes."""
+
+from __future__ import annotations
+
+import gtsam
+import numpy as np
+
+from imugraph.errors import SessionError
+from imugraph.factors.gyro import Preintegration
+from imugraph.graphs.orientation_init import sample_orientations
+
+
+class StreamOutputMixin:
+    """Methods of StreamSmoother (state in StreamSmoother.__init__)."""
+
+    def _forget_smoothed(self, keep_from: int) -> None:
+        """Without keep_history (constant memory): drop the smoothed keyframes before `keep_from` that the
+        online calibration no longer awaits (its oldest pending interval)."""
+        if self.opt.keep_history:
+            return
+        lo = min(keep_from, self._pending[0][0]) if self._pending else keep_from
+        for old in [key for key in self._smoothed_kf if key < lo]:
+            del self._smoothed_kf[old]
+
+    def keyframe_rotations(self) -> np.ndarray:
+        """(K, 3, 3) smoothed nRb of every keyframe (after `finish`)."""
+        self.finish()
+        if self._k == 0:
+            return (self._nRk.matrix() if self._nRk is not None else np.eye(3))[None]
+        if self.opt.lag_s is None:
+            return gtsam.utilities.extractPose3(self._final)[:, :9].reshape(-1, 3, 3)
+        if not self.opt.keep_history:
+            raise SessionError("stream", "keep_history", "False", "True to keep every keyframe of a fixed lag")
+        return np.stack([self._smoothed_kf[k] for k in range(self._k + 1)])
+
+    def smoothed(self) -> np.ndarray:
+        """(N, 4) smoothed nRb w,x,y,z of every accepted sample in time order (needs keep_history)."""
+        from imugraph.geometry import quat_to_rotmat
+
+        if not self.opt.keep_history:
+            raise SessionError("stream", "keep_history", "False", "True to reconstruct per-sample orientations")
+        nRk = self.keyframe_rotations()
+        if self._k == 0:
+            return np.array([self._filtered()] * self.stats.accepted).reshape(-1, 4)
+        # after finish() the buffer holds the last keyframe's own sample only
+        lengths = np.array([len(q) for q in self._hist_kRb] + [1])
+        kRb = quat_to_rotmat(np.vstack(self._hist_kRb + [np.array([[1.0, 0.0, 0.0, 0.0]])]))
+        kf_samples = np.r_[0, np.cumsum(lengths[:-1])]
+        sample_kf = np.repeat(np.arange(len(lengths)), lengths)
+        pre = Preintegration(kf_samples, sample_kf, kRb, np.array(self._hist_dR), None, None, None, None)
+        return sample_orientations(nRk, pre)
+
+    def times(self) -> np.ndarray:
+        """Keyframe times, s (K,)."""
+        return np.asarray(self._kf_t)
+
+    def sample_times(self) -> np.ndarray:
+        """Times of the accepted samples in time order, s: the rows of `smoothed()` (after `finish`)."""
+        self.finish()
+        return np.concatenate(self._hist_t + [np.array([r[0] for r in self._buf])])
