@@ -86,7 +86,7 @@ def test_clean_session_effects_are_below_relevance(clean, name):
     assert size["value"] < size["threshold"], size
 
 
-@pytest.mark.parametrize("name,strength,seed", [("time_offset", 0.03, 2),     # seed 2: a magnetometer delay
+@pytest.mark.parametrize("name,strength,seed", [("time_offset", 0.03, 2),     # seed 2: an accelerometer delay
                                                 ("gyro_scale", np.eye(3) * 1.02, 5), ("vibration", 1.5, 5)])
 def test_injected_effects_reach_relevance(clean, name, strength, seed):
     s, _ = clean

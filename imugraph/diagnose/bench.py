@@ -77,6 +77,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--duration", type=float, default=60.0, help="crop sessions to this many seconds (default 60)")
     p.add_argument("--rate", type=float, default=285.714, help="sampling rate of the simulations, Hz")
     p.add_argument("--seed", type=int, default=0, help="seed of the injections and simulations (default 0)")
+    p.add_argument("--cases", default=None,
+                   help="case ids to diagnose, comma separated (e.g. 013,020); the other cases are drawn but "
+                        "skipped, so the selected ones are the same as in a full run (default: all)")
     p.add_argument("--no-clean", action="store_true", help="skip the unmodified sessions (truth none)")
     p.add_argument("--out", default="bench_out/diagnose", help="folder for harness.json / harness.md")
     p.add_argument("--data-dir", default=None, help="data folder (default $IMUGRAPH_DATA, else ../shared/data)")
@@ -112,7 +115,9 @@ def run_bench_diagnose(args: argparse.Namespace) -> int:
     say(f"harness: {len(sessions)} sessions ({', '.join(s.name for s in sessions)}), "
         f"{len(names)} effects × {args.n}")
     report = run_harness(sessions, names, int(args.n), np.random.default_rng(seed),
-                         clean=not getattr(args, "no_clean", False), progress=say)
+                         clean=not getattr(args, "no_clean", False), progress=say,
+                         only=[c.strip() for c in args.cases.split(",") if c.strip()]
+                         if getattr(args, "cases", None) else None)
     text = format_report(report)
     print(text)
     out = Path(getattr(args, "out", "bench_out/diagnose"))

@@ -4,11 +4,23 @@ Base model (the simplest honest one; DESIGN.md conventions, Kok & Schön 2016):
 
     b_gyr,j = ω_j + δ_ω + e_ω             gyro: rate + ONE constant bias + white noise                   (B1)
     b_acc,j = bRn,j · (0, 0, g) + e_a        accelerometer: gravity only, NO linear acceleration           (B2)
-    b_mag,j = D · bRn,j · n_mag + o + e_m    magnetometer: no disturbance windows, no delay                 (B3)
+    b_mag(t_j + τ_m) = D · bRn,j · n_mag + o + e_m    magnetometer: its own lag τ_m, no disturbance windows (B3)
 
 fitted with `imugraph.calibration.ml.calibrate` (linear_acceleration="noise", disturbance_windows=False,
-compensate_mag_delay=False, bias_segment_s=0: one bias segment — a drifting bias is the gyro_bias_drift
-effect, not the base model): per-sample nRb, D, o, dip, gyro bias, noise σ per channel.
+bias_segment_s=0: one bias segment — a drifting bias is the gyro_bias_drift effect, not the base model):
+per-sample nRb, D, o, dip, gyro bias, noise σ per channel. The magnetometer's lag behind the gyro τ_m is
+part of the base model, as it is of `imugraph calibrate`'s default model (`compensate_mag_delay=True`,
+calibration.json `mag_delay_s`): a recording is fitted with its field on the gyro's time base,
+`undelay_magnetometer(t, b_mag, τ_m)` (whole samples), τ_m from the calibration's own initial estimate
+(`calibration.alignment.estimate_mag_delay`: BROAD 8.6–10.2 ms on every rotating trial, a property of
+the sensor). τ_m is signed, as the calibration's: the field–gyro timing of a sensor whose gyro filter
+delays more than its magnetometer is a calibrated property too. The price: an injected gyro delay moves
+the field along with the late gyro and is then seen in the accelerometer only (BROAD 01 + 31.6 ms gyro
+delay: τ_m −21.4 ms). Clamping τ_m ≥ 0 was measured and not kept: that case stayed none (time_offset
+on mag 4.4 samples, (A2) 0.19) and sim01 + 21 ms gyro delay fell from shrink 0.61 to 0.50.
+`Fit.session` is that aligned session and `Fit.info["mag_delay_s"]` holds τ_m. The delay
+is estimated only for a fresh fit (`initial` not given): the refits and the simulations' fits work on
+data already on the gyro's time base.
 
 Residuals (raw units, y − h(x̂), NaN where a channel has no sample):
 
@@ -47,7 +59,7 @@ class Fit:
     """The base model fitted to one session.
 
     Attributes:
-        session: the data that were fitted (raw, unmodified).
+        session: the data that were fitted: the recording with its field on the gyro's time base (B3).
         nRb: (N, 3, 3) fitted orientation body → nav per sample.
         calibration: D, o, dip_deg, gyro_bias (mean), noise {"gyr", "acc", "mag": (3,) σ}.
         g: gravity magnitude used, m/s².
@@ -117,7 +129,8 @@ def body_rate(nRb: np.ndarray, dt: np.ndarray) -> np.ndarray:
     return np.vstack([w, w[-1:]]) if len(w) else np.zeros((len(nRb), 3))
 
 
-def fit_base(session: Session, options=None, initial=None, extended: dict | None = None) -> Fit:
+def fit_base(session: Session, options=None, initial=None, extended: dict | None = None,
+             align_mag: bool = True) -> Fit:
     """Fit the base model (B1)–(B3) to a session (calibration, bias segments, noise, trajectory).
 
     Args:
@@ -130,6 +143,8 @@ def fit_base(session: Session, options=None, initial=None, extended: dict | None
         extended: Options fields set AFTER the base model's (e.g. {"disturbance_windows": True}): the fit
             of an extended model that imugraph.calibration.ml has jointly (imugraph.diagnose.refit); the
             residuals (R1)–(R3) stay those of the base model's terms at the extended model's estimate.
+        align_mag: with `initial` None, put the field on the gyro's time base by the magnetometer lag τ_m
+            of the initial estimate (module doc, (B3)); False: τ_m = 0 (the model without the lag).
 
     Raises:
         SessionError: the session is too short or has no magnetometer samples.
@@ -148,8 +163,14 @@ def fit_base(session: Session, options=None, initial=None, extended: dict | None
                            f"at least {4 * stride_for(session, opt.keyframe_hz)} samples to diagnose")
     if not np.any(session.mag_valid):
         raise SessionError(session.source, "mag", "no magnetometer sample", "a magnetometer signal")
+    delay = 0.0
     if initial is None:
         initial = _initial(session)
+        delay = float(getattr(initial, "mag_delay_s", 0.0) or 0.0) if align_mag else 0.0
+        if delay != 0.0:                                                            # (B3) τ_m
+            from imugraph.calibration.alignment import undelay_magnetometer
+
+            session = session.with_mag(undelay_magnetometer(session.t, session.mag, delay))
     est = calibrate(session, opt, initial=initial, allow_weak=True)
     cal = est.calibration
     nRb = quat_to_rotmat(est.quat)
@@ -166,7 +187,7 @@ def fit_base(session: Session, options=None, initial=None, extended: dict | None
               {"stride": stride, "keyframe_hz": opt.keyframe_hz, "iterations": cal.iterations,
                "converged": cal.converged, "bias_segments": bias_seg, "identifiable":
                cal.coverage.get("identifiable", True) if isinstance(cal.coverage, dict) else True,
-               "rest": getattr(initial, "rest", None)})
+               "rest": getattr(initial, "rest", None), "mag_delay_s": delay})
     fit.residuals = _raw_residuals(fit)
     return fit
 

@@ -125,7 +125,8 @@ def injected_part_shrink(case: dict, hosts: dict) -> Optional[float]:
 
 def run_harness(sessions: Iterable, effects: Optional[Iterable[str]] = None, n_per_effect: int = 2,
                 rng: Optional[np.random.Generator] = None, *, clean: bool = True,
-                diagnose_fn: Optional[Callable] = None, progress: Optional[Callable[[str], None]] = None) -> dict:
+                diagnose_fn: Optional[Callable] = None, progress: Optional[Callable[[str], None]] = None,
+                only: Optional[Iterable[str]] = None) -> dict:
     """Inject, diagnose blind, score (module doc).
 
     Args:
@@ -138,6 +139,8 @@ def run_harness(sessions: Iterable, effects: Optional[Iterable[str]] = None, n_p
         diagnose_fn: session → diagnosis (object with `to_json` or the diagnosis.json dict); default
             `imugraph.diagnose.run.diagnose`.
         progress: optional callable(str) for one line per case.
+        only: case ids ("001", ...) to diagnose; the others are still drawn (same random sequence, so a
+            case is replayed exactly) but not diagnosed nor scored. None: all.
 
     Returns:
         report dict: "cases", "labels", "confusion" (truth → verdict → count), "top1", "n_injected",
@@ -151,6 +154,7 @@ def run_harness(sessions: Iterable, effects: Optional[Iterable[str]] = None, n_p
     rng = rng or np.random.default_rng(0)
     fn = diagnose_fn or _default_diagnose
     say = progress or (lambda _m: None)
+    keep = None if only is None else {str(c).zfill(3) for c in only}
     cases = []
     t0 = time.perf_counter()
     k = 0
@@ -159,12 +163,16 @@ def run_harness(sessions: Iterable, effects: Optional[Iterable[str]] = None, n_p
             base = sessions[k % len(sessions)]
             k += 1
             injected, truth = EFFECTS[name].inject(base, rng)
+            if keep is not None and f"{k:03d}" not in keep:
+                continue
             case = run_case(injected, name, truth, f"{k:03d}", fn)
             cases.append(case)
             say(_case_line(case))
     if clean:
         for base in sessions:
             k += 1
+            if keep is not None and f"{k:03d}" not in keep:
+                continue
             case = run_case(base, NONE, {}, f"{k:03d}", fn)
             cases.append(case)
             say(_case_line(case))

@@ -66,7 +66,9 @@ def refit_effect(effect, real: Fit, rounds: int = 2, window=None) -> tuple[Fit, 
     if joint:                                   # the calibration has the extended model: fit it jointly
         from imugraph.diagnose.fit import base_options, fit_base
 
-        ext = fit_base(real.session, base_options(real.info.get("keyframe_hz", 5.0)), extended=dict(joint))
+        ext = fit_base(real.session, base_options(real.info.get("keyframe_hz", 5.0)), extended=dict(joint),
+                       align_mag=False)       # real.session's field is already on the gyro's time base (B3)
+        ext.info["mag_delay_s"] = real.info.get("mag_delay_s", 0.0)
         return ext, {"rounds": [], "window": window, "changed": True, "joint": dict(joint)}
     cur = real
     info = {"rounds": []}

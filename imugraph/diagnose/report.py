@@ -82,6 +82,8 @@ def markdown(diag, figures: dict) -> str:
     lines = [f"# Diagnosis of {s.name}", "",
              f"{s.n} samples, {s.t[-1] - s.t[0]:.1f} s at {s.rate:.1f} Hz ({s.source}).", "",
              f"**Verdict: `{diag.verdict}`**", "",
+             f"Base model: the magnetometer's lag behind the gyro, "
+             f"{1e3 * float(diag.real.info.get('mag_delay_s', 0.0)):.1f} ms, is part of it (removed before the fit).", "",
              "## Gap per channel (real vs simulation from the fitted model)", "",
              "| channel | gap (excess over floor) | real vs sim | noise floor (sim vs sim) | ratio |",
              "|---|---|---|---|---|"]
@@ -139,7 +141,8 @@ def write_report(diag, out_dir) -> dict:
 
 def summary_table(diag) -> str:
     """A short stdout table: verdict, gap per channel, top effects."""
-    lines = [f"diagnosis of {diag.real.session.name}: verdict {diag.verdict}",
+    lines = [f"diagnosis of {diag.real.session.name}: verdict {diag.verdict} (base model's magnetometer lag "
+             f"{1e3 * float(diag.real.info.get('mag_delay_s', 0.0)):.1f} ms)",
              "  gap " + "  ".join(f"{c} {diag.gap[c]:.3f} (floor {diag.null_gap[c]:.3f})" for c in CHANNELS)]
     for loc in diag.locations[:3]:
         lines.append(f"  location {loc['channel']} {loc['t_start']:.1f}–{loc['t_end']:.1f} s "
