@@ -3,7 +3,8 @@
 A simulated 286 Hz single-IMU session (`imugraph.sim.scenario.distorted_session`: random rotations, distorted
 magnetometer, gyro bias, noise) of --minutes minutes is pushed sample by sample into a `StreamSmoother` with a
 fixed lag (default: stream_lag.ChainLagSmoother, 2 s) and online calibration, started from the true
-calibration. Every simulated minute the process's resident set size (VmRSS, /proc/self/status) is sampled.
+calibration with the accelerometer timing δ = --acc-lead samples (default 0.5, `calibrate`'s; the stream
+re-times the accelerometer by it, stream_interval.lead_interval). Every simulated minute the process's resident set size (VmRSS, /proc/self/status) is sampled.
 Reported: RSS per minute, the growth per minute (least-squares slope over minutes ≥ --skip, MB/min), the
 real-time factor (samples per second ÷ rate) and the update latency p50/p99.
 
@@ -13,7 +14,7 @@ before streaming starts, so the RSS growth is the smoother's. Two runs by defaul
 rows kept for `smoothed()`: O(N) by design, ≈ 8 floats per sample).
 
     .venv/bin/python benchmarks/stream_memory.py [--minutes 30] [--rate 286] [--lag 2]
-        [--lag-solver chain|incremental|batch] [--history both|on|off] [--skip 2]
+        [--lag-solver chain|incremental|batch] [--history both|on|off] [--skip 2] [--acc-lead 0.5]
 
 Writes bench_out/stream_memory.json.
 """
@@ -21,6 +22,7 @@ Writes bench_out/stream_memory.json.
 from __future__ import annotations
 
 import argparse
+from dataclasses import replace
 import sys
 import time
 from pathlib import Path
@@ -96,6 +98,7 @@ def main(argv=None) -> int:
     ap.add_argument("--history", choices=("both", "on", "off"), default="both")
     ap.add_argument("--skip", type=float, default=2.0, help="minutes left out of the growth fit (warm-up)")
     ap.add_argument("--seed", type=int, default=3)
+    ap.add_argument("--acc-lead", type=float, default=0.5, help="δ of the calibration, samples (acc_timing)")
     a = ap.parse_args(argv)
     from imugraph.graphs.stream import StreamOptions
     from imugraph.sim.scenario import distorted_session
@@ -104,7 +107,7 @@ def main(argv=None) -> int:
     session, truth = distorted_session(a.seed, a.minutes * 60.0, a.rate)
     print(f"simulated {session.n} samples ({a.minutes:g} min at {a.rate:g} Hz) in {time.perf_counter() - start:.1f} s",
           file=sys.stderr, flush=True)
-    cal = truth.to_calibration()
+    cal = replace(truth.to_calibration(), acc_lead_samples=a.acc_lead)
     rows = []
     for hist in {"both": (False, True), "on": (True,), "off": (False,)}[a.history]:
         opt = StreamOptions(lag_s=a.lag, fixed_lag_solver=a.lag_solver, keep_history=hist)
@@ -115,7 +118,7 @@ def main(argv=None) -> int:
     for r in rows:
         print(f"keep_history={r['keep_history']} RSS by minute (MB): " + " ".join(f"{v:.0f}" for v in r["rss_mb"]))
     write_json("stream_memory.json", {"rows": rows, "minutes": a.minutes, "rate_hz": a.rate, "lag_s": a.lag,
-                                      "lag_solver": a.lag_solver, "command": " ".join(sys.argv)})
+                                      "lag_solver": a.lag_solver, "acc_lead_samples": a.acc_lead, "command": " ".join(sys.argv)})
     return 0
 
 

@@ -10,7 +10,9 @@ perturbation of calibration.ml's model, `imugraph.graphs.stream_field`), a new g
 random walk) when the interval starts one — then one `update`. Interval k closes when the first sample of
 keyframe k+1 arrives (keyframes every `stride` samples, as `keyframe_layout`): the batch path's preintegration.
 The gyro is taken as ω = (I + E)·b_gyr − b with the calibration's gyro map E (`Calibration.gyro_map`, as
-`smooth --calibration` does through `Calibration.corrected_gyro`).
+`smooth --calibration` does through `Calibration.corrected_gyro`); the accelerometer re-timed by the
+calibration's δ (`acc_lead_samples`, stream_interval.lead_interval) and the velocity process σ_v, τ_v taken
+from it (StreamOptions: unless set there), as `smooth_fixed` does.
 
 Periodic work (the chain lag's marginalisation and relinearisation step, the online refits) runs on a sample
 between keyframes, timed apart from the keyframe updates (`_between_keyframes`; docs/stream.md "Latency").
@@ -49,13 +51,15 @@ from imugraph.errors import SessionError
 from imugraph.graphs.cpp_velocity import (G_KEY, SIGMA_ACC_BIAS_RW, SIGMA_G, SIGMA_POS, gauss_markov_factors,
                                           imu_bias_key, pose_key, split_noise, super_sample_pim)
 from imugraph.graphs.stream_interval import (NAN3 as _NAN3, Q_ID, ArrivalMixin, gauss_markov_factor,
-                                             interval_preintegration, qmul, qpos, qstep, row3 as _row3)
+                                             interval_preintegration, lead_interval, qmul, qpos, qstep,
+                                             row3 as _row3)
 from imugraph.graphs.orientation_init import triad
 from imugraph.graphs.stream_calib import OnlineMagCalibration
 from imugraph.graphs.stream_field import field_key, field_start_prior, field_step_factor
 from imugraph.graphs.stream_lag import window_rotations
 from imugraph.graphs.stream_online import OnlineCalibrationMixin
-from imugraph.graphs.stream_options import SIGMA_WEAK_POSE, StreamOptions, StreamStats, make_solver
+from imugraph.graphs.stream_options import (SIGMA_WEAK_POSE, StreamOptions, StreamStats, acc_lead, make_solver,
+                                            velocity_process)
 from imugraph.graphs.stream_output import StreamOutputMixin
 
 __all__ = ["StreamOptions", "StreamSmoother", "StreamStats"]
@@ -109,6 +113,10 @@ class StreamSmoother(OnlineCalibrationMixin, ArrivalMixin, StreamOutputMixin):
         self._b_hat = np.asarray(cal.gyro_bias, float)
         E = np.asarray(cal.gyro_map, float)   # ω = (I + E)·b_gyr − b, as smooth --calibration (Calibration.corrected_gyro)
         self._IE = tuple(tuple(float(v) for v in row) for row in np.eye(3) + E) if np.any(E) else None
+        self._IE_inv = np.linalg.inv(np.eye(3) + E).T if np.any(E) else None      # rows: w @ this = recorded gyro
+        self._sig_v, self._tau_v = velocity_process(options, cal)    # σ_v, τ_v: options', else the calibration's
+        self._lead_n, self._lead_f = acc_lead(options, cal)          # δ = n + f: options', else the calibration's
+        self._acc_tail = np.zeros((0, 3))    # the last n accelerometer rows before the open interval
         self._estimate_g = options.g is None
         self._g = float(options.g if options.g is not None else g0)
         self._pim_params = gtsam.PreintegrationParams.MakeSharedU(self._g)
@@ -223,6 +231,9 @@ class StreamSmoother(OnlineCalibrationMixin, ArrivalMixin, StreamOutputMixin):
         rows = np.array(self._buf)
         t = np.append(rows[:, 0], t_next)
         w, a, m_raw = rows[:, 1:4], rows[:, 4:7], rows[:, 7:10]
+        if self._lead_n or self._lead_f:      # accelerometer timing δ, as smooth_fixed (stream_interval eq. 4)
+            w_rec = w if self._IE_inv is None else w @ self._IE_inv
+            a, self._acc_tail = lead_interval(t, w_rec, a, self._acc_tail, self._lead_n, self._lead_f)
         steps = np.diff(t)
         gap = steps > 1.5 / self.rate                  # counted on the interval as accepted (late rows in)
         if gap.any():
@@ -251,7 +262,7 @@ class StreamSmoother(OnlineCalibrationMixin, ArrivalMixin, StreamOutputMixin):
         f = gtsam.ImuFactorWithGravityVector(*ends, G_KEY, pim) if self._estimate_g else gtsam.ImuFactor(*ends, pim)
         for model in split_noise(cov[None], np.array([sig_dv]), self.opt.acc_huber_k)[0]:
             graph.add(f.cloneWithNewNoiseModel(model))
-        graph.add(gauss_markov_factor(keys.vel(k), keys.vel(k + 1), dt_k, self.opt.velocity_sigma, self.opt.velocity_tau))
+        graph.add(gauss_markov_factor(keys.vel(k), keys.vel(k + 1), dt_k, self._sig_v, self._tau_v))
         if self._field:                              # d_{k+1} = φ_k d_k + w_k (stream_field eq. 2)
             graph.add(field_step_factor(field_key(k), field_key(k + 1), dt_k, self.opt.field_sigma, self.opt.field_tau))
             values.insert(field_key(k + 1), np.exp(-dt_k / self.opt.field_tau) * self._d)
@@ -296,7 +307,7 @@ class StreamSmoother(OnlineCalibrationMixin, ArrivalMixin, StreamOutputMixin):
         self._q_nk = tuple(_quat(self._nRk))
         values.insert(pose_key(0), gtsam.Pose3(self._nRk, np.zeros(3)))
         values.insert(keys.vel(0), np.zeros(3))
-        graph.add(gauss_markov_factors(np.array([1.0]), self.opt.velocity_sigma, self.opt.velocity_tau)[0])
+        graph.add(gauss_markov_factors(np.array([1.0]), self._sig_v, self._tau_v)[0])
         graph.add(gtsam.PoseTranslationPrior3D(pose_key(0), np.zeros(3), gtsam.noiseModel.Isotropic.Sigma(3, SIGMA_POS)))
         if self._estimate_g:
             n_grav = np.array([0.0, 0.0, -self._g])

@@ -29,6 +29,7 @@ import gtsam
 import numpy as np
 
 from imugraph.factors.velocity import gauss_markov
+from imugraph.geometry import expmap
 
 
 Q_ID = (1.0, 0.0, 0.0, 0.0)
@@ -176,3 +177,32 @@ class ArrivalMixin:
             q = qstep(q, r0[1] - bx, r0[2] - by, r0[3] - bz, r1[0] - r0[0])
         return q
 
+
+
+def lead_interval(t: np.ndarray, b_gyr: np.ndarray, b_acc: np.ndarray, tail: np.ndarray, whole: int, frac: float):
+    """One interval's accelerometer re-timed as `imugraph.calibration.acc_timing.lead_accelerometer` re-times a
+    whole session (δ = whole + frac samples): row i takes the row `whole` samples earlier (`tail`: the stream's
+    last `whole` rows before this interval; before the stream's first row, that row repeats, as there), then
+    the fractional part rotates it by the turn the body made in frac·Δt_i (acc_timing eq. 3)
+
+        a_i ← Exp(f Δt_i ω_i) a_{i−n},   Δt_i = t_{i+1} − t_i                                       (4)
+
+    with ω_i the gyro row as recorded (before the gyro map, bias not removed: as `acc_timing.with_lead`).
+    Causal: the interval closes when keyframe k+1's sample (t[n]) has arrived, so every Δt_i is known.
+
+    Args:
+        t: (n+1,) s, the interval's rows and the next keyframe; b_gyr, b_acc: (n, 3) rad/s, m/s²;
+        tail: (m, 3), m ≤ whole; whole: n ≥ 0; frac: f in [0, 1).
+
+    Returns:
+        ((n, 3) re-timed accelerometer, (min(m + n, whole), 3) tail for the next interval).
+    """
+    a = np.asarray(b_acc, float)
+    if whole:
+        both = np.concatenate([tail, a]) if len(tail) else a
+        if len(tail) < whole:                       # the stream's first rows: its first row repeats
+            both = np.concatenate([np.repeat(both[:1], whole - len(tail), axis=0), both])
+        a, tail = both[:len(a)], both[-whole:].copy()
+    if frac > 0.0:
+        a = np.einsum("nij,nj->ni", expmap(frac * np.diff(t)[:, None] * b_gyr), a)          # eq. (4)
+    return a, tail

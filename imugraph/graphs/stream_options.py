@@ -52,6 +52,12 @@ class StreamOptions:
             (imugraph.factors.field, `calibration.ml.Options`' defaults; σ_d per nav axis, x along the horizontal
             field, y across it, z up; τ_d s); magnetometer factors use n + d_k (`imugraph.graphs.stream_field`).
             None: no perturbation (the field is n_mag exactly, as `smooth_fixed`).
+        velocity_sigma, velocity_tau: σ_v (m/s), τ_v (s) of the bounded-velocity process; None: the calibration's
+            estimate (`Calibration.velocity_sigma/tau`, calibration/velocity_process.py), else 0.5 m/s / 2 s — as
+            `smooth_fixed` chooses them.
+        acc_lead_samples: δ ≥ 0, accelerometer row j paired with the strapdown orientation of row j + δ
+            (calibration/acc_timing.py eq. 3, applied causally per interval: StreamSmoother._lead); None: the
+            calibration's `acc_lead_samples` (0.5 from `calibrate`), as `smooth_fixed` chooses it.
         Other fields: as `smooth_fixed`.
     """
 
@@ -61,8 +67,9 @@ class StreamOptions:
     g: float | None = None
     huber_k: float = 2.0
     gyro_rate_error: float = 0.01
-    velocity_sigma: float = 0.5
-    velocity_tau: float = 2.0
+    velocity_sigma: float | None = None
+    velocity_tau: float | None = None
+    acc_lead_samples: float | None = None
     acc_rate_error: float = 0.01
     acc_huber_k: float | None = 2.0
     acc_bias_sigma: float = 1e-4
@@ -167,3 +174,31 @@ def isam2_thresholds(rot_threshold: float) -> "gtsam.ISAM2ThresholdMap":
     m.insert(("g", np.full(3, 0.1)))
     m.insert(("f", np.full(3, 0.05)))      # field perturbation d_k (unit-field units; σ_d 0.003–0.015)
     return m
+
+
+def velocity_process(options: StreamOptions, cal) -> tuple[float, float]:
+    """σ_v (m/s), τ_v (s) of the stream's bounded-velocity factors: the options' where set, else the calibration's
+    estimate (`Calibration.velocity_sigma/tau`), else 0.5 m/s / 2 s — the choice `smooth_fixed` makes."""
+    sigma = options.velocity_sigma if options.velocity_sigma is not None else (cal.velocity_sigma or 0.5)
+    tau = options.velocity_tau if options.velocity_tau is not None else (cal.velocity_tau or 2.0)
+    from imugraph.errors import SessionError
+    for name, x in (("velocity_sigma", sigma), ("velocity_tau", tau)):
+        if not (np.isfinite(x) and x > 0):
+            raise SessionError("stream", name, repr(x), "a positive number")
+    return float(sigma), float(tau)
+
+
+def acc_lead(options: StreamOptions, cal) -> tuple[int, float]:
+    """δ = n + f (whole samples n ≥ 0, fraction 0 ≤ f < 1) of the accelerometer timing (calibration/acc_timing.py):
+    the options' where set, else the calibration's `acc_lead_samples` (as `smooth_fixed`).
+
+    Raises:
+        SessionError: δ < 0 or not finite — row j would need the accelerometer of a later sample, which a
+        causal stream does not have when row j's interval closes."""
+    from imugraph.errors import SessionError
+    lead = float(options.acc_lead_samples if options.acc_lead_samples is not None else cal.acc_lead_samples)
+    if not (np.isfinite(lead) and 0.0 <= lead <= 1e4):
+        raise SessionError("stream", "acc_lead_samples", repr(lead),
+                           "a finite δ ≥ 0 samples (a causal stream cannot use a later accelerometer sample)")
+    whole = int(np.floor(lead))
+    return whole, lead - whole
