@@ -9,19 +9,17 @@ field with its full covariance (`MagPoseFactorPose3`; with options.field_sigma a
 perturbation of calibration.ml's model, `imugraph.graphs.stream_field`), a new gyro-bias segment (prior +
 random walk) when the interval starts one — then one `update`. Interval k closes when the first sample of
 keyframe k+1 arrives (keyframes every `stride` samples, as `keyframe_layout`): the batch path's preintegration.
-The gyro is taken as ω = (I + E)·b_gyr − b with the calibration's gyro map E (`Calibration.gyro_map`, as
-`smooth --calibration` does through `Calibration.corrected_gyro`); the accelerometer re-timed by the
-calibration's δ (`acc_lead_samples`, stream_interval.lead_interval) and the velocity process σ_v, τ_v taken
-from it (StreamOptions: unless set there), as `smooth_fixed` does.
-
-Periodic work (the chain lag's marginalisation and relinearisation step, the online refits) runs on a sample
-between keyframes, timed apart from the keyframe updates (`_between_keyframes`; docs/stream.md "Latency").
+As `smooth_fixed` does, the gyro is ω = (I + E)·b_gyr − b (the calibration's gyro map E), the accelerometer is
+re-timed by the calibration's δ (`acc_lead_samples`, stream_interval.lead_interval) and the velocity process
+σ_v, τ_v is the calibration's (unless StreamOptions sets it). Periodic work (the chain lag's marginalisation
+and relinearisation, the online refits) runs on a sample between keyframes, timed apart
+(`_between_keyframes`; docs/stream.md "Latency").
 
 Filtered orientation (`push`'s return): the latest estimate of the newest keyframe, carried to the sample
 by the gyro integrated since (with the current bias estimate) — available when the sample arrives.
 Smoothed orientation (`smoothed()`): at the end, Levenberg–Marquardt on iSAM2's factors from its estimate
-(a few relinearising updates first), or with a lag the estimate each keyframe had when it left the window; per-sample values
-blended between keyframes as the batch path does (`sample_orientations`).
+(a few relinearising updates first), or with a lag the estimate each keyframe had when it left the window;
+per-sample values blended between keyframes as the batch path does (`sample_orientations`).
 
 Arrival problems, all counted in `StreamStats`, none raises: a repeated time stamp is dropped
 (`duplicates`); a sample older than the newest one is inserted in time order while its keyframe interval is
