@@ -22,6 +22,7 @@ from imugraph import keys
 from imugraph.calibration.noise import field_dof, reestimate
 from imugraph.calibration.options import Options  # noqa: F401  (public here: ml.Options)
 from imugraph.calibration.acc_timing import with_lead
+from imugraph.calibration.gyro_rate import update_rate_error
 from imugraph.calibration.result import Calibration
 from imugraph.factors.gyro import keyframe_layout, preintegrate
 from imugraph.calibration.disturbance import apply_windows, detect_windows, fit_offsets
@@ -117,7 +118,7 @@ def calibrate(session: Session, options: Options | None = None, initial=None,
     rest_mask = getattr(init, "rest", None) if opt.zero_velocity_at_rest else None
 
     vel_state = {"v": None, "s": None, "sigma": opt.velocity_sigma, "tau": opt.velocity_tau, "g": None,
-                 "rest": rest_mask}
+                 "rest": rest_mask, "ar2": None}
     windows = detect_windows(session.t, m_cal0) if opt.disturbance_windows else []
     mag_state = {"y": session.mag, "w": apply_windows(windows, session.mag)[1] if windows else None}
 
@@ -128,13 +129,14 @@ def calibrate(session: Session, options: Options | None = None, initial=None,
         raise ValueError(f"Options.gyro_map_fallback: found {opt.gyro_map_fallback!r}, expected 'warm' or 'restart'")
     gate, clean = coverage_gate(session, g, skf, len(kf) - 1, opt) if opt.gyro_map else ({"estimated": False}, None)
     gyro = GyroMapState(opt.gyro_map_sigma, clean if gate["estimated"] else None)
+    rate = {"kappa": opt.gyro_rate_error}      # κ, re-estimated with estimate_gyro_rate_error
 
     def solve_round(bias, noise, nRk, theta, every=1, final=False, values0=None):
         """Preintegrate at the current bias, build the graph, solve it (one round of the ML loop);
         values0: the previous round's solution, which holds exactly nRk, bias, θ and the velocities."""
         g_c, b_rows = gyro.corrected(session.gyr), _per_sample_bias(bias, seg, skf)
         with_map = phase["map"] and (opt.gyro_map_final or not final)
-        pre = preintegrate(g_c, session.dt, kf, skf, b_rows, noise.gyr, opt.gyro_rate_error, keep_steps=with_map)
+        pre = preintegrate(g_c, session.dt, kf, skf, b_rows, noise.gyr, rate["kappa"], keep_steps=with_map)
         gmap = gyro.model(g_c, session.dt, pre, b_rows) if with_map else None
         if gmap is None and values0 is not None:       # the rounds' β_k and e are not in this graph
             values0 = without_map_keys(values0)
@@ -149,6 +151,7 @@ def calibrate(session: Session, options: Options | None = None, initial=None,
                              mag_weights=mag_state["w"], values0=values0,
                              field=None if opt.field_sigma is None else FieldModel(opt.field_sigma, opt.field_tau),
                              gyro_map=gmap)
+        prob.velocity is None or setattr(prob.velocity, "ar2", vel_state["ar2"])   # AR(2): velocity_ar2.py
         values, info = optimize(prob.graph, prob.blocks, prob.values, prob.ordering,
                                 opt.solver if final else round_solver)
         if gmap is not None:
@@ -199,6 +202,8 @@ def calibrate(session: Session, options: Options | None = None, initial=None,
             history[-1]["tau"] = taus
             taus = tau_fixed or taus
             change = max(float(np.max(np.abs(np.log(new[c] / getattr(noise, c))))) for c in new)
+            if opt.estimate_gyro_rate_error:  # κ by an ML step (calibration/gyro_rate.py)
+                change = max(change, update_rate_error(rate, prob, values, pre, history[-1]))
             if vel_state["v"] is not None and opt.estimate_velocity_process != "off":   # EM step of σ_v, τ_v
                 change = max(change, update_velocity_process(vel_state, prob.velocity, nRk, history[-1],
                                                              opt.estimate_velocity_process, opt.velocity_sigma,
@@ -254,7 +259,7 @@ def calibrate(session: Session, options: Options | None = None, initial=None,
             # "warm": the plain rounds continue from the E rounds' state (rotations, bias, θ, noise, τ,
             # velocities, windows) with Ê = 0 — the plain model's ML fixed point from a nearer start
             del history[:]
-            gyro.E, phase["map"] = np.zeros((3, 3)), False
+            gyro.E, phase["map"], rate["kappa"] = np.zeros((3, 3)), False, opt.gyro_rate_error
             bias, noise, nRk, theta, values, converged = ml_rounds(bias, noise, nRk, theta, values)
     else:
         bias, noise, nRk, theta, values, converged = ml_rounds(bias, noise, nRk, theta, None)
@@ -296,7 +301,7 @@ def calibrate(session: Session, options: Options | None = None, initial=None,
                      "velocity_sigma": vel_state["sigma"], "velocity_tau": vel_state["tau"],
                      "disturbance_windows": [w.as_dict(session.t) for w in windows], "keyframe_samples": kf,
                      "field_offsets": prob.block.field_offsets, "gyro_map": gyro.E,
-                     "gyro_map_gate": gate})
+                     "gyro_map_gate": gate, "gyro_rate_error": rate["kappa"]})
 
 
 def _thinned(y: np.ndarray, every: int) -> np.ndarray:

@@ -31,9 +31,19 @@ class Options:
     bias_segment_s: float = 5.0       # gyro bias: one value per segment, joined by a random walk
     bias_rw: float = 2e-4             # bias random-walk density, rad/s/√s (MEMS bias instability)
     gyro_rate_error: float = 0.01     # κ: gyro error growing with rate (scale factor, misalignment)
+    estimate_gyro_rate_error: bool = False  # κ re-estimated per ML round from the gyro factors' residuals and
+    #   posterior covariances (calibration/gyro_rate.py; start: gyro_rate_error). Off: on BROAD the ML κ is
+    #   ≈ 0.01 on 06 but 0.03 on 02 and runs to its 0.1 ceiling on 36 (1.32 → 2.23°); with correlated_noise
+    #   17-trial mean 0.680° → 0.71° (04 +0.18°, 21 +0.23°). Fixed κ = 0.002 instead of 0.01: mean 0.712° →
+    #   0.697°, but 30 0.83 → 1.05° (benchmarks/broad_published.py --opt gyro_rate_error=0.002)
     progress: bool = False
     max_corr_s: float = 0.5           # cap on the residual correlation time used for σ inflation
     correlated_noise: bool = False    # inflate σ by √τ (integrated autocorrelation time of residuals)
+    #   True: BROAD 17-trial mean 0.712° → 0.680°, 36 1.32 → 0.94°, 32 −0.07°, 34 −0.06°, 16 −0.05°, 28 +0.03°,
+    #   others within 0.01°; only the magnetometer is inflated (the accelerometer is in the velocity chain),
+    #   and only where the first round's field residuals are correlated (02: τ = 1; 32/34/36: τ of 330–1230
+    #   thinned samples, before the windows are fitted), where the cap max_corr_s binds (36: 0.25 s 0.86°,
+    #   0.5 s 0.94°, 1 s 1.11°)  (C2, benchmarks/c2_noise_trace.py)
     linear_acceleration: str = "velocity"   # "velocity": keyframe velocities with a bounded-velocity
     #                                         prior (imugraph.factors.velocity); "noise": per-sample gravity factor
     velocity_sigma: float = 0.5       # σ_v, m/s: stationary std of the sensor's velocity (start value)
@@ -46,6 +56,10 @@ class Options:
     #   BROAD 17-trial mean (acc_lead_samples 0) 0.768° → "bounded" 0.763° (16 −0.10°, 21 +0.06°; "bounded_hv"
     #   the same), "free" 0.774° (32 −0.31°, 04 +0.56°), "free_hv" 0.826° (01 +0.80°); with acc_lead_samples 1:
     #   0.724° → 0.690° "bounded", no trial worse: benchmarks/v1_velocity_process.py
+    #   "free_ar2"/"bounded_ar2": a second-order (AR(2)) process instead, for a hand moving back and forth
+    #   (calibration/velocity_ar2.py; its estimates match the optical AR(2) fit on 04, 07, 16). 17-trial mean
+    #   0.712° → "free_ar2" 0.667° (32 −0.41°, 36 −0.11°, 01/02/04 −0.08°; 07 +0.09°; 15/16 +0.01°), "bounded_ar2"
+    #   0.683° (32 −0.36°, 36 −0.11°; 07 +0.02°): benchmarks/broad_published.py --opt, benchmarks/v2_velocity_ar2.py
     acc_rate_error: float = 0.01      # κ_a: accelerometer error growing with the specific force
     zero_velocity_at_rest: bool = False  # v = 0 ± 0.02 m/s at detected rest: BROAD 04 1.79 → 0.92°,
     #                                      but 01 1.59 → 1.99°, 30 1.11 → 2.01° (acc errors then tilt)

@@ -30,6 +30,9 @@ precision per axis: v_0 prior, robust-weighted accelerometer increments, Gauss�
 Takahashi's recursion gives its diagonal and first off-diagonal of the inverse in O(K)). They ignore the
 orientation uncertainty (tilt couples to the velocity drift), so they are a lower bound: without them the
 step would use the means alone, which the prior shrinks, and EM would drift toward a tighter prior.
+
+Modes "…_ar2" replace the chain by a second-order (AR(2)) process, estimated the same way
+(imugraph.calibration.velocity_ar2).
 """
 
 from __future__ import annotations
@@ -139,14 +142,14 @@ def ar1_closed_form(s0: np.ndarray, s1: np.ndarray, dt: float) -> tuple[float, f
     return float(np.sqrt(sig2)), float(-dt / np.log(phi))
 
 
-MODES = ("off", "bounded", "free", "bounded_hv", "free_hv")
+MODES = ("off", "bounded", "free", "bounded_hv", "free_hv", "bounded_ar2", "free_ar2")
 
 
 def process_bounds(mode: str, sigma_v, tau_v) -> tuple[tuple, tuple]:
     """(σ bounds, τ bounds) of the estimate. "free": the physical ranges SIGMA_BOUNDS, TAU_BOUNDS;
     "bounded": σ_v only above and τ_v only below the configured values (their smallest σ, largest τ when
     per axis), so the short-term steps (the acceleration spectral density 2σ_v²/τ_v) can only loosen and
-    the stationary spread σ_v never tightens. A suffix "_hv" (see `update_velocity_process`) is ignored.
+    the stationary spread σ_v never tightens. A suffix "_hv" (`update_velocity_process`) or "_ar2" is ignored.
 
     Why "bounded" exists: on rotation-only recordings the velocity states also absorb the integrated
     accelerometer errors (scale, misalignment — not in the model), so the free estimate follows that drift:
@@ -177,6 +180,9 @@ def update_velocity_process(vel_state: dict, block, nRk: np.ndarray, record: dic
         mode, sigma_v, tau_v: MODES entry and the configured process (bounds: `process_bounds`).
     """
     sigma_bounds, tau_bounds = process_bounds(mode, sigma_v, tau_v)
+    if mode.endswith("_ar2"):        # second-order process: calibration/velocity_ar2.py
+        from imugraph.calibration.velocity_ar2 import update_ar2
+        return update_ar2(vel_state, block, nRk, record, sigma_bounds, tau_bounds)
     s = np.asarray(vel_state["s"], float)
     P, C = chain_covariance(block, nRk, s)
     s0, s1 = moments(s[:, :3], P, C)

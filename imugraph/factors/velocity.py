@@ -112,3 +112,36 @@ def gravity_from_velocity(nRk: np.ndarray, dv: np.ndarray, dt_k: np.ndarray) -> 
     """
     up = np.einsum("kj,kj->k", nRk[:-1, 2, :], dv).sum()
     return float(up / np.sum(dt_k))
+
+
+# A second-order velocity process (Options.estimate_velocity_process "…ar2"): a hand moving back and forth
+# has velocities that anti-correlate at half its period (BROAD 15/16, optical: ρ(0.4 s) = −0.75 / −0.56),
+# which no first-order process represents. At keyframe spacing Δt (uniform), per nav axis:
+#
+#     v_{k+1} = a_1 v_k + a_2 v_{k−1} + w_k,   w_k ~ N(0, q)         (AR(2); a_2 = 0: the chain above)
+#
+# stationary when a_1 + a_2 < 1, a_2 − a_1 < 1, a_2 > −1, with variance and lag-1 autocorrelation
+# (Box & Jenkins, Time Series Analysis, eqs. 3.2.24 and 3.2.30 for p = 2):
+#
+#     γ_0 = q (1 − a_2) / [(1 + a_2)((1 − a_2)² − a_1²)],   ρ_1 = a_1 / (1 − a_2),
+#
+# which give the exact start of the chain: v_0 ~ N(0, γ_0), v_1 | v_0 ~ N(ρ_1 v_0, γ_0 (1 − ρ_1²)).
+
+
+def ar2_stationary(a1: float, a2: float, q: float) -> tuple[float, float]:
+    """(γ_0, ρ_1) of the stationary AR(2) process (comment above); ValueError when not stationary."""
+    if not (a1 + a2 < 1.0 and a2 - a1 < 1.0 and a2 > -1.0):
+        raise ValueError(f"AR(2) velocity process: found a1={a1:.4g}, a2={a2:.4g}, expected a stationary pair")
+    gamma0 = q * (1.0 - a2) / ((1.0 + a2) * ((1.0 - a2) ** 2 - a1**2))
+    return float(gamma0), float(a1 / (1.0 - a2))
+
+
+def ar2_residuals(v: np.ndarray, a1: float, a2: float, q: float) -> np.ndarray:
+    """Whitened AR(2) terms of velocities v (K, n): rows 0, 1 the stationary start (v_0, v_1 | v_0), then
+    (v_{k+1} − a_1 v_k − a_2 v_{k−1})/√q for k = 1 … K−2; (K, n). Linear in v."""
+    gamma0, rho1 = ar2_stationary(a1, a2, q)
+    r = np.empty_like(np.asarray(v, float))
+    r[0] = v[0] / np.sqrt(gamma0)
+    r[1] = (v[1] - rho1 * v[0]) / np.sqrt(gamma0 * (1.0 - rho1**2))
+    r[2:] = (v[2:] - a1 * v[1:-1] - a2 * v[:-2]) / np.sqrt(q)
+    return r

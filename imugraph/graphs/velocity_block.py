@@ -8,6 +8,12 @@ Per interval k one JacobianFactor on (R_k, s_k, s_{k+1}) stacks the acceleromete
     [ w^½ J_R/σ_e   w^½ [−I  R_k B_k]/σ_e   w^½ [I  0]/σ_e ] [ξ_k   ]     [ −w^½ e_k/σ_e            ]
     [   0               [−φ_k I  0]/σ_w         [I  0]/σ_w ] [δs_k  ]  =  [ −(v_{k+1} − φ_k v_k)/σ_w ]
     [   0               [0  −I]/σ_rw            [0  I]/σ_rw] [δs_k+1]     [ −(b_{k+1} − b_k)/σ_rw    ]
+
+With a second-order (AR(2)) velocity process (`ar2` = (a_1, a_2, q), imugraph.factors.velocity) the
+Gauss–Markov rows carry only the chain's stationary start — v_0 ~ N(0, γ_0) in the prior, v_1 | v_0 in
+interval 0's rows, zero rows elsewhere — and one more factor per k = 1 … K−2 on (s_{k−1}, s_k, s_{k+1}):
+
+    [ −a_2 I   −a_1 I   I ] / √q · [δv_{k−1}; δv_k; δv_{k+1}] = −(v_{k+1} − a_1 v_k − a_2 v_{k−1}) / √q
 """
 
 from __future__ import annotations
@@ -19,7 +25,7 @@ import numpy as np
 
 from imugraph import keys
 from imugraph.factors.robust import QUADRATIC, Kernel
-from imugraph.factors.velocity import gauss_markov_axes, velocity_model
+from imugraph.factors.velocity import ar2_residuals, ar2_stationary, gauss_markov_axes, velocity_model
 from imugraph.graphs.solver import keyframe_rotations, keyframe_vectors, state_keys
 
 
@@ -43,6 +49,7 @@ class VelocityBlock:
     bias_rw: float = 1e-3
     rest: np.ndarray | None = None    # (K,) keyframes at rest: zero-velocity prior v_k ~ N(0, σ_rest²)
     sigma_rest: float = 0.02
+    ar2: tuple | None = None          # (a_1, a_2, q): AR(2) velocity process replacing (σ_v, τ_v); K ≥ 3
 
     @property
     def n_keyframes(self) -> int:
@@ -64,6 +71,10 @@ class VelocityBlock:
         r = e / self.sigma_dv[:, None]
         w = self.kernel.weight(np.linalg.norm(r, axis=1))
         phi, sigma_w = gauss_markov_axes(self.dt_k, self.sigma_v, self.tau_v)      # (K−1, 3) each
+        if self.ar2 is not None:       # only v_1 | v_0 here (σ_w = ∞: zero rows); the rest: `_ar2_factors`
+            gamma0, rho1 = ar2_stationary(*self.ar2)
+            phi, sigma_w = np.zeros_like(phi), np.full_like(sigma_w, np.inf)
+            phi[0], sigma_w[0] = rho1, np.sqrt(gamma0 * (1.0 - rho1**2))
         gm = (v[1:] - phi * v[:-1]) / sigma_w
         walk = None if b is None else (b[1:] - b[:-1]) / self._sigma_rw()[:, None]
         return r, J_R, w, phi, sigma_w, gm, walk
@@ -72,7 +83,8 @@ class VelocityBlock:
         return np.maximum(self.bias_rw, 1e-9) * np.sqrt(self.dt_k)
 
     def _prior_sigma(self) -> np.ndarray:
-        return np.r_[np.broadcast_to(np.asarray(self.sigma_v, float), (3,)),
+        sigma0 = self.sigma_v if self.ar2 is None else np.sqrt(ar2_stationary(*self.ar2)[0])
+        return np.r_[np.broadcast_to(np.asarray(sigma0, float), (3,)),
                      np.full(self.state_dim - 3, self.bias_sigma0)]
 
     def cost_at(self, nRk: np.ndarray, s: np.ndarray) -> float:
@@ -83,6 +95,8 @@ class VelocityBlock:
             total += 0.5 * np.sum(walk**2)
         if self.rest is not None:
             total += 0.5 * np.sum((s[self.rest, :3] / self.sigma_rest) ** 2)
+        if self.ar2 is not None:
+            total += 0.5 * np.sum(ar2_residuals(s[:, :3], *self.ar2)[2:] ** 2)
         return float(total)
 
     def cost(self, values: gtsam.Values) -> float:
@@ -122,4 +136,17 @@ class VelocityBlock:
             unit3 = gtsam.noiseModel.Unit.Create(3)
             for k in np.flatnonzero(self.rest):
                 gfg.push_back(gtsam.JacobianFactor(keys.vel(int(k)), A, -s[k, :3] / self.sigma_rest, unit3))
+        if self.ar2 is not None:
+            self._ar2_factors(gfg, s, vk)
         return gfg
+
+    def _ar2_factors(self, gfg: gtsam.GaussianFactorGraph, s: np.ndarray, vk: list) -> None:
+        """The AR(2) terms k = 1 … K−2 (module docstring) as three-key JacobianFactors."""
+        a1, a2, q = self.ar2
+        r = ar2_residuals(s[:, :3], a1, a2, q)
+        A = [np.zeros((3, self.state_dim)) for _ in range(3)]
+        for block, c in zip(A, (-a2, -a1, 1.0)):
+            block[:, :3] = c * np.eye(3) / np.sqrt(q)
+        unit3 = gtsam.noiseModel.Unit.Create(3)
+        for k in range(1, self.n_keyframes - 1):
+            gfg.push_back(gtsam.JacobianFactor(vk[k - 1], A[0], vk[k], A[1], vk[k + 1], A[2], -r[k + 1], unit3))

@@ -1,0 +1,161 @@
+"""Maximum-likelihood parameters of a second-order (AR(2)) velocity process inside the ML loop (EM step).
+
+A hand that moves back and forth has velocities that anti-correlate at half its period (BROAD 15/16,
+optical velocities: ρ(0.4 s) = −0.75 / −0.56; benchmarks/v2_heading_evidence.py), which the first-order
+Gauss–Markov chain (calibration/velocity_process.py) cannot represent. Per nav axis, at keyframe spacing Δt
+(taken uniform: the median interval), imugraph.factors.velocity:
+
+    v_{k+1} = a_1 v_k + a_2 v_{k−1} + w_k,   w_k ~ N(0, q),   stationary start (γ_0, ρ_1)
+
+EM (Shumway & Stoffer 1982), as for the first-order chain: the E-step is the posterior of the velocity
+states at the round's orientations — means m_k from the solve, covariances from the chain's banded
+precision (bandwidth 2 with AR(2) terms; `banded_inverse_bands`, Takahashi's recursion). The M-step
+maximises the expected log-density conditional on the first two states (the conditional AR likelihood):
+
+    f(a) = Σ_k E(v_{k+1} − a_1 v_k − a_2 v_{k−1})²,   N = n_axes (K − 2),
+    −log L(a, q) = (N/2) ln q + f(a) / (2q),        q̂(a) = f(a)/N (clipped by the bounds below)
+
+with a on a grid over the stationary region, then a finer grid around the best point (f is quadratic in a,
+so each evaluation is closed form). The bounds follow `process_bounds` of the first-order chain: with
+(σ_lo, σ_hi) and τ_hi, φ_max = exp(−Δt/τ_hi), the lag-1 autocorrelation ρ_1 ≤ φ_max and, when the
+characteristic roots (z² = a_1 z + a_2) are real, the slower one r = (a_1 + √(a_1² + 4a_2))/2 ≤ φ_max (no
+decay slower than the first-order limit; complex roots — an oscillation — are not limited), the stationary std
+√γ_0 within (σ_lo, σ_hi), and the innovation variance q ≥ σ_lo² (1 − φ_max²) (the one-step spread of the
+loosest allowed first-order process: "bounded" keeps the short-term steps from tightening).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.linalg import cholesky_banded
+
+from imugraph.factors.velocity import ar2_stationary
+
+ROOT_MARGIN = 0.01          # distance kept from the edges of the stationary triangle
+COARSE_STEP, FINE_STEP = 0.01, 0.0005
+
+
+def banded_inverse_bands(ab: np.ndarray) -> np.ndarray:
+    """Bands of Z = Λ⁻¹ for a symmetric positive-definite banded Λ in lower form ab (b+1, K), ab[i, j] =
+    Λ_{j+i, j}; returns the same layout for Z.
+
+    Λ = L D Lᵀ (unit lower L with L_{j+i,j} = c_ij/c_0j and d_j = c_0j² from the Cholesky factor c);
+    Takahashi's recursion, backwards in j:  Z_{j+m,j} = −Σ_{l=1..b} L_{j+l,j} Z_{j+l,j+m} (m = 1..b),
+    Z_jj = 1/d_j − Σ_l L_{j+l,j} Z_{j+l,j}; every Z used lies inside the band.
+    """
+    c = cholesky_banded(np.asarray(ab, float), lower=True)
+    b, K = c.shape[0] - 1, c.shape[1]
+    L = c / c[0]
+    Z = np.zeros_like(c)
+
+    def z(p: int, r: int) -> float:
+        return Z[abs(p - r), min(p, r)]
+
+    for j in range(K - 1, -1, -1):
+        ls = [l for l in range(1, b + 1) if j + l < K]
+        for m in ls:
+            Z[m, j] = -sum(L[l, j] * z(j + l, j + m) for l in ls)
+        Z[0, j] = 1.0 / c[0, j] ** 2 - sum(L[l, j] * Z[l, j] for l in ls)
+    return Z
+
+
+def chain_bands(block, nRk: np.ndarray, s: np.ndarray) -> np.ndarray:
+    """Lower-form bands (3, K, 3 axes) of the velocity chain's posterior precision per nav axis at
+    orientations nRk and states s (orientations held): v_0 prior, robust-weighted accelerometer increments,
+    the Gauss–Markov rows (with an AR(2) block only v_1 | v_0), the AR(2) terms, rest priors."""
+    _, _, w, phi, sigma_w, _, _ = block.terms(nRk, s)
+    K = block.n_keyframes
+    ab = np.zeros((3, K, 3))
+    a = (w / block.sigma_dv**2)[:, None]
+    bgm = 1.0 / sigma_w**2                               # 0 where σ_w = ∞ (AR(2) block)
+    ab[0, 0] += 1.0 / block._prior_sigma()[:3] ** 2
+    ab[0, :-1] += a + bgm * phi**2
+    ab[0, 1:] += a + bgm
+    ab[1, :-1] += -a - bgm * phi
+    if block.ar2 is not None:
+        a1, a2, q = block.ar2
+        c = np.array([-a2, -a1, 1.0]) / np.sqrt(q)       # on (v_{k−1}, v_k, v_{k+1}), k = 1 … K−2
+        for i in range(3):
+            ab[0, i:K - 2 + i] += c[i] ** 2
+        ab[1, 0:K - 2] += c[0] * c[1]
+        ab[1, 1:K - 1] += c[1] * c[2]
+        ab[2, 0:K - 2] += c[0] * c[2]
+    if block.rest is not None:
+        ab[0, np.asarray(block.rest, bool)] += 1.0 / block.sigma_rest**2
+    return ab
+
+
+def lag_moments(m: np.ndarray, Z: np.ndarray) -> list[np.ndarray]:
+    """E[v_k v_{k+l}] summed over axes for l = 0, 1, 2: means m (K, n), inverse bands Z (3, K, n)."""
+    K = len(m)
+    return [np.sum(m[:K - l] * m[l:] + Z[l, :K - l], axis=1) for l in range(3)]
+
+
+def ar2_objective_terms(E: list[np.ndarray]) -> tuple[float, np.ndarray, np.ndarray]:
+    """(Σ E v_{k+1}², Σ E[x v_{k+1}], Σ E[x xᵀ]) with x = (v_k, v_{k−1}), k = 1 … K−2, from `lag_moments`."""
+    E0, E1, E2 = E
+    syy = E0[2:].sum()
+    sxy = np.array([E1[1:].sum(), E2.sum()])
+    sxx = np.array([[E0[1:-1].sum(), E1[:-1].sum()], [E1[:-1].sum(), E0[:-2].sum()]])
+    return float(syy), sxy, sxx
+
+
+def fit_ar2(syy: float, sxy: np.ndarray, sxx: np.ndarray, N: int, sigma_bounds: tuple, phi_max: float,
+            ) -> tuple[float, float, float]:
+    """(a_1, a_2, q) minimising the conditional −log L (module docstring) under the bounds."""
+    q_floor = sigma_bounds[0] ** 2 * (1.0 - phi_max**2)
+
+    def nll(a1, a2):
+        f = syy - 2 * (a1 * sxy[0] + a2 * sxy[1]) + a1**2 * sxx[0, 0] + 2 * a1 * a2 * sxx[0, 1] + a2**2 * sxx[1, 1]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            cfac = (1 + a2) * ((1 - a2) ** 2 - a1**2) / (1 - a2)       # γ_0 = q / cfac
+            ok = ((a1 + a2 < 1 - ROOT_MARGIN) & (a2 - a1 < 1 - ROOT_MARGIN) & (a2 > -1 + ROOT_MARGIN)
+                  & (a1 <= phi_max * (1 - a2))
+                  & ((a1**2 + 4 * a2 < 0) | (a1 + np.sqrt(np.abs(a1**2 + 4 * a2)) <= 2 * phi_max)))
+            q = np.maximum(f / N, np.maximum(q_floor, sigma_bounds[0] ** 2 * cfac))
+            q = np.minimum(q, np.maximum(sigma_bounds[1] ** 2 * cfac, q_floor))
+            val = 0.5 * N * np.log(q) + 0.5 * f / q
+        return np.where(ok, val, np.inf), q
+
+    best = None
+    for step, half in ((COARSE_STEP, None), (FINE_STEP, 2 * COARSE_STEP)):     # coarse grid, then fine
+        if half is None:
+            g1, g2 = np.arange(-2.0, 2.0 + step, step), np.arange(-1.0, 1.0 + step, step)
+        else:
+            g1 = best[0] + np.arange(-half, half + step, step)
+            g2 = best[1] + np.arange(-half, half + step, step)
+        A1, A2 = np.meshgrid(g1, g2, indexing="ij")
+        val, q = nll(A1, A2)
+        i = np.unravel_index(np.argmin(val), val.shape)
+        best = (float(A1[i]), float(A2[i]), float(q[i]))
+    return best
+
+
+def update_ar2(vel_state: dict, block, nRk: np.ndarray, record: dict | None, sigma_bounds: tuple,
+               tau_bounds: tuple) -> float:
+    """One EM step of the AR(2) process from a round's solution: sets vel_state["ar2"] = (a_1, a_2, q) and,
+    for the first-order consumers (Calibration, smooth_fixed), vel_state["sigma"] = √γ_0 and
+    vel_state["tau"] = −Δt / ln ρ_1 (inside tau_bounds). Returns the largest change (|Δa|, |Δ ln q|)."""
+    s = np.asarray(vel_state["s"], float)
+    K = len(s)
+    if K < 5:
+        return 0.0
+    ab = chain_bands(block, nRk, s)
+    Z = np.stack([banded_inverse_bands(ab[:, :, i]) for i in range(3)], axis=2)
+    syy, sxy, sxx = ar2_objective_terms(lag_moments(s[:, :3], Z))
+    dt = float(np.median(block.dt_k))
+    phi_max = float(np.exp(-dt / tau_bounds[1]))
+    a1, a2, q = fit_ar2(syy, sxy, sxx, 3 * (K - 2), sigma_bounds, phi_max)
+    prev = vel_state.get("ar2")
+    if prev is None:                    # the first-order chain as an AR(2) with a_2 = 0
+        phi = np.exp(-dt / float(np.max(vel_state["tau"])))
+        prev = (phi, 0.0, float(np.min(vel_state["sigma"])) ** 2 * (1 - phi**2))
+    change = max(abs(a1 - prev[0]), abs(a2 - prev[1]), abs(np.log(q / prev[2])))
+    gamma0, rho1 = ar2_stationary(a1, a2, q)
+    vel_state["ar2"] = (a1, a2, q)
+    vel_state["sigma"] = float(np.sqrt(gamma0))
+    vel_state["tau"] = float(np.clip(-dt / np.log(np.clip(rho1, 1e-9, 1 - 1e-9)), *tau_bounds))
+    if record is not None:
+        record["velocity_ar2"] = [a1, a2, q]
+        record["velocity_sigma"], record["velocity_tau"] = vel_state["sigma"], vel_state["tau"]
+    return float(change)
