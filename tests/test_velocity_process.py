@@ -206,7 +206,7 @@ def test_estimated_process_is_recorded_in_the_calibration_and_used_by_smoothing(
     n_acc = np.vstack([np.diff(v, axis=0) * rate, np.zeros((1, 3))])
     params = SensorParams(gyro_noise=np.full(3, 0.003), acc_noise=np.full(3, 0.03), mag_noise=np.full(3, 0.005))
     s = simulate_imu(motion.t, motion.nRb, motion.b_omega, n_acc, params, rng)
-    est = calibrate(s, Options(gyro_map=False, max_outer=4))            # default: "bounded"
+    est = calibrate(s, Options(gyro_map=False, max_outer=4))            # default: "bounded_ar2"
     cal = est.calibration
     assert cal.velocity_sigma == pytest.approx(est.info["velocity_sigma"])
     assert cal.velocity_tau == pytest.approx(est.info["velocity_tau"])

@@ -316,7 +316,8 @@ def _thinned(y: np.ndarray, every: int) -> np.ndarray:
 
 
 def _velocity_process(opt: Options, vel: dict) -> dict:
-    """σ_v, τ_v for the Calibration when the ML loop estimated them as scalars (else {}: not recorded)."""
+    """σ_v, τ_v for the Calibration when the ML loop estimated them as scalars (else {}: not recorded); with the
+    AR(2) process, its first-order equivalent (√γ₀, τ from ρ₁: velocity_ar2), as smooth_fixed and the stream take."""
     if opt.estimate_velocity_process == "off" or np.ndim(vel["sigma"]) or np.ndim(vel["tau"]):
         return {}
     return {"velocity_sigma": float(vel["sigma"]), "velocity_tau": float(vel["tau"])}
