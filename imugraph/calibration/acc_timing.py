@@ -92,6 +92,16 @@ def lead_accelerometer(b_acc: np.ndarray, lead_samples: float, b_gyr: np.ndarray
     return out
 
 
+DEFAULT_LEAD = 0.5   # instantaneous gyro and accelerometer samples under the forward rule (1)
+
+
+def session_lead(session: Session) -> float:
+    """δ for a session whose timing is not set by the user: `meta["acc_lead_samples"]` where the source
+    states it (imugraph.sim.sensors records 0: its rate is held over [t_j, t_{j+1}), rule (1) exactly),
+    else DEFAULT_LEAD."""
+    return float(session.meta.get("acc_lead_samples", DEFAULT_LEAD))
+
+
 def with_lead(session: Session, lead_samples: float) -> Session:
     """A copy of `session` with its accelerometer re-timed by `lead_accelerometer` (with its gyro, eq. 3;
     the other channels unchanged)."""

@@ -21,7 +21,7 @@ import numpy as np
 from imugraph import keys
 from imugraph.calibration.noise import field_dof, reestimate
 from imugraph.calibration.options import Options  # noqa: F401  (public here: ml.Options)
-from imugraph.calibration.acc_timing import with_lead
+from imugraph.calibration.acc_timing import session_lead, with_lead
 from imugraph.calibration.gyro_rate import update_rate_error
 from imugraph.calibration.result import Calibration
 from imugraph.factors.gyro import keyframe_layout, preintegrate
@@ -95,8 +95,8 @@ def calibrate(session: Session, options: Options | None = None, initial=None,
     if delay != 0.0:
         from imugraph.calibration.alignment import undelay_magnetometer
         session = session.with_mag(undelay_magnetometer(session.t, session.mag, delay))
-    if opt.acc_lead_samples:       # accelerometer–gyro sample timing (calibration/acc_timing.py)
-        session = with_lead(session, opt.acc_lead_samples)
+    lead = session_lead(session) if opt.acc_lead_samples is None else float(opt.acc_lead_samples)
+    session = with_lead(session, lead)       # accelerometer–gyro sample timing (calibration/acc_timing.py)
     g = gravity_from(session, getattr(init, "rest", None))
     noise = Noise(np.asarray(init.noise["gyr"], float), np.asarray(init.noise["acc"], float),
                   np.asarray(init.noise["mag"], float))
@@ -284,7 +284,7 @@ def calibrate(session: Session, options: Options | None = None, initial=None,
              "gyro_bias": np.sqrt(np.maximum(np.diag(cov_bias), 0.0))},
         coverage=getattr(init, "coverage", {}) or {}, converged=bool(converged and info.converged),
         iterations=len(history), mag_delay_s=delay, disturbances=[w.as_dict(session.t) for w in windows],
-        gyro_map=gyro.E.copy(), acc_lead_samples=float(opt.acc_lead_samples),
+        gyro_map=gyro.E.copy(), acc_lead_samples=lead,
         **_velocity_process(opt, vel_state))
     residuals = per_sample_residuals(prob, nRk, theta, session)
     if opt.heading_only_orientation and prob.block.mag is not None:

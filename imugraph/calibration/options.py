@@ -67,9 +67,10 @@ class Options:
     acc_bias: bool = False            # a slowly varying accelerometer bias in the velocity state: off,
     #                                   on BROAD it absorbed the linear acceleration of the translation trials
     compensate_mag_delay: bool = True # pair each field sample with the orientation when it was sensed
-    acc_lead_samples: float = 0.5     # δ: accelerometer row j paired with the strapdown orientation of row
-    #   j + δ (calibration/acc_timing.py; ½: instantaneous samples under the forward rule — the default, from
-    #   first principles, not fitted; 1: VQF's gyro-then-acc order; 0: rows as recorded). BROAD 17-trial
+    acc_lead_samples: float | None = None  # δ: accelerometer row j paired with the strapdown orientation of row
+    #   j + δ (calibration/acc_timing.py; None: the session's own timing (acc_timing.session_lead: a simulator
+    #   that holds ω over [t_j, t_{j+1}) records 0), else ½: instantaneous samples under the forward rule —
+    #   from first principles, not fitted; 1: VQF's gyro-then-acc order; 0: rows as recorded). BROAD 17-trial
     #   mean 0.768° (0) → 0.736° (½) / 0.724° (1): 28 1.27 → 0.97 / 0.78°, 30 1.06 → 0.92 / 0.85°, 21 1.10 →
     #   1.05 / 1.08° (one-way spins about a horizontal axis); largest loss 04 +0.02 / +0.04°.
     #   Not estimated: in the graph δ trades with the tilt about the spin axis (benchmarks/c1_timing.py)

@@ -131,7 +131,7 @@ def simulate_imu(
     Returns:
         Session with gyr (rad/s), acc (m/s²), mag (magnetometer unit, NaN rows between sub-rate
         samples), quat = nRb (the truth), movement = samples where ω ≠ 0 or n_acc ≠ 0, and
-        meta {"simulated": True, "sensor_params": params.to_dict()}.
+        meta {"simulated": True, "sensor_params": params.to_dict(), "acc_lead_samples": 0.0}.
 
     Raises:
         SessionError: inconsistent shapes or non-increasing times.
@@ -150,7 +150,9 @@ def simulate_imu(
     mag[np.arange(n) % int(params.mag_every) != 0] = np.nan
 
     moving = (np.linalg.norm(b_omega, axis=1) > 0) | (np.linalg.norm(n_acc, axis=1) > 0)
-    meta = {"simulated": True, "sensor_params": params.to_dict()}
+    # the rate is held over [t_k, t_{k+1}) (sim.motion): the strapdown forward rule is exact, so the
+    # accelerometer rows need no re-timing (calibration.acc_timing.session_lead)
+    meta = {"simulated": True, "sensor_params": params.to_dict(), "acc_lead_samples": 0.0}
     return Session(t=t, gyr=gyr, acc=acc, mag=mag, quat=nRb.copy(), movement=moving,
                    source="<simulation>", name=name, meta=meta)
 
