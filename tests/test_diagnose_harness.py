@@ -69,3 +69,29 @@ def test_crop_takes_the_most_moving_stretch():
     i0, i1 = most_moving(s, 8.0)
     assert 20.0 - 1e-9 <= t[i0] and t[i1 - 1] < 30.0
     assert t[i1 - 1] - t[i0] == pytest.approx(8.0, abs=2 / rate)
+
+
+def test_hosts_are_drawn_per_case_from_the_seed():
+    """hosts="random": the injected cases' hosts are drawn from the seed (every host of 3 used over 12
+    cases, the same draw for the same seed, another for another seed); "cycle" keeps the fixed order."""
+    from imugraph.io.session import Session
+
+    def make(name):
+        t = np.arange(0, 6.0, 0.02)
+        return Session(t=t, gyr=np.zeros((len(t), 3)), acc=np.tile([0.0, 0.0, 9.81], (len(t), 1)),
+                       mag=np.tile([20.0, 0.0, -40.0], (len(t), 1)), quat=None, movement=None,
+                       source="<test>", name=name)
+
+    sessions = [make("h0"), make("h1"), make("h2")]
+    stub = lambda s: {"verdict": "none", "gap": {}, "effects": []}          # noqa: E731
+
+    def hosts(seed, mode="random"):
+        rep = run_harness(sessions, ["accelerometer_bias"], 12, np.random.default_rng(seed), clean=False,
+                          diagnose_fn=stub, hosts=mode)
+        return [c["host"] for c in rep["cases"]]
+
+    a = hosts(5)
+    assert set(a) == {"h0", "h1", "h2"} and a == hosts(5) and a != hosts(6)
+    assert hosts(5, "cycle") == ["h0", "h1", "h2"] * 4
+    with pytest.raises(Exception):
+        hosts(5, "sometimes")

@@ -38,7 +38,12 @@ Verdict (V): of the significant and relevant effects, a localised one (support <
 comes first, then the best (A2) global one: the localised effect explains what sets part of the
 recording apart, beyond the misfit it shares with the rest (which a global effect may explain as well).
 
-An effect is significant when its (A2) ≥ `margin` and its channel's raw gap is well above the noise floor (before_c ≥ `min_gap_ratio` · null_c).
+An effect is significant when its channel's raw gap is well above the noise floor (before_c ≥
+`min_gap_ratio` · null_c) and its (A2) ≥ `margin` — or, for an effect scored on its support (A3), when
+the held-out log score prefers the extended model on that support, net of a BIC cost, overall and in
+every fold (A4''). The log score (imugraph.diagnose.score, (A4)) is a proper scoring rule: removing a real
+effect cannot make it worse in expectation, which (G1) after the noise re-estimation can (BROAD 01 +
+vibration, docs/diagnose.md §3, §5). Every EffectResult carries it (`loglik_gain`, per channel, per fold).
 """
 
 from __future__ import annotations
@@ -49,6 +54,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from imugraph.diagnose.gap import CHANNELS, GapOptions, gap
+from imugraph.diagnose.score import GainAccumulator, clearly_better
 
 NONE = "none"
 
@@ -107,6 +113,10 @@ class EffectResult:
     floor: float = float("nan")           # noise floor of the channel on the samples scored (support)
     decisive: bool = False                # the effect's own evidence is conclusive (saturation (C2))
     support_fraction: float = 1.0         # fraction of the samples the effect claims (1: whole recording)
+    loglik_gain: float = float("nan")     # (A4): held-out log-score gain, nats per sample, BIC cost charged
+    loglik_per_channel: dict | None = None  # (A4) per channel, nats per sample (no cost)
+    n_scored: int = 0                     # held-out samples scored (A4's BIC cost)
+    loglik_folds: list | None = None      # (A4'') per fold, nats per sample, BIC cost charged
 
     @property
     def relevant(self) -> bool:
@@ -121,6 +131,8 @@ class EffectResult:
                 "params": self.params or {}, "gap_after_per_channel": self.per_channel_after or {},
                 "size": self.size or {}, "relevant": self.relevant, "significant": self.significant,
                 "stage": self.stage, "support_fraction": self.support_fraction, "decisive": self.decisive,
+                "loglik_gain": self.loglik_gain, "loglik_gain_per_channel": self.loglik_per_channel or {},
+                "loglik_gain_per_fold": self.loglik_folds or [],
                 **({"screen": self.screen} if self.screen else {}),
                 **({"error": self.error} if self.error else {})}
 
@@ -203,11 +215,15 @@ def evaluate_effect(effect, real, sim, null_gap: dict, folds: list, opt: Attribu
     before = {c: [] for c in CHANNELS}
     after = {c: [] for c in CHANNELS}
     weights = []
+    ll = GainAccumulator()                                                                       # (A4)
     for fold, test, b in zip(folds, scored, base):
         if b is None:
             continue
         corr = effect.fit(fitted, ~fold, window=window)
-        r_after = corr.residuals(real) if ext is None else rescale(corr.raw_residuals(ext), real, ~fold)
+        raw = (corr.raw_residuals(real if ext is None else ext) if hasattr(corr, "raw_residuals")
+               else corr.residuals(real))          # (a stub correction without the noise re-estimation)
+        ll.add(real.residuals, raw, ~fold if support is None or rest is None else ~fold & support, test)
+        r_after = corr.residuals(real) if ext is None else rescale(raw, real, ~fold)
         a = gap({c: r_after.get(c, real.residuals[c]) for c in CHANNELS}, sim.residuals, real.sigma, rate,
                 test, gap_opt)
         for c in CHANNELS:
@@ -227,10 +243,13 @@ def evaluate_effect(effect, real, sim, null_gap: dict, folds: list, opt: Attribu
                 for c in CHANNELS if c != ch)                  # a change within the noise floor is not worse
     penalised = (1.0 - (g1 + cost) / g0 if g0 > 0 else 0.0) - worse                              # (A2)
     size = effect.size(full, fitted) if hasattr(effect, "size") else {"value": np.inf, "threshold": 0.0}
+    gain, gain_per, n_scored = ll.result(n_params)                                             # (A4')
     return EffectResult(effect.name, ch, g0, g1, float(shrink), float(penalised), n_params,
                         full.t_start, full.t_end, dict(full.params), aft, bef[ch], size=size,
                         stage="screen" if ext is None else "refit", floor=noise[ch], support_fraction=frac,
-                        decisive=bool((getattr(full, "deltas", None) or {}).get("decisive", False)))
+                        decisive=bool((getattr(full, "deltas", None) or {}).get("decisive", False)),
+                        loglik_gain=gain, loglik_per_channel=gain_per, n_scored=n_scored,
+                        loglik_folds=ll.fold_gains(n_params))
 
 
 def _failed(name, effect, exc) -> EffectResult:
@@ -242,7 +261,8 @@ def _line(res: EffectResult) -> str:
     s = res.size or {}
     return (f"effect {res.name} [{res.stage}]: gap {res.gap_before:.3f} → {res.gap_after:.3f}, shrink "
             f"{res.shrink:.2f}, penalised {res.penalised:.2f}, size {s.get('value', np.nan):.4g}/"
-            f"{s.get('threshold', np.nan):.4g} {s.get('unit', '')}" + (f" [{res.error}]" if res.error else ""))
+            f"{s.get('threshold', np.nan):.4g} {s.get('unit', '')}, log score {res.loglik_gain:+.4f} nats"
+            + (f" [{res.error}]" if res.error else ""))
 
 
 def candidates(results: list, null_gap: dict, n_top: int, effects: dict | None = None,
@@ -341,14 +361,21 @@ def _rank(results: list) -> list:
 
 
 def significant(res: EffectResult, null_gap: dict, opt: AttributionOptions = AttributionOptions()) -> bool:
-    """Significance: the penalised held-out shrink (A2) clears `margin` on a channel whose raw gap is
-    well above the noise floor (`min_gap_ratio` · null)."""
+    """Significance: on a channel whose raw gap is well above the noise floor (`min_gap_ratio` · null),
+    the penalised held-out shrink (A2) clears `margin`; or, for an effect scored on its support (A3),
+    the held-out log score (A4) on that support prefers the extended model, net of its BIC cost, overall
+    and in every fold ((A4''), `score.clearly_better`; a proper scoring rule, which (G1) is not,
+    docs/diagnose.md §3)."""
     if res.decisive:                  # conclusive evidence of its own (saturation's exact rail, (C2))
         return True
     if not np.isfinite(res.penalised):
         return False
     floor = res.floor if np.isfinite(res.floor) else null_gap.get(res.channel, 0.0)
-    return bool(res.penalised >= opt.margin and res.raw_before >= opt.min_gap_ratio * floor)
+    if not res.raw_before >= opt.min_gap_ratio * floor:
+        return False
+    if res.support_fraction < 1.0 and clearly_better(res.loglik_gain, res.loglik_folds):
+        return True          # (A4''): a localised effect preferred by the held-out log score on its support
+    return bool(res.penalised >= opt.margin)
 
 
 LOCAL_FRACTION = 0.5        # an effect claiming less than this fraction of the recording is "localised"

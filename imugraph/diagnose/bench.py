@@ -80,6 +80,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--cases", default=None,
                    help="case ids to diagnose, comma separated (e.g. 013,020); the other cases are drawn but "
                         "skipped, so the selected ones are the same as in a full run (default: all)")
+    p.add_argument("--hosts", choices=("random", "cycle"), default="random",
+                   help="host of each injected case: drawn from the seed (random, default) or cycling "
+                        "through the sessions in order (cycle: the pairing of earlier runs)")
     p.add_argument("--no-clean", action="store_true", help="skip the unmodified sessions (truth none)")
     p.add_argument("--out", default="bench_out/diagnose", help="folder for harness.json / harness.md")
     p.add_argument("--data-dir", default=None, help="data folder (default $IMUGRAPH_DATA, else ../shared/data)")
@@ -117,7 +120,8 @@ def run_bench_diagnose(args: argparse.Namespace) -> int:
     report = run_harness(sessions, names, int(args.n), np.random.default_rng(seed),
                          clean=not getattr(args, "no_clean", False), progress=say,
                          only=[c.strip() for c in args.cases.split(",") if c.strip()]
-                         if getattr(args, "cases", None) else None)
+                         if getattr(args, "cases", None) else None,
+                         hosts=getattr(args, "hosts", "random") or "random")
     text = format_report(report)
     print(text)
     out = Path(getattr(args, "out", "bench_out/diagnose"))

@@ -126,12 +126,12 @@ def injected_part_shrink(case: dict, hosts: dict) -> Optional[float]:
 def run_harness(sessions: Iterable, effects: Optional[Iterable[str]] = None, n_per_effect: int = 2,
                 rng: Optional[np.random.Generator] = None, *, clean: bool = True,
                 diagnose_fn: Optional[Callable] = None, progress: Optional[Callable[[str], None]] = None,
-                only: Optional[Iterable[str]] = None) -> dict:
+                only: Optional[Iterable[str]] = None, hosts: str = "random") -> dict:
     """Inject, diagnose blind, score (module doc).
 
     Args:
-        sessions: Sessions to inject into (recordings of undisturbed motion and/or simulations); the
-            cases cycle through them.
+        sessions: Sessions to inject into (recordings of undisturbed motion and/or simulations); each
+            case draws its host from them (`hosts`).
         effects: effect names (default: the whole library).
         n_per_effect: injected cases per effect.
         rng: random generator of the injections (parameters, windows).
@@ -141,17 +141,24 @@ def run_harness(sessions: Iterable, effects: Optional[Iterable[str]] = None, n_p
         progress: optional callable(str) for one line per case.
         only: case ids ("001", ...) to diagnose; the others are still drawn (same random sequence, so a
             case is replayed exactly) but not diagnosed nor scored. None: all.
+        hosts: "random" (default): each case's host session is drawn from `rng` (uniformly among
+            `sessions`, before its injection), so an effect meets different hosts and the confusion
+            matrix is not one host's story; "cycle": the cases cycle through the sessions in order (the
+            pairing effect → host is then fixed by the order of the effects).
 
     Returns:
         report dict: "cases", "labels", "confusion" (truth → verdict → count), "top1", "n_injected",
         "clean_flagged", "n_clean", "iou" and "shrink" summaries, "seconds".
     """
+    from imugraph.errors import SessionError
+
     sessions = list(sessions)
     if not sessions:
-        from imugraph.errors import SessionError
         raise SessionError("<harness>", "sessions", "none", "at least one session")
     names = list(effects) if effects is not None else list(EFFECTS)
     rng = rng or np.random.default_rng(0)
+    if hosts not in ("random", "cycle"):
+        raise SessionError("<harness>", "hosts", repr(hosts), "'random' or 'cycle'")
     fn = diagnose_fn or _default_diagnose
     say = progress or (lambda _m: None)
     keep = None if only is None else {str(c).zfill(3) for c in only}
@@ -160,7 +167,10 @@ def run_harness(sessions: Iterable, effects: Optional[Iterable[str]] = None, n_p
     k = 0
     for name in names:
         for _ in range(n_per_effect):
-            base = sessions[k % len(sessions)]
+            if hosts == "random" and len(sessions) > 1:
+                base = sessions[int(rng.integers(len(sessions)))]
+            else:
+                base = sessions[k % len(sessions)]
             k += 1
             injected, truth = EFFECTS[name].inject(base, rng)
             if keep is not None and f"{k:03d}" not in keep:

@@ -99,17 +99,17 @@ def markdown(diag, figures: dict) -> str:
         lines.append("No window stands out from the rest of the recording.")
     lines += ["", f"![gap over time]({figures['gap']})", "",
               "## Which effect (cross-validated on held-out time blocks)", "",
-              "| rank | effect | channel | window (s) | gap before | gap after | shrink | penalised | params | "
-              "size / threshold | significant | relevant | fit |",
-              "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+              "| rank | effect | channel | window (s) | gap before | gap after | shrink | penalised | "
+              "log score (nats) | params | size / threshold | significant | relevant | fit |",
+              "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for i, r in enumerate(diag.effects, 1):
         win = "—" if r.t_start is None else f"{r.t_start:.1f}–{r.t_end:.1f}"
         if r.error:
-            lines.append(f"| {i} | {r.name} | {r.channel} | — | — | — | — | — | failed: {r.error} | | | | |")
+            lines.append(f"| {i} | {r.name} | {r.channel} | — | — | — | — | — | failed: {r.error} | | | | | |")
             continue
         sz = r.size or {}
         lines.append(f"| {i} | {r.name} | {r.channel} | {win} | {r.gap_before:.3f} | {r.gap_after:.3f} | "
-                     f"{r.shrink:.2f} | {r.penalised:.2f} | {r.n_params} | "
+                     f"{r.shrink:.2f} | {r.penalised:.2f} | {r.loglik_gain:+.4f} | {r.n_params} | "
                      f"{sz.get('value', float('nan')):.3g} / {sz.get('threshold', float('nan')):.3g} "
                      f"{sz.get('unit', '')} | {'yes' if r.significant else 'no'} | "
                      f"{'yes' if r.relevant else 'no'} | {r.stage} |")
@@ -117,8 +117,11 @@ def markdown(diag, figures: dict) -> str:
               "Gap: 1-Wasserstein distance between real and simulated whitened residuals plus the mean "
               "absolute difference of their autocorrelations (docs/diagnose.md). Shrink = 1 − gap after / "
               "gap before on held-out time; penalised shrink also charges the parameters the effect adds "
-              "and any channel it makes worse. The verdict is the best-ranked effect that is significant "
-              "(penalised shrink ≥ margin, gap ≥ 2 × noise floor) AND relevant (fitted size ≥ its physical "
+              "and any channel it makes worse. Log score: the held-out log predictive density gain of the "
+              "extended model over the base model per sample, summed over the channels, net of a BIC cost "
+              "(a proper scoring rule, (A4')). The verdict is the best-ranked effect that is significant "
+              "(gap ≥ 2 × noise floor and penalised shrink ≥ margin, or, for an effect scored on its "
+              "support, log score > 0) AND relevant (fitted size ≥ its physical "
               "threshold); fit = screen (first-order, trajectory fixed) or refit (base model refitted).", ""]
     return "\n".join(lines)
 
@@ -153,6 +156,7 @@ def summary_table(diag) -> str:
         else:
             sz = r.size or {}
             lines.append(f"  {r.name:22s} {r.channel}  shrink {r.shrink:+.2f}  penalised {r.penalised:+.2f}"
+                         f"  log score {r.loglik_gain:+.3f}"
                          f"  size {sz.get('value', float('nan')):.3g}/{sz.get('threshold', float('nan')):.3g}"
                          f"{'' if r.relevant else ' (below relevance)'}"
                          + ("" if r.t_start is None else f"  window {r.t_start:.1f}–{r.t_end:.1f} s"))

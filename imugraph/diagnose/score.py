@@ -1,0 +1,96 @@
+"""The held-out log score (A4): a proper scoring rule for the attribution (docs/diagnose.md §3).
+
+Each model m (the base model, or the base model extended by an effect) predicts the residual of channel c
+as zero-mean Gaussian noise with its OWN per-axis σ, estimated on the training samples of the fold:
+
+    s²_m,a = mean_{i ∈ train} r²_m,i,a                                   (ML noise level, out of sample)
+    ℓ_m   = mean_{i ∈ test} Σ_axis [ ½ (r_m,i,a / s_m,a)² + ln s_m,a ]    (negative log predictive
+                                                                         density, nats, + ½ ln 2π)   (A4)
+
+The gain of the effect on channel c is Δℓ_c = ℓ_base − ℓ_ext (> 0: the extended model predicts the
+held-out samples better), averaged over the folds (sample-weighted). Its sum over the channels, minus a
+BIC cost of the parameters the effect adds,
+
+    G = Σ_c Δℓ_c − k ln(N) / (2N)          (k = n_params, N = held-out samples scored)             (A4')
+
+is the held-out log-likelihood ratio per sample. The log score is strictly proper: its expectation is
+smallest for the true predictive distribution, so an extended model that removes a real effect cannot
+lower G in expectation — unlike (G1), which compares the SHAPE and COLOUR of the whitened residuals with
+the simulation's after the noise re-estimation and can rise when a real effect is removed (the rest of
+the misfit, rescaled to the old σ, then dominates the shape). A correction that makes another channel
+worse pays for it in the sum, with no extra rule. Rows where either model has no value (NaN: a censored
+or missing sample) are left out of both.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+CHANNELS = ("gyr", "acc", "mag")
+
+
+def _axis_sigma(r: np.ndarray, train: np.ndarray) -> np.ndarray:
+    """Per-axis ML σ of residuals r (N, 3) on the rows `train` (floored to avoid ln 0)."""
+    x = r[train]
+    s = np.sqrt(np.mean(x * x, axis=0)) if len(x) else np.ones(r.shape[1])
+    return np.maximum(np.nan_to_num(s, nan=1.0), 1e-12)
+
+
+def log_score_sum(r: np.ndarray, train: np.ndarray, test: np.ndarray) -> float:
+    """Σ over the rows `test` of (A4)'s per-sample score of residuals r, σ from the rows `train`."""
+    s = _axis_sigma(r, train)
+    z = r[test] / s
+    return float(np.sum(0.5 * z * z) + test.sum() * np.sum(np.log(s)))
+
+
+def channel_gain(r_base: np.ndarray, r_ext: np.ndarray, train: np.ndarray, test: np.ndarray) -> tuple:
+    """(Σ_test (ℓ_base − ℓ_ext), n_test) on one channel: rows finite in both models only."""
+    ok = np.all(np.isfinite(r_base), axis=1) & np.all(np.isfinite(r_ext), axis=1)
+    tr, te = train & ok, test & ok
+    if tr.sum() < 10 or te.sum() == 0:
+        return 0.0, 0
+    return log_score_sum(r_base, tr, te) - log_score_sum(r_ext, tr, te), int(te.sum())
+
+
+class GainAccumulator:
+    """Sums (A4) over the folds of one effect; `result(n_params)` gives (G (A4'), per-channel Δℓ_c, N)."""
+
+    def __init__(self):
+        self.sum = {c: 0.0 for c in CHANNELS}
+        self.n = {c: 0 for c in CHANNELS}
+        self.folds = []                     # per fold: Σ_c Δℓ_c of that fold alone (nats per sample)
+
+    def add(self, base: dict, ext: dict, train: np.ndarray, test: np.ndarray) -> None:
+        """Add one fold: base/ext are channel → (N, 3) raw residuals (ext falls back to base)."""
+        fold = 0.0
+        for c in CHANNELS:
+            if c not in base:
+                continue
+            g, n = channel_gain(np.asarray(base[c], float), np.asarray(ext.get(c, base[c]), float),
+                                train, test)
+            self.sum[c] += g
+            self.n[c] += n
+            fold += g / n if n else 0.0
+        self.folds.append(fold)
+
+    def result(self, n_params: int) -> tuple:
+        per = {c: (self.sum[c] / self.n[c] if self.n[c] else 0.0) for c in CHANNELS}
+        n = max(self.n.values()) if self.n else 0
+        cost = max(n_params, 0) * np.log(max(n, 2)) / (2.0 * max(n, 1))               # BIC (A4')
+        return float(sum(per.values()) - cost), per, n
+
+    def fold_gains(self, n_params: int) -> list:
+        """Per fold: that fold's Σ_c Δℓ_c net of the same BIC cost as `result` (A4'')."""
+        n = max(self.n.values()) if self.n else 0
+        cost = max(n_params, 0) * np.log(max(n, 2)) / (2.0 * max(n, 1))
+        return [float(f - cost) for f in self.folds]
+
+
+def clearly_better(gain: float, folds) -> bool:
+    """(A4''): the extended model is preferred by the held-out log score with a clear margin: its gain
+    net of the BIC cost is positive overall AND in every fold — a sign test over the K folds (K = 5:
+    probability 2⁻⁵ ≈ 0.03 that all five are positive when the effect adds nothing and a fold's gain is
+    as likely negative as positive). The fold-to-fold spread carries the residuals' colour, which the
+    BIC cost (independent samples) does not."""
+    folds = list(folds or [])
+    return bool(np.isfinite(gain) and gain > 0.0 and len(folds) >= 2 and all(f > 0.0 for f in folds))
