@@ -205,3 +205,18 @@ def error_parts(q, s: Session, mask) -> tuple[float, float, float]:
     from imugraph.evaluate import heading_error, inclination_error, orientation_error
 
     return tuple(f(q, s.quat, mask, s.rate).rms_deg for f in (orientation_error, inclination_error, heading_error))
+
+
+def print_variant_summary(rows: Sequence[dict], script: str, arg: str, opts: Any, note: str = "") -> tuple | None:
+    """The closing lines of a base-vs-variant benchmark (rows with "trial", "base", "variant", "diff"):
+    the table, the two means and the largest increase. Returns (mean base, mean variant), or None (and a
+    message naming `arg`) when no trial was selected."""
+    if not rows:
+        print(f"{script}: no BROAD trial matches {arg!r}", file=sys.stderr)
+        return None
+    print_table(rows, list(rows[0].keys()))
+    m0, m1 = float(np.mean([r["base"] for r in rows])), float(np.mean([r["variant"] for r in rows]))
+    worst = max(rows, key=lambda r: r["diff"])
+    print(f"mean: base {m0:.3f}°, variant {m1:.3f}°; largest increase {worst['diff']:+.3f}° ({worst['trial']}); "
+          f"variant options: {opts}{note}")
+    return m0, m1

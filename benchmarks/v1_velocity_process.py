@@ -20,7 +20,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from benchmarks.common import iter_broad, parse_options, pop_opts, print_table  # noqa: E402
+from benchmarks.common import iter_broad, parse_options, pop_opts, print_variant_summary  # noqa: E402
 from benchmarks.output import write_json  # noqa: E402
 from imugraph.calibration.ml import calibrate  # noqa: E402
 from imugraph.evaluate import orientation_error  # noqa: E402
@@ -89,14 +89,10 @@ def main(argv: list[str]) -> int:
                      "opt_step_var": round(normalised_step(v_opt, dt, sig1, tau1), 2),
                      "rounds": (len(e0.info["history"]), len(e1.info["history"]))})
         print(rows[-1], flush=True)
-    if not rows:
-        print(f"v1_velocity_process: no BROAD trial matches {argv[0]!r}", file=sys.stderr)
+    means = print_variant_summary(rows, "v1_velocity_process", argv[0], opts)
+    if means is None:
         return 2
-    print_table(rows, list(rows[0].keys()))
-    m0, m1 = np.mean([r["base"] for r in rows]), np.mean([r["variant"] for r in rows])
-    worst = max(rows, key=lambda r: r["diff"])
-    print(f"mean: base {m0:.3f}°, variant {m1:.3f}°; largest increase {worst['diff']:+.3f}° ({worst['trial']}); "
-          f"variant options: {opts}")
+    m0, m1 = means
     write_json("v1_velocity_process.json", {"rows": rows, "means": {"base": m0, "variant": m1},
                                             "variant_options": opts, "base_options": base_opts})
     return 0

@@ -19,7 +19,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from benchmarks.common import error_parts, iter_broad, parse_options, pop_opts, print_table  # noqa: E402
+from benchmarks.common import error_parts, iter_broad, parse_options, pop_opts, print_variant_summary  # noqa: E402
 from benchmarks.v1_velocity_process import optical_velocities  # noqa: E402
 from imugraph.calibration.ml import calibrate  # noqa: E402
 
@@ -64,14 +64,8 @@ def main(argv: list[str]) -> int:
                      "opt_ar2": f"{o1:.2f},{o2:.2f},{np.sqrt(oq):.3f}",
                      "opt_innov": None if est is None else round(normalised_innovation(v_opt, *est), 2)})
         print(rows[-1], flush=True)
-    if not rows:
-        print(f"v2_velocity_ar2: no BROAD trial matches {argv[0]!r}", file=sys.stderr)
+    if print_variant_summary(rows, "v2_velocity_ar2", argv[0], opts, "  (ar2 columns: a_1, a_2, √q m/s)") is None:
         return 2
-    print_table(rows, list(rows[0].keys()))
-    m0, m1 = np.mean([r["base"] for r in rows]), np.mean([r["variant"] for r in rows])
-    worst = max(rows, key=lambda r: r["diff"])
-    print(f"mean: base {m0:.3f}°, variant {m1:.3f}°; largest increase {worst['diff']:+.3f}° ({worst['trial']}); "
-          f"variant options: {opts}  (ar2 columns: a_1, a_2, √q m/s)")
     return 0
 
 

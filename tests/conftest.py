@@ -75,3 +75,28 @@ def valid_session() -> Session:
 def make_session() -> Callable[..., Session]:
     """Factory for synthetic sessions: make_session(n=…, rate=…, peak_rate=…, seed=…)."""
     return synthetic_session
+
+
+@pytest.fixture(scope="session")
+def assert_block_gradient() -> Callable:
+    """Check of a Python block (linearize / cost): the gradient in its linearisation, −(augmented Hessian's
+    last column), equals the central-difference gradient of its cost over key_list (Rot3 keys 'r' perturbed
+    on the manifold by retract, vector keys additively)."""
+    import gtsam
+
+    def check(block, values, key_list, h: float = 1e-6, rtol: float = 1e-5, atol: float = 1e-6) -> None:
+        H = block.linearize(values).augmentedHessian(gtsam.Ordering(key_list))
+        grad, num = -H[:-1, -1], []
+        for key in key_list:
+            is_rot = gtsam.Symbol(key).chr() == ord("r")
+            x = values.atRot3(key) if is_rot else values.atVector(key)
+            for i in range(3 if is_rot else len(x)):
+                d = np.zeros(3 if is_rot else len(x))
+                d[i] = h
+                p, m = gtsam.Values(values), gtsam.Values(values)
+                p.update(key, x.retract(d) if is_rot else x + d)
+                m.update(key, x.retract(-d) if is_rot else x - d)
+                num.append((block.cost(p) - block.cost(m)) / (2 * h))
+        np.testing.assert_allclose(grad, num, rtol=rtol, atol=atol)
+
+    return check

@@ -68,24 +68,12 @@ def _block_values(rng, K, with_bias=False):
 
 
 @pytest.mark.parametrize("with_bias", [False, True])
-def test_ar2_block_linearisation_is_gradient_of_cost(with_bias):
+def test_ar2_block_linearisation_is_gradient_of_cost(with_bias, assert_block_gradient):
     rng = np.random.default_rng(5)
     K = 8
     block, values, _, v = _block_values(rng, K, with_bias)
     key_list = [keys.rot(k) for k in range(K - 1)] + [keys.vel(k) for k in range(K)]
-    H = block.linearize(values).augmentedHessian(gtsam.Ordering(key_list))
-    grad, h, num = -H[:-1, -1], 1e-6, []
-    for key in key_list:
-        is_rot = gtsam.Symbol(key).chr() == ord("r")
-        for i in range(3 if is_rot else v.shape[1]):
-            d = np.zeros(3 if is_rot else v.shape[1]); d[i] = h
-            p, m = gtsam.Values(values), gtsam.Values(values)
-            if is_rot:
-                p.update(key, values.atRot3(key).retract(d)); m.update(key, values.atRot3(key).retract(-d))
-            else:
-                p.update(key, values.atVector(key) + d); m.update(key, values.atVector(key) - d)
-            num.append((block.cost(p) - block.cost(m)) / (2 * h))
-    np.testing.assert_allclose(grad, num, rtol=1e-5, atol=1e-6)
+    assert_block_gradient(block, values, key_list)
 
 
 def test_ar2_prior_is_the_exact_gaussian_density():
