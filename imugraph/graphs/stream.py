@@ -101,10 +101,9 @@ class StreamSmoother(OnlineCalibrationMixin, ArrivalMixin, StreamOutputMixin):
         self._online = OnlineMagCalibration(cal, options.calib_prior_rel, estimate_dip=options.calib_dip,
                                             use_start_std=options.calib_prior_from_start) if options.online_calibration else None
         self._pending: deque = deque()       # intervals not yet folded: (k, t_k, kRb (n,3,3), y (n,3))
-        self._next_refit = options.calib_every_s
-        self._refit_due = False              # a refit waits for the next sample between keyframes
-        self._hist_y: list = []              # iSAM2 + keep_history: per interval y, for the final re-issue
-        self._mag_index: dict = {}           # keyframe → index of its magnetometer factor in iSAM2
+        self._next_refit, self._refit_due = options.calib_every_s, False   # due: runs between keyframes
+        self._hist_y, self._mag_index = [], {}   # iSAM2: per-interval y (keep_history), keyframe → index of its
+        #                                          magnetometer factor, for the final re-issue
         self._n_factors = 0
         self._sig_g = np.asarray(cal.noise.get("gyr", np.full(3, 0.005)), float)
         self._sig_acc = np.asarray(cal.noise.get("acc", np.full(3, 0.05)), float)
@@ -122,17 +121,14 @@ class StreamSmoother(OnlineCalibrationMixin, ArrivalMixin, StreamOutputMixin):
         self._weak_pose = gtsam.noiseModel.Isotropic.Sigma(6, SIGMA_WEAK_POSE)
         self._buf: list = []                 # open interval: rows (t, gyr(3), acc(3), mag(3) or NaN)
         self._k = 0                          # index of the open interval's keyframe
-        self._t0 = None                      # time of keyframe 0
-        self._t_last = -np.inf
+        self._t0, self._t_last = None, -np.inf    # time of keyframe 0, of the newest sample
         self._kf_t = array("d")              # keyframe times (8 bytes each)
         self._nRk = None                     # latest estimate of keyframe k's rotation
         self._v = self._p = np.zeros(3)      # latest estimates of keyframe k's velocity and position
         self._seg = -1                       # newest bias segment
         self._q_open = Q_ID                  # gyro-integrated kRb of the newest sample in keyframe k (floats)
         self._q_nk = None                    # latest estimate of keyframe k's nRb as floats (w, x, y, z)
-        self._hist_kRb: list = []            # per closed interval: (n, 3, 3) kRb, and ΔR
-        self._hist_dR: list = []
-        self._hist_t: list = []
+        self._hist_kRb, self._hist_dR, self._hist_t = [], [], []   # per closed interval: kRb (n,3,3), ΔR, t
         self._smoothed_kf: dict = {}         # fixed lag: keyframe → last estimate inside the window
         self._b_gyr_est = None               # latest gyro-bias estimate (None: the calibration's)
         self._b_now = tuple(float(v) for v in self._b_hat)     # the same as floats, for the filtered output
