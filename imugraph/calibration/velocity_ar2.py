@@ -27,64 +27,11 @@ loosest allowed first-order process: "bounded" keeps the short-term steps from t
 from __future__ import annotations
 
 import numpy as np
-from scipy.linalg import cholesky_banded
-
+from imugraph.calibration.velocity_process import banded_inverse_bands, chain_bands  # noqa: F401 (public here too)
 from imugraph.factors.velocity import ar2_stationary
 
 ROOT_MARGIN = 0.01          # distance kept from the edges of the stationary triangle
 COARSE_STEP, FINE_STEP = 0.01, 0.0005
-
-
-def banded_inverse_bands(ab: np.ndarray) -> np.ndarray:
-    """Bands of Z = Λ⁻¹ for a symmetric positive-definite banded Λ in lower form ab (b+1, K), ab[i, j] =
-    Λ_{j+i, j}; returns the same layout for Z.
-
-    Λ = L D Lᵀ (unit lower L with L_{j+i,j} = c_ij/c_0j and d_j = c_0j² from the Cholesky factor c);
-    Takahashi's recursion, backwards in j:  Z_{j+m,j} = −Σ_{l=1..b} L_{j+l,j} Z_{j+l,j+m} (m = 1..b),
-    Z_jj = 1/d_j − Σ_l L_{j+l,j} Z_{j+l,j}; every Z used lies inside the band.
-    """
-    c = cholesky_banded(np.asarray(ab, float), lower=True)
-    b, K = c.shape[0] - 1, c.shape[1]
-    # plain Python floats in the recursion (a few operations per j: numpy scalar indexing costs ~10× more)
-    L = (c / c[0]).T.tolist()                  # L[j][l] = L_{j+l, j}
-    d_inv = (1.0 / c[0] ** 2).tolist()
-    Z = [[0.0] * (b + 1) for _ in range(K)]    # Z[j][m] = Z_{j+m, j}
-    for j in range(K - 1, -1, -1):
-        ls = range(1, min(b, K - 1 - j) + 1)
-        Lj, Zj = L[j], Z[j]
-        for m in ls:
-            acc = 0.0
-            for l in ls:                       # Z_{j+l, j+m}: in the band (|l − m| ≤ b)
-                acc += Lj[l] * (Z[j + m][l - m] if l >= m else Z[j + l][m - l])
-            Zj[m] = -acc
-        Zj[0] = d_inv[j] - sum(Lj[l] * Zj[l] for l in ls)
-    return np.array(Z).T
-
-
-def chain_bands(block, nRk: np.ndarray, s: np.ndarray) -> np.ndarray:
-    """Lower-form bands (3, K, 3 axes) of the velocity chain's posterior precision per nav axis at
-    orientations nRk and states s (orientations held): v_0 prior, robust-weighted accelerometer increments,
-    the Gauss–Markov rows (with an AR(2) block only v_1 | v_0), the AR(2) terms, rest priors."""
-    _, _, w, phi, sigma_w, _, _ = block.terms(nRk, s)
-    K = block.n_keyframes
-    ab = np.zeros((3, K, 3))
-    a = (w / block.sigma_dv**2)[:, None]
-    bgm = 1.0 / sigma_w**2                               # 0 where σ_w = ∞ (AR(2) block)
-    ab[0, 0] += 1.0 / block._prior_sigma()[:3] ** 2
-    ab[0, :-1] += a + bgm * phi**2
-    ab[0, 1:] += a + bgm
-    ab[1, :-1] += -a - bgm * phi
-    if block.ar2 is not None:
-        a1, a2, q = block.ar2
-        c = np.array([-a2, -a1, 1.0]) / np.sqrt(q)       # on (v_{k−1}, v_k, v_{k+1}), k = 1 … K−2
-        for i in range(3):
-            ab[0, i:K - 2 + i] += c[i] ** 2
-        ab[1, 0:K - 2] += c[0] * c[1]
-        ab[1, 1:K - 1] += c[1] * c[2]
-        ab[2, 0:K - 2] += c[0] * c[2]
-    if block.rest is not None:
-        ab[0, np.asarray(block.rest, bool)] += 1.0 / block.sigma_rest**2
-    return ab
 
 
 def lag_moments(m: np.ndarray, Z: np.ndarray) -> list[np.ndarray]:

@@ -38,6 +38,7 @@ Modes "…_ar2" replace the chain by a second-order (AR(2)) process, estimated t
 from __future__ import annotations
 
 import numpy as np
+from scipy.linalg import cholesky_banded
 from scipy.optimize import minimize_scalar
 
 from imugraph.factors.velocity import gauss_markov
@@ -48,48 +49,67 @@ TAU_BOUNDS = (0.05, 30.0)      # s
 
 def chain_covariance(block, nRk: np.ndarray, s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Posterior variances P_k,k (K, 3) and lag-1 covariances C_k (K−1, 3) per nav axis of the velocity
-    chain of a `VelocityBlock` at orientations nRk (K, 3, 3) and states s (K, 3 or 6), orientations held.
+    chain of a `VelocityBlock` at orientations nRk (K, 3, 3) and states s (K, 3 or 6), orientations held:
+    the first two bands of the inverse of its precision (`chain_bands`; tridiagonal for the first-order
+    chain: Λ_00 += 1/σ_v²; interval k: a_k = w_k/σ_dv,k² on [[1, −1], [−1, 1]], b_k = 1/σ_w,k² on
+    [[φ_k², −φ_k], [−φ_k, 1]]; rest keyframe k: Λ_kk += 1/σ_rest²)."""
+    ab = chain_bands(block, nRk, s)
+    if block.ar2 is None:
+        ab = ab[:2]                                       # tridiagonal
+    Z = np.stack([banded_inverse_bands(ab[:, :, i]) for i in range(3)], axis=2)
+    return Z[0], Z[1, :-1]
 
-    Precision Λ per axis (tridiagonal; the axes differ only where σ_v, τ_v do):
-        Λ_00 += 1/σ_v²;  interval k: a_k = w_k/σ_dv,k² on [[1, −1], [−1, 1]],
-        b_k = 1/σ_w,k² on [[φ_k², −φ_k], [−φ_k, 1]];  rest keyframe k: Λ_kk += 1/σ_rest².
+
+def banded_inverse_bands(ab: np.ndarray) -> np.ndarray:
+    """Bands of Z = Λ⁻¹ for a symmetric positive-definite banded Λ in lower form ab (b+1, K), ab[i, j] =
+    Λ_{j+i, j}; returns the same layout for Z.
+
+    Λ = L D Lᵀ (unit lower L with L_{j+i,j} = c_ij/c_0j and d_j = c_0j² from the Cholesky factor c);
+    Takahashi's recursion, backwards in j:  Z_{j+m,j} = −Σ_{l=1..b} L_{j+l,j} Z_{j+l,j+m} (m = 1..b),
+    Z_jj = 1/d_j − Σ_l L_{j+l,j} Z_{j+l,j}; every Z used lies inside the band.
     """
+    c = cholesky_banded(np.asarray(ab, float), lower=True)
+    b, K = c.shape[0] - 1, c.shape[1]
+    # plain Python floats in the recursion (a few operations per j: numpy scalar indexing costs ~10× more)
+    L = (c / c[0]).T.tolist()                  # L[j][l] = L_{j+l, j}
+    d_inv = (1.0 / c[0] ** 2).tolist()
+    Z = [[0.0] * (b + 1) for _ in range(K)]    # Z[j][m] = Z_{j+m, j}
+    for j in range(K - 1, -1, -1):
+        ls = range(1, min(b, K - 1 - j) + 1)
+        Lj, Zj = L[j], Z[j]
+        for m in ls:
+            acc = 0.0
+            for l in ls:                       # Z_{j+l, j+m}: in the band (|l − m| ≤ b)
+                acc += Lj[l] * (Z[j + m][l - m] if l >= m else Z[j + l][m - l])
+            Zj[m] = -acc
+        Zj[0] = d_inv[j] - sum(Lj[l] * Zj[l] for l in ls)
+    return np.array(Z).T
+
+
+def chain_bands(block, nRk: np.ndarray, s: np.ndarray) -> np.ndarray:
+    """Lower-form bands (3, K, 3 axes) of the velocity chain's posterior precision per nav axis at
+    orientations nRk and states s (orientations held): v_0 prior, robust-weighted accelerometer increments,
+    the Gauss–Markov rows (with an AR(2) block only v_1 | v_0), the AR(2) terms, rest priors."""
     _, _, w, phi, sigma_w, _, _ = block.terms(nRk, s)
-    a = (w / block.sigma_dv**2)[:, None]
-    b = 1.0 / sigma_w**2                                  # (K−1, 3), phi too
     K = block.n_keyframes
-    diag = np.zeros((K, 3))
-    diag[0] += 1.0 / np.broadcast_to(np.asarray(block.sigma_v, float), (3,)) ** 2
-    diag[:-1] += a + b * phi**2
-    diag[1:] += a + b
+    ab = np.zeros((3, K, 3))
+    a = (w / block.sigma_dv**2)[:, None]
+    bgm = 1.0 / sigma_w**2                               # 0 where σ_w = ∞ (AR(2) block)
+    ab[0, 0] += 1.0 / block._prior_sigma()[:3] ** 2
+    ab[0, :-1] += a + bgm * phi**2
+    ab[0, 1:] += a + bgm
+    ab[1, :-1] += -a - bgm * phi
+    if block.ar2 is not None:
+        a1, a2, q = block.ar2
+        c = np.array([-a2, -a1, 1.0]) / np.sqrt(q)       # on (v_{k−1}, v_k, v_{k+1}), k = 1 … K−2
+        for i in range(3):
+            ab[0, i:K - 2 + i] += c[i] ** 2
+        ab[1, 0:K - 2] += c[0] * c[1]
+        ab[1, 1:K - 1] += c[1] * c[2]
+        ab[2, 0:K - 2] += c[0] * c[2]
     if block.rest is not None:
-        diag[np.asarray(block.rest, bool)] += 1.0 / block.sigma_rest**2
-    off = -a - b * phi
-    bands = [tridiagonal_inverse_bands(diag[:, i], off[:, i]) for i in range(3)]
-    return np.stack([p for p, _ in bands], axis=1), np.stack([c for _, c in bands], axis=1)
-
-
-def tridiagonal_inverse_bands(diag: np.ndarray, off: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Diagonal (K,) and first off-diagonal (K−1,) of the inverse of a symmetric positive-definite
-    tridiagonal matrix (diagonal `diag`, off-diagonal `off`).
-
-    Λ = L D Lᵀ with unit lower-bidiagonal L (l_k = L_{k+1,k}):  d_0 = Λ_00, l_k = Λ_{k+1,k}/d_k,
-    d_{k+1} = Λ_{k+1,k+1} − l_k² d_k.  Takahashi's recursion for Z = Λ⁻¹, backwards from Z_{K−1,K−1} = 1/d_{K−1}:
-        Z_{k,k+1} = −l_k Z_{k+1,k+1},   Z_{k,k} = 1/d_k − l_k Z_{k,k+1}.
-    """
-    diag, off = np.asarray(diag, float), np.asarray(off, float)
-    K = len(diag)
-    d, l = np.empty(K), np.empty(K - 1)
-    d[0] = diag[0]
-    for k in range(K - 1):
-        l[k] = off[k] / d[k]
-        d[k + 1] = diag[k + 1] - l[k] ** 2 * d[k]
-    Z, C = np.empty(K), np.empty(K - 1)
-    Z[-1] = 1.0 / d[-1]
-    for k in range(K - 2, -1, -1):
-        C[k] = -l[k] * Z[k + 1]
-        Z[k] = 1.0 / d[k] - l[k] * C[k]
-    return Z, C
+        ab[0, np.asarray(block.rest, bool)] += 1.0 / block.sigma_rest**2
+    return ab
 
 
 def moments(m: np.ndarray, P: np.ndarray | None = None, C: np.ndarray | None = None):
