@@ -100,3 +100,18 @@ def assert_block_gradient() -> Callable:
         np.testing.assert_allclose(grad, num, rtol=rtol, atol=atol)
 
     return check
+
+
+@pytest.fixture(scope="session")
+def feed_stream() -> Callable:
+    """Feed every sample of a session to a StreamSmoother in order; every `every`-th sample (1-based count)
+    record probe(smoother). Returns the recorded values (empty without a probe)."""
+    def feed(sm, session: Session, every: int = 0, probe: Callable | None = None) -> list:
+        seen = []
+        for i in range(session.n):
+            sm.push(session.t[i], session.gyr[i], session.acc[i], session.mag[i])
+            if probe is not None and every and i % every == every - 1:
+                seen.append(probe(sm))
+        return seen
+
+    return feed

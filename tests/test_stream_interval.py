@@ -103,18 +103,14 @@ def test_filtered_is_newest_keyframe_times_gyro(sim):
     assert np.allclose(q, expect * np.sign(expect[0]), atol=1e-12)
 
 
-def test_lag_without_history_holds_constant_state(sim):
+def test_lag_without_history_holds_constant_state(sim, feed_stream):
     """Fixed lag, keep_history=False: the per-keyframe state kept is bounded by the window (plus the
     keyframes the online calibration still awaits), no magnetometer-factor index is kept, and asking for
     the whole smoothed trajectory is a SessionError."""
     session, cal = sim
     opt = StreamOptions(lag_s=2.0, fixed_lag_solver="incremental", keep_history=False)
     sm = StreamSmoother(cal, session.rate, opt)
-    sizes = []
-    for i in range(session.n):
-        sm.push(session.t[i], session.gyr[i], session.acc[i], session.mag[i])
-        if i % 500 == 499:
-            sizes.append(len(sm._smoothed_kf))
+    sizes = feed_stream(sm, session, 500, lambda sm: len(sm._smoothed_kf))
     window = int(round(max(opt.lag_s, opt.calib_delay_s) * opt.keyframe_hz)) + 3
     assert sm._k > 10 * window and max(sizes) <= window + 2
     assert not sm._mag_index and not sm._hist_kRb and sm.stats.failed_updates == 0

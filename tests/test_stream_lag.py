@@ -112,15 +112,11 @@ def test_chain_matches_gtsam_incremental_fixed_lag(sim, field):
     assert gap < 0.2 * err
 
 
-def test_chain_without_history_holds_constant_state(sim):
+def test_chain_without_history_holds_constant_state(sim, feed_stream):
     session, cal = sim
     opt = StreamOptions(lag_s=2.0, fixed_lag_solver="chain", keep_history=False)
     sm = StreamSmoother(cal, session.rate, opt)
-    sizes = []
-    for i in range(session.n):
-        sm.push(session.t[i], session.gyr[i], session.acc[i], session.mag[i])
-        if i % 300 == 299:
-            sizes.append(len(sm._solver.stamps))
+    sizes = feed_stream(sm, session, 300, lambda sm: len(sm._solver.stamps))
     per_kf = 3                                            # pose, velocity, field perturbation
     bound = per_kf * (int(round((opt.lag_s + 1.0) * opt.keyframe_hz)) + 2) + 3   # + gravity and bias segments
     assert sm._k > 200 and max(sizes) <= bound and sm.stats.failed_updates == 0
