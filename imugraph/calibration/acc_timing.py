@@ -86,10 +86,14 @@ def lead_accelerometer(b_acc: np.ndarray, lead_samples: float, b_gyr: np.ndarray
     if w.shape != a.shape:
         raise SessionError(source, "gyr", f"shape {w.shape}", f"{a.shape}, the accelerometer's")
     step = np.asarray(dt, float) if dt is not None else np.full(n, 0.0)
-    out = a[rows]
-    if f > 0.0:
-        out = np.einsum("nij,nj->ni", expmap(f * step[:, None] * w), out)      # eq. (3)
-    return out
+    return turn_back(a[rows], w, step, f)
+
+
+def turn_back(b_acc: np.ndarray, b_gyr: np.ndarray, dt: np.ndarray, frac: float) -> np.ndarray:
+    """The fractional part of eq. (3): a_i ← Exp(f Δt_i ω_i) a_i, (N, 3) → (N, 3) (a copy when f = 0)."""
+    if frac <= 0.0:
+        return np.array(b_acc, float)
+    return np.einsum("nij,nj->ni", expmap(frac * np.asarray(dt, float)[:, None] * b_gyr), b_acc)
 
 
 DEFAULT_LEAD = 0.5   # instantaneous gyro and accelerometer samples under the forward rule (1)

@@ -28,8 +28,8 @@ import math
 import gtsam
 import numpy as np
 
+from imugraph.calibration.acc_timing import turn_back
 from imugraph.factors.velocity import gauss_markov
-from imugraph.geometry import expmap
 
 
 Q_ID = (1.0, 0.0, 0.0, 0.0)
@@ -203,6 +203,4 @@ def lead_interval(t: np.ndarray, b_gyr: np.ndarray, b_acc: np.ndarray, tail: np.
         if len(tail) < whole:                       # the stream's first rows: its first row repeats
             both = np.concatenate([np.repeat(both[:1], whole - len(tail), axis=0), both])
         a, tail = both[:len(a)], both[-whole:].copy()
-    if frac > 0.0:
-        a = np.einsum("nij,nj->ni", expmap(frac * np.diff(t)[:, None] * b_gyr), a)          # eq. (4)
-    return a, tail
+    return turn_back(a, b_gyr, np.diff(t), frac), tail                                  # eq. (4)
