@@ -12,6 +12,9 @@ def n_mag_from_dip(dip_rad: float) -> np.ndarray:
     return np.array([np.cos(dip_rad), 0.0, -np.sin(dip_rad)])
 
 
+NOMINAL_VELOCITY_PROCESS = (0.5, 2.0)    # σ_v m/s, τ_v s when a calibration carries no estimate
+
+
 @dataclass
 class Calibration:
     """Magnetometer model b_mag = D·bRn·n_mag + o + e (Kok & Schön), plus gyro bias and noise levels.
@@ -62,6 +65,12 @@ class Calibration:
     @property
     def n_mag(self) -> np.ndarray:
         return n_mag_from_dip(self.dip_rad)
+
+    def velocity_process(self, sigma: float | None = None, tau: float | None = None) -> tuple[float, float]:
+        """σ_v (m/s), τ_v (s) for smoothing with this calibration: the values given, else its estimate, else the
+        nominal bounded-velocity process (NOMINAL_VELOCITY_PROCESS: a hand-held or body-worn sensor)."""
+        return (sigma if sigma is not None else (self.velocity_sigma or NOMINAL_VELOCITY_PROCESS[0]),
+                tau if tau is not None else (self.velocity_tau or NOMINAL_VELOCITY_PROCESS[1]))
 
     def apply(self, b_mag: np.ndarray) -> np.ndarray:
         """Calibrated field D⁻¹(b_mag − o): unit norm, in the inertial sensor axes. (N, 3) → (N, 3)."""

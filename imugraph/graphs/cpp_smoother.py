@@ -89,10 +89,7 @@ def smooth_fixed(session: Session, cal: Calibration, keyframe_hz: float = 5.0, h
         raise SessionError(name, "linear_acceleration", repr(linear_acceleration), " or ".join(MODES))
     if acc_lead_samples is None:
         acc_lead_samples = cal.acc_lead_samples
-    if velocity_sigma is None:           # the calibration's estimate (calibration/velocity_process.py), else 0.5
-        velocity_sigma = cal.velocity_sigma or 0.5
-    if velocity_tau is None:
-        velocity_tau = cal.velocity_tau or 2.0
+    velocity_sigma, velocity_tau = cal.velocity_process(velocity_sigma, velocity_tau)   # given, else the cal's
     if acc_lead_samples:
         from imugraph.calibration.acc_timing import with_lead
         session = with_lead(session, acc_lead_samples)

@@ -178,9 +178,8 @@ def isam2_thresholds(rot_threshold: float) -> "gtsam.ISAM2ThresholdMap":
 
 def velocity_process(options: StreamOptions, cal) -> tuple[float, float]:
     """σ_v (m/s), τ_v (s) of the stream's bounded-velocity factors: the options' where set, else the calibration's
-    estimate (`Calibration.velocity_sigma/tau`), else 0.5 m/s / 2 s — the choice `smooth_fixed` makes."""
-    sigma = options.velocity_sigma if options.velocity_sigma is not None else (cal.velocity_sigma or 0.5)
-    tau = options.velocity_tau if options.velocity_tau is not None else (cal.velocity_tau or 2.0)
+    estimate (`Calibration.velocity_sigma/tau`), else the nominal process (`Calibration.velocity_process`, as `smooth_fixed`)."""
+    sigma, tau = cal.velocity_process(options.velocity_sigma, options.velocity_tau)
     from imugraph.errors import SessionError
     for name, x in (("velocity_sigma", sigma), ("velocity_tau", tau)):
         if not (np.isfinite(x) and x > 0):
