@@ -151,7 +151,6 @@ def calibrate(session: Session, options: Options | None = None, initial=None,
                              mag_weights=mag_state["w"], values0=values0,
                              field=None if opt.field_sigma is None else FieldModel(opt.field_sigma, opt.field_tau),
                              gyro_map=gmap)
-        prob.velocity is None or setattr(prob.velocity, "ar2", vel_state["ar2"])   # AR(2): velocity_ar2.py
         values, info = optimize(prob.graph, prob.blocks, prob.values, prob.ordering,
                                 opt.solver if final else round_solver)
         if gmap is not None:
@@ -328,7 +327,7 @@ def _velocity_model(opt: Options, vel: dict) -> VelocityModel | None:
     if opt.linear_acceleration != "velocity":
         return None
     return VelocityModel(vel["sigma"], vel["tau"], opt.acc_rate_error, opt.acc_kernel, vel["s"],
-                         opt.acc_bias, rest=vel["rest"])
+                         opt.acc_bias, rest=vel["rest"], ar2=vel.get("ar2"))
 
 
 def _heading_stage(session, opt, pre, values, noise, g_used, theta, bias, seg, mag_state, vel):

@@ -88,6 +88,7 @@ class VelocityModel:
     acc_bias_rw: float = 1e-3         # m/s²/√s, its random-walk density
     rest: np.ndarray | None = None    # (N,) samples at rest: keyframes whose interval rests get v = 0
     sigma_rest: float = 0.02          # m/s, std of that zero-velocity prior
+    ar2: tuple | None = None          # (a_1, a_2, q): AR(2) process replacing (σ_v, τ_v) (calibration/velocity_ar2)
 
 
 @dataclass
@@ -198,7 +199,8 @@ def build_problem(pre: Preintegration, b_acc: np.ndarray, b_mag: np.ndarray, noi
             moving = np.bincount(pre.sample_kf, weights=~np.asarray(velocity.rest, bool), minlength=K)
             rest_kf = moving == 0
         vblock = VelocityBlock(dv, sig_dv, pre.dt, g, velocity.sigma_v, velocity.tau_v, velocity.kernel,
-                               B, velocity.acc_bias_sigma0, velocity.acc_bias_rw, rest_kf, velocity.sigma_rest)
+                               B, velocity.acc_bias_sigma0, velocity.acc_bias_rw, rest_kf, velocity.sigma_rest,
+                               velocity.ar2)
         v0 = np.zeros((K, vblock.state_dim)) if velocity.v0 is None else velocity.v0
         for k in range(K if fill else 0):
             values.insert(vk[k], np.asarray(v0[k], float))
