@@ -158,6 +158,8 @@ class _Corr:
     def residuals(self, fit):
         return self._res
 
+    raw_residuals = residuals          # no noise re-estimation in a stub: raw and rescaled are the same
+
 
 class StubOffset:
     """Windowed magnetometer offset (test stub): mean mag residual inside and outside the window (the base

@@ -30,6 +30,8 @@ class _Corr:
     def residuals(self, fit):
         return self._res
 
+    raw_residuals = residuals          # no noise re-estimation in a stub: raw and rescaled are the same
+
 
 class WindowOffset:
     """Stub windowed effect: removes the mean magnetometer residual inside a known window (training only)."""

@@ -220,8 +220,7 @@ def evaluate_effect(effect, real, sim, null_gap: dict, folds: list, opt: Attribu
         if b is None:
             continue
         corr = effect.fit(fitted, ~fold, window=window)
-        raw = (corr.raw_residuals(real if ext is None else ext) if hasattr(corr, "raw_residuals")
-               else corr.residuals(real))          # (a stub correction without the noise re-estimation)
+        raw = corr.raw_residuals(real if ext is None else ext)
         ll.add(real.residuals, raw, ~fold if support is None or rest is None else ~fold & support, test)
         r_after = corr.residuals(real) if ext is None else rescale(raw, real, ~fold)
         a = gap({c: r_after.get(c, real.residuals[c]) for c in CHANNELS}, sim.residuals, real.sigma, rate,
