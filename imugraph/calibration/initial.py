@@ -154,9 +154,14 @@ def initial_calibration(session: Session, check: bool = True,
                                          "mag": nz["mag_method"]})
 
 
-def weak_initial(session: Session, reason: str):
+def weak_initial(session: Session, reason: str, estimate_delay: bool = False):
     """Initial estimate when D and o are not identifiable: D = median |y|·I, o = 0, dip from the mean
-    angle between field and accelerometer (m̂·û = −sin δ), noise and bias from rest."""
+    angle between field and accelerometer (m̂·û = −sin δ), noise and bias from rest.
+
+    estimate_delay: also estimate the magnetometer's lag behind the gyro (`estimate_mag_delay`, on the field
+    taken as calibrated, y/median|y|) as `initial_calibration` does (Options.weak_mag_delay); else 0. The lag
+    is a property of the sensor's sampling, not of the calibration, so it is estimable whenever the sensor
+    turns a little: ṁ_b = m_b × ω needs rotation, not coverage of the sphere."""
     from types import SimpleNamespace
 
     from imugraph.calibration.rest import detect_rest, noise_from_rest
@@ -169,8 +174,11 @@ def weak_initial(session: Session, reason: str):
     u = session.acc[ok] / np.linalg.norm(session.acc[ok], axis=1, keepdims=True)
     m = y / np.linalg.norm(y, axis=1, keepdims=True)
     dip = float(np.arcsin(np.clip(-np.median(np.sum(m * u, axis=1)), -1, 1)))
-    return SimpleNamespace(D=scale * np.eye(3), o=np.zeros(3), dip_rad=dip,
-                           gyro_bias=np.asarray(nz["gyro_bias"], float),
+    bias = np.asarray(nz["gyro_bias"], float)
+    delay = (estimate_mag_delay(session.t, np.asarray(session.mag, float) / scale, np.asarray(session.gyr) - bias)
+             if estimate_delay else 0.0)
+    return SimpleNamespace(D=scale * np.eye(3), o=np.zeros(3), dip_rad=dip, gyro_bias=bias,
                            noise={k: np.asarray(nz[k], float) for k in ("gyr", "acc", "mag")}, rest=rest,
+                           mag_delay_s=float(delay),
                            coverage={"identifiable": False, "problems": [reason],
                                      "fallback": "regularised around a sphere (D = s·I, o = 0, ±5 %)"})

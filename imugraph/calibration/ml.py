@@ -89,7 +89,7 @@ def calibrate(session: Session, options: Options | None = None, initial=None,
             if not allow_weak:
                 raise
             weak_reason = str(exc)
-            initial = weak_initial(session, weak_reason)
+            initial = weak_initial(session, weak_reason, opt.weak_mag_delay)
     init = initial
     delay = float(getattr(init, "mag_delay_s", 0.0)) if opt.compensate_mag_delay else 0.0
     if delay != 0.0:
@@ -113,7 +113,7 @@ def calibrate(session: Session, options: Options | None = None, initial=None,
     history = []
     tau_fixed = None
     converged = False
-    theta_sigma = _theta_prior_sigma(theta0, weak_reason is not None)
+    theta_sigma = _theta_prior_sigma(theta0, weak_reason is not None, opt.weak_theta_fraction)
 
     rest_mask = getattr(init, "rest", None) if opt.zero_velocity_at_rest else None
 
@@ -199,7 +199,6 @@ def calibrate(session: Session, options: Options | None = None, initial=None,
                 for c, tau in tau_fixed.items():
                     new[c] = new[c] * np.sqrt(tau)
             history[-1]["tau"] = taus
-            taus = tau_fixed or taus
             change = max(float(np.max(np.abs(np.log(new[c] / getattr(noise, c))))) for c in new)
             if opt.estimate_gyro_rate_error:  # κ by an ML step (calibration/gyro_rate.py)
                 change = max(change, update_rate_error(rate, prob, values, pre, history[-1]))
@@ -389,10 +388,10 @@ def _bias_values(values: gtsam.Values, n_seg: int) -> np.ndarray:
     return np.stack([values.atVector(keys.bias(i)) for i in range(n_seg)])
 
 
-def _theta_prior_sigma(theta0: np.ndarray, tight: bool = False) -> np.ndarray:
+def _theta_prior_sigma(theta0: np.ndarray, tight: bool = False, fraction: float = 0.05) -> np.ndarray:
     """Prior on θ: weak (D entries ± its scale, o ± 2 field norms, dip ± 90°), or tight around a sphere
-    (± 5 % of the scale) when the data do not identify D and o."""
+    (D ± `fraction` of the scale, o ± twice that; Options.weak_theta_fraction) when the data do not identify D, o."""
     D0, _, _ = unpack_theta(theta0)
     s = float(np.cbrt(abs(np.linalg.det(D0)))) or 1.0
-    f = 0.05 if tight else 1.0
+    f = max(float(fraction), 1e-6) if tight else 1.0
     return np.concatenate([np.full(9, f * s), np.full(3, 2.0 * f * s), [np.pi / 2]])
