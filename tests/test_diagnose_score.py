@@ -122,3 +122,53 @@ def test_significance_by_the_log_score_for_effects_scored_on_their_support():
     low = _res(0.3, 0.2, 0.0)
     low.raw_before = 0.15                                          # raw gap below 2 × floor: never
     assert not significant(low, {}, opt)
+
+
+def test_levels_are_the_held_out_scores_whose_difference_is_the_gain():
+    """Known answer (scipy's density): the accumulated levels ℓ_base, ℓ_ext are the held-out negative log
+    densities per sample (less ½ ln 2π per axis) with σ from the training rows; their difference is the
+    per-channel gain of `result`."""
+    rng = np.random.default_rng(4)
+    n = 3000
+    base = rng.standard_normal((n, 3)) * [2.0, 1.0, 0.5]
+    ext = base * 0.5
+    folds = [(np.arange(n) // 200) % 5 == k for k in range(5)]
+    acc = GainAccumulator()
+    expect_b = expect_e = 0.0
+    for f in folds:
+        acc.add({"gyr": base}, {"gyr": ext}, ~f, f)
+        for r, tot in ((base, "b"), (ext, "e")):
+            s = np.sqrt(np.mean(r[~f] ** 2, axis=0))
+            v = float(np.sum(-norm.logpdf(r[f], scale=s)) - f.sum() * 1.5 * np.log(2 * np.pi))
+            if tot == "b":
+                expect_b += v
+            else:
+                expect_e += v
+    lb, le = acc.levels()
+    assert lb["gyr"] == pytest.approx(expect_b / n, rel=1e-10)
+    assert le["gyr"] == pytest.approx(expect_e / n, rel=1e-10)
+    assert lb["gyr"] - le["gyr"] == pytest.approx(3 * np.log(2.0), rel=1e-10)       # every σ halved
+    assert lb["gyr"] - le["gyr"] == pytest.approx(acc.result(0)[1]["gyr"], rel=1e-12)
+    assert np.isnan(lb["acc"])                                                       # channel not given
+
+
+def test_injected_part_logscore_shrink_known_answers():
+    """Known answers: the injection added 0.8 nats per sample over the clean host (acc 0.7, mag 0.1), the
+    correction leaves 0.2 → 0.75; below the host → 1; localised, wrong, or hostless → None."""
+    from imugraph.diagnose.harness import _host_loglik, injected_part_logscore_shrink
+
+    host_diag = {"effects": [{"name": "x", "support_fraction": 1.0,
+                              "loglik_base_per_channel": {"gyr": 1.0, "acc": 2.0, "mag": 3.0}},
+                             {"name": "w", "support_fraction": 0.2,
+                              "loglik_base_per_channel": {"gyr": 9.0, "acc": 9.0, "mag": 9.0}}]}
+    hosts = {"h": _host_loglik(host_diag)}
+    assert set(hosts["h"]) == {"x"}
+    case = {"correct": True, "host": "h", "verdict": "x", "won": {"support_fraction": 1.0},
+            "loglik": {"loglik_base_per_channel": {"gyr": 1.0, "acc": 2.7, "mag": 3.1},
+                       "loglik_ext_per_channel": {"gyr": 1.0, "acc": 2.1, "mag": 3.1}}}
+    assert injected_part_logscore_shrink(case, hosts) == pytest.approx(0.75)
+    better = dict(case, loglik={**case["loglik"], "loglik_ext_per_channel": {"gyr": 0.9, "acc": 1.9, "mag": 3.0}})
+    assert injected_part_logscore_shrink(better, hosts) == pytest.approx(1.0)
+    assert injected_part_logscore_shrink(dict(case, won={"support_fraction": 0.3}), hosts) is None
+    assert injected_part_logscore_shrink(dict(case, correct=False), hosts) is None
+    assert injected_part_logscore_shrink(dict(case, host="other"), hosts) is None

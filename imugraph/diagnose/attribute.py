@@ -49,11 +49,12 @@ vibration, docs/diagnose.md §3, §5). Every EffectResult carries it (`loglik_ga
 from __future__ import annotations
 
 import traceback
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
 from imugraph.diagnose.gap import CHANNELS, GapOptions, gap
+from imugraph.diagnose.result import EffectResult  # noqa: F401  (re-exported: its home before)
 from imugraph.diagnose.score import GainAccumulator, clearly_better
 
 NONE = "none"
@@ -86,55 +87,6 @@ def fold_masks(t: np.ndarray, opt: AttributionOptions) -> list:
     """K boolean (N,) masks of held-out samples: block b = floor((t − t0)/block_s) is in fold b mod K."""
     block = np.floor((t - t[0]) / max(opt.block_s, 1e-9)).astype(int)
     return [(block % opt.n_folds) == k for k in range(opt.n_folds)]
-
-
-@dataclass
-class EffectResult:
-    """One effect's cross-validated result (see module doc)."""
-
-    name: str
-    channel: str
-    gap_before: float
-    gap_after: float
-    shrink: float
-    penalised: float
-    n_params: int
-    t_start: float | None = None
-    t_end: float | None = None
-    params: dict | None = None
-    per_channel_after: dict | None = None
-    raw_before: float = float("nan")
-    error: str | None = None
-    size: dict | None = None
-    stage: str = "screen"
-    screen: dict | None = None
-    significant: bool = False
-    refit: tuple | None = field(default=None, repr=False, compare=False)   # (θ*, info) of stage 2, reused
-    floor: float = float("nan")           # noise floor of the channel on the samples scored (support)
-    decisive: bool = False                # the effect's own evidence is conclusive (saturation (C2))
-    support_fraction: float = 1.0         # fraction of the samples the effect claims (1: whole recording)
-    loglik_gain: float = float("nan")     # (A4): held-out log-score gain, nats per sample, BIC cost charged
-    loglik_per_channel: dict | None = None  # (A4) per channel, nats per sample (no cost)
-    n_scored: int = 0                     # held-out samples scored (A4's BIC cost)
-    loglik_folds: list | None = None      # (A4'') per fold, nats per sample, BIC cost charged
-
-    @property
-    def relevant(self) -> bool:
-        """The fitted effect's size reaches its physical threshold (docs/diagnose.md §3)."""
-        s = self.size or {}
-        return bool(s.get("value", np.nan) >= s.get("threshold", np.inf))     # NaN (no size) → False
-
-    def as_dict(self) -> dict:
-        return {"name": self.name, "channel": self.channel, "t_start": self.t_start, "t_end": self.t_end,
-                "gap_before": self.gap_before, "gap_after": self.gap_after, "shrink": self.shrink,
-                "penalised_shrink": self.penalised, "n_params": self.n_params,
-                "params": self.params or {}, "gap_after_per_channel": self.per_channel_after or {},
-                "size": self.size or {}, "relevant": self.relevant, "significant": self.significant,
-                "stage": self.stage, "support_fraction": self.support_fraction, "decisive": self.decisive,
-                "loglik_gain": self.loglik_gain, "loglik_gain_per_channel": self.loglik_per_channel or {},
-                "loglik_gain_per_fold": self.loglik_folds or [],
-                **({"screen": self.screen} if self.screen else {}),
-                **({"error": self.error} if self.error else {})}
 
 
 def _weighted(values: list, weights: list) -> float:
@@ -243,12 +195,13 @@ def evaluate_effect(effect, real, sim, null_gap: dict, folds: list, opt: Attribu
     penalised = (1.0 - (g1 + cost) / g0 if g0 > 0 else 0.0) - worse                              # (A2)
     size = effect.size(full, fitted) if hasattr(effect, "size") else {"value": np.inf, "threshold": 0.0}
     gain, gain_per, n_scored = ll.result(n_params)                                             # (A4')
+    ll_base, ll_ext = ll.levels()
     return EffectResult(effect.name, ch, g0, g1, float(shrink), float(penalised), n_params,
                         full.t_start, full.t_end, dict(full.params), aft, bef[ch], size=size,
                         stage="screen" if ext is None else "refit", floor=noise[ch], support_fraction=frac,
                         decisive=bool((getattr(full, "deltas", None) or {}).get("decisive", False)),
                         loglik_gain=gain, loglik_per_channel=gain_per, n_scored=n_scored,
-                        loglik_folds=ll.fold_gains(n_params))
+                        loglik_folds=ll.fold_gains(n_params), loglik_base=ll_base, loglik_ext=ll_ext)
 
 
 def _failed(name, effect, exc) -> EffectResult:

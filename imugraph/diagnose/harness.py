@@ -15,6 +15,8 @@ well (truth "none"). Scores:
     injected part shrink = the same for the gap the injection ADDED: a global verdict's held-out gap
                 net of the clean host's own gap on that channel (`injected_part_shrink`; needs the clean
                 runs) — reported beside the shrink, which it does not replace
+    log-score shrink of the injected part = the same in the proper score (A4), all channels summed
+                (`injected_part_logscore_shrink`; correct global verdicts)
 
 and the confusion matrix (rows: truth, columns: verdict).
 """
@@ -88,7 +90,10 @@ def run_case(session: Session, truth_name: str, truth: dict, case_id: str, diagn
             "host": session.name.split("+")[0],
             "won": None if won is None else {k: won.get(k) for k in ("channel", "gap_before", "gap_after",
                                                                      "support_fraction")},
-            "host_excess": None if truth_name != NONE else _host_excess(d)}
+            "host_excess": None if truth_name != NONE else _host_excess(d),
+            "loglik": None if won is None else {k: won.get(k) for k in ("loglik_base_per_channel",
+                                                                        "loglik_ext_per_channel")},
+            "host_loglik": None if truth_name != NONE else _host_loglik(d)}
     if windowed and verdict == truth_name and won is not None:
         case["estimated_window"] = [won.get("t_start"), won.get("t_end")]
         case["iou"] = interval_iou((truth["t_start"], truth["t_end"]), (won.get("t_start"), won.get("t_end")))
@@ -104,6 +109,37 @@ def _host_excess(d: dict) -> dict:
         if e.get("support_fraction", 1.0) >= 1.0 and gb is not None and np.isfinite(gb):
             out.setdefault(e.get("channel"), float(gb))
     return out
+
+
+def _host_loglik(d: dict) -> dict:
+    """effect name → channel → the base model's held-out log score (A4) ℓ_base of an unmodified
+    recording, as scored beside that (global) effect (the rows scored depend on the effect's NaN rows)."""
+    return {e.get("name"): dict(e.get("loglik_base_per_channel") or {}) for e in d.get("effects", [])
+            if e.get("support_fraction", 1.0) >= 1.0 and e.get("loglik_base_per_channel")}
+
+
+def injected_part_logscore_shrink(case: dict, hosts: dict) -> Optional[float]:
+    """The injected-part shrink in the proper score (A4) (docs/diagnose.md §4, issue 5 G2 (c)): for a
+    correct global verdict, with ℓ the held-out score in nats per sample summed over the channels,
+
+        1 − max(0, ℓ_ext(case) − ℓ_base(host)) / (ℓ_base(case) − ℓ_base(host))
+
+    — the fraction of the log-score loss the injection added that the extended model removes, the clean
+    host's own misfit (ℓ_base(host), the same samples, the same effect's rows) taken as the floor; every
+    channel counts, so a correction that makes another channel worse pays for it. None for a localised
+    verdict (scored on its support, which the host's numbers do not cover), a miss, or no host."""
+    won, ll = case.get("won"), case.get("loglik")
+    if not case.get("correct") or not won or not ll or (won.get("support_fraction") or 1.0) < 1.0:
+        return None
+    host = ((hosts.get(case.get("host")) or {}).get(case.get("verdict"))) or {}
+    base, ext = ll.get("loglik_base_per_channel") or {}, ll.get("loglik_ext_per_channel") or {}
+    chans = [c for c in base if c in ext and c in host
+             and all(np.isfinite(float(v[c])) for v in (base, ext, host))]
+    if not chans:
+        return None
+    added = sum(float(base[c]) - float(host[c]) for c in chans)
+    left = sum(float(ext[c]) - float(host[c]) for c in chans)
+    return float(1.0 - max(0.0, left) / added) if added > 0 else None
 
 
 def injected_part_shrink(case: dict, hosts: dict) -> Optional[float]:
@@ -205,6 +241,8 @@ def summarise(cases: list, names: list, seconds: float = float("nan")) -> dict:
     true_shrinks = [c["true_effect_shrink"] for c in injected if c["true_effect_shrink"] is not None]
     hosts = {c.get("host"): c.get("host_excess") for c in clean if c.get("host_excess")}
     part = [injected_part_shrink(c, hosts) for c in injected]
+    host_ll = {c.get("host"): c.get("host_loglik") for c in clean if c.get("host_loglik")}
+    part_ll = [injected_part_logscore_shrink(c, host_ll) for c in injected]
 
     def stats(v):
         v = [x for x in v if x is not None and np.isfinite(x)]
@@ -216,7 +254,7 @@ def summarise(cases: list, names: list, seconds: float = float("nan")) -> dict:
             "top1": float(np.mean([c["correct"] for c in injected])) if injected else None,
             "n_clean": len(clean), "clean_flagged": int(sum(not c["correct"] for c in clean)),
             "iou": stats(ious), "shrink": stats(shrinks), "true_effect_shrink": stats(true_shrinks),
-            "injected_part_shrink": stats(part),
+            "injected_part_shrink": stats(part), "injected_part_logscore_shrink": stats(part_ll),
             "seconds": seconds}
 
 
@@ -246,7 +284,9 @@ def format_report(report: dict) -> str:
                        ("shrink", "gap shrink on held-out time (correct verdicts)"),
                        ("true_effect_shrink", "gap shrink of the true effect (all injected cases)"),
                        ("injected_part_shrink", "gap shrink of the injected part (correct verdicts, net of "
-                                                "the clean host's own gap)")):
+                                                "the clean host's own gap)"),
+                       ("injected_part_logscore_shrink", "log-score (A4) shrink of the injected part (correct "
+                                                         "global verdicts, net of the clean host's own score)")):
         s = report.get(key, {"n": 0})
         if s["n"]:
             lines.append(f"{label}: median {s['median']:.2f}, mean {s['mean']:.2f}, min {s['min']:.2f} (n = {s['n']})")

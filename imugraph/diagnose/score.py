@@ -43,13 +43,19 @@ def log_score_sum(r: np.ndarray, train: np.ndarray, test: np.ndarray) -> float:
     return float(np.sum(0.5 * z * z) + test.sum() * np.sum(np.log(s)))
 
 
-def channel_gain(r_base: np.ndarray, r_ext: np.ndarray, train: np.ndarray, test: np.ndarray) -> tuple:
-    """(Σ_test (ℓ_base − ℓ_ext), n_test) on one channel: rows finite in both models only."""
+def channel_scores(r_base: np.ndarray, r_ext: np.ndarray, train: np.ndarray, test: np.ndarray) -> tuple:
+    """(Σ_test ℓ_base, Σ_test ℓ_ext, n_test) on one channel: rows finite in both models only."""
     ok = np.all(np.isfinite(r_base), axis=1) & np.all(np.isfinite(r_ext), axis=1)
     tr, te = train & ok, test & ok
     if tr.sum() < 10 or te.sum() == 0:
-        return 0.0, 0
-    return log_score_sum(r_base, tr, te) - log_score_sum(r_ext, tr, te), int(te.sum())
+        return 0.0, 0.0, 0
+    return log_score_sum(r_base, tr, te), log_score_sum(r_ext, tr, te), int(te.sum())
+
+
+def channel_gain(r_base: np.ndarray, r_ext: np.ndarray, train: np.ndarray, test: np.ndarray) -> tuple:
+    """(Σ_test (ℓ_base − ℓ_ext), n_test) on one channel: rows finite in both models only."""
+    lb, le, n = channel_scores(r_base, r_ext, train, test)
+    return lb - le, n
 
 
 class GainAccumulator:
@@ -59,6 +65,8 @@ class GainAccumulator:
         self.sum = {c: 0.0 for c in CHANNELS}
         self.n = {c: 0 for c in CHANNELS}
         self.folds = []                     # per fold: Σ_c Δℓ_c of that fold alone (nats per sample)
+        self.base = {c: 0.0 for c in CHANNELS}       # Σ ℓ_base, Σ ℓ_ext (absolute levels, `levels`)
+        self.ext = {c: 0.0 for c in CHANNELS}
 
     def add(self, base: dict, ext: dict, train: np.ndarray, test: np.ndarray) -> None:
         """Add one fold: base/ext are channel → (N, 3) raw residuals (ext falls back to base)."""
@@ -66,9 +74,12 @@ class GainAccumulator:
         for c in CHANNELS:
             if c not in base:
                 continue
-            g, n = channel_gain(np.asarray(base[c], float), np.asarray(ext.get(c, base[c]), float),
-                                train, test)
+            lb, le, n = channel_scores(np.asarray(base[c], float), np.asarray(ext.get(c, base[c]), float),
+                                       train, test)
+            g = lb - le
             self.sum[c] += g
+            self.base[c] += lb
+            self.ext[c] += le
             self.n[c] += n
             fold += g / n if n else 0.0
         self.folds.append(fold)
@@ -78,6 +89,14 @@ class GainAccumulator:
         n = max(self.n.values()) if self.n else 0
         cost = max(n_params, 0) * np.log(max(n, 2)) / (2.0 * max(n, 1))               # BIC (A4')
         return float(sum(per.values()) - cost), per, n
+
+    def levels(self) -> tuple:
+        """(channel → ℓ_base, channel → ℓ_ext): the held-out scores (A4) themselves, nats per sample
+        (sample-weighted over the folds; without the constant ½ ln 2π per axis). Their difference is Δℓ_c;
+        the level lets a caller compare the base model's score on two recordings of the same samples
+        (the harness: an injected case and its clean host, `harness.injected_part_logscore_shrink`)."""
+        return ({c: (self.base[c] / self.n[c] if self.n[c] else float("nan")) for c in CHANNELS},
+                {c: (self.ext[c] / self.n[c] if self.n[c] else float("nan")) for c in CHANNELS})
 
     def fold_gains(self, n_params: int) -> list:
         """Per fold: that fold's Σ_c Δℓ_c net of the same BIC cost as `result` (A4'')."""

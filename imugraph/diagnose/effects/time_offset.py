@@ -23,8 +23,10 @@ correction undoes the shift by interpolation: y'_c(t) = y_c(t + τ).
 
 Relevance (`size`): |τ| ≥ one sample period.
 
-Injection ranges (RANGES): τ = 5–50 ms (e.g. a digital low-pass filter's group delay, or a channel read
-out on its own schedule), channel acc (p = 0.5) or gyr (0.5). Not mag: the magnetometer's lag behind
+Injection ranges (RANGES): τ = 5–50 ms (a digital low-pass filter's group delay — a 2nd-order 20–40 Hz
+low-pass delays by ~5–10 ms —, or a channel read out on its own schedule or time-stamped by a host over
+USB/Bluetooth, tens of ms), never below one sample period (`injection_range_s`: the relevance threshold;
+at 100 Hz τ = 10–50 ms), channel acc (p = 0.5) or gyr (0.5). Not mag: the magnetometer's lag behind
 the gyro is part of the base model (diagnose/fit.py (B3), as of `imugraph calibrate`'s default model), so
 a delayed magnetometer is not an effect the base model leaves out; the fit still searches mag (a lag the
 base model's whole-sample alignment left).
@@ -40,6 +42,15 @@ from imugraph.diagnose.effects.base import (Correction, Effect, check_train, gyr
 
 RANGES = {"tau_ms": (5.0, 50.0), "channel_p": {"acc": 0.5, "gyr": 0.5}}
 MAX_DELAY_S = 0.1            # search range of the gyro-referenced delay (T2), ± s
+
+
+def injection_range_s(rate_hz: float) -> tuple[float, float]:
+    """(τ_lo, τ_hi) of the injection, s: RANGES["tau_ms"] with the lower end raised to one sample period
+    (the relevance threshold of `size`) and the upper end to two, so that every injected delay is above
+    relevance at any rate (100 Hz: 10–50 ms); at BROAD's 285.7 Hz (3.5 ms per sample) RANGES unchanged."""
+    lo, hi = (1e-3 * float(v) for v in RANGES["tau_ms"])
+    period = 1.0 / max(float(rate_hz), 1e-9)
+    return max(lo, period), max(hi, 2.0 * period)
 
 
 def _cost(fit, res: dict, train: np.ndarray, channels) -> float:
@@ -126,7 +137,7 @@ class TimeOffset(Effect):
 
     def inject(self, session, rng, *, window=None, strength=None):
         """Delay one channel by τ. strength: τ in s (default random in RANGES); the channel is random."""
-        tau = float(strength) if strength is not None else 1e-3 * float(rng.uniform(*RANGES["tau_ms"]))
+        tau = float(strength) if strength is not None else float(rng.uniform(*injection_range_s(session.rate)))
         names, p = zip(*RANGES["channel_p"].items())
         c = str(rng.choice(names, p=p))
         y = shift_signal(session.t, getattr(session, c), tau)
