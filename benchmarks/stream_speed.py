@@ -19,7 +19,7 @@ and the online refits, StreamSmoother._between_keyframes), the largest entry of 
 calibration (see docs/stream.md). Wall times; the machine may be shared: compare ratios in one run.
 
     .venv/bin/python benchmarks/stream_speed.py [TRIALS] [--lag 2 | --no-lag] [--no-batch] [--bootstrap-s 30]
-        [--calibration online|fixed|both] [--lag-solver chain|incremental|batch] [--lag-only] [--no-cal-compare]
+        [--calibration online|fixed|both] [--lag-solver chain|incremental|batch] [--lag-only] [--no-cal-compare] [--calib-states]
 
 TRIALS: comma-separated BROAD trial numbers, or "all" (the 17 trials; default 01). --no-lag / --no-batch skip
 the fixed-lag run / the batch smoother (time). Prints the per-trial table, then the means of the filtered
@@ -48,7 +48,7 @@ def _err(q, s):
 
 
 def run_trial(path: Path, lag: float | None, bootstrap_s: float, batch: bool = True, online=(True,),
-              compare_cal: bool = True, lag_solver: str = "chain", lag_only: bool = False) -> list[dict]:
+              compare_cal: bool = True, lag_solver: str = "chain", lag_only: bool = False, calib_states: bool = False) -> list[dict]:
     from imugraph.evaluate import orientation_error
     from imugraph.graphs.cpp_smoother import smooth_fixed
     from imugraph.graphs.stream import StreamOptions
@@ -76,7 +76,8 @@ def run_trial(path: Path, lag: float | None, bootstrap_s: float, batch: bool = T
         cal_full = est_full.calibration
         f_batch = _whiteness(est_full.residuals.get("mag"), s.t)
     for label, lag_s, on in runs:
-        r = stream_session(s, cal, StreamOptions(lag_s=lag_s, online_calibration=on, fixed_lag_solver=lag_solver))
+        r = stream_session(s, cal, StreamOptions(lag_s=lag_s, online_calibration=on, fixed_lag_solver=lag_solver,
+                                                 calib_states=calib_states))
         tm = r.timing
         rows.append({"trial": name, "method": label, "rt_factor": tm["realtime_factor"], "p50_ms": tm["p50_ms"],
                      "p99_ms": tm["p99_ms"], "cpu_rt": tm.get("cpu_realtime_factor"), "p99_cpu_ms": tm.get("p99_cpu_ms"),
@@ -140,10 +141,17 @@ def _last_refit(history: list, cal, ref, f_batch=None) -> dict:
     a = _cal_agreement(last, ref)
     out = {"refit_z": a["cal_z"], "refit_dD_rel": a["cal_dD_rel"], "applied": sum(bool(x.get("applied")) for x in history),
            "refits": len(history)}
+    # the streamed std without the residual-whiteness factor (stream_calstate eq. 6 / stream_calib eq. 3): the
+    # model's own std, as the batch reports its own
+    white = replace(last, std={k: np.asarray(v) for k, v in h["std_white"].items()}) if h.get("std_white") else None
+    if white is not None:
+        out.update(refit_z_white=_cal_agreement(white, ref)["cal_z"], V_max=max(h["whiteness"]) if h.get("whiteness") else None)
     if f_batch is not None and ref.std:
         k = np.sqrt(f_batch)
         ref_f = replace(ref, std={"D": np.asarray(ref.std["D"]) * k[:, None], "o": np.asarray(ref.std["o"]) * k})
         out.update(refit_z_bF=_cal_agreement(last, ref_f)["cal_z"], F_batch_max=float(np.max(f_batch)))
+        if white is not None:
+            out.update(refit_z_white_bF=_cal_agreement(white, ref_f)["cal_z"])
     return out
 
 
@@ -152,7 +160,7 @@ def _white_z(history: list, cal, ref) -> dict:
     before the whiteness factor), and that factor's largest axis (`whiteness`)."""
     from dataclasses import replace
 
-    rows = [h for h in history if h.get("applied") and h.get("std_white")]
+    rows = [h for h in history if h.get("applied") and h.get("std_white") and h.get("whiteness")]
     if not rows:
         return {}
     h = rows[-1]
@@ -192,6 +200,8 @@ def main(argv=None) -> int:
                          "BatchFixedLagSmoother for --lag")
     ap.add_argument("--lag-only", action="store_true", help="skip the full iSAM2 run")
     ap.add_argument("--no-cal-compare", action="store_true", help="skip the whole-trial batch calibration")
+    ap.add_argument("--calib-states", action="store_true", help="online calibration with θ as a graph state "
+                    "(StreamOptions(calib_states=True)) instead of the closed-form refit on fixed orientations")
     a = ap.parse_args(argv)
     every = a.trials == "all"
     wanted = set() if every else {int(x) for x in a.trials.split(",")}
@@ -203,12 +213,13 @@ def main(argv=None) -> int:
     rows = []
     for p in paths:
         online = {"online": (True,), "fixed": (False,), "both": (True, False)}[a.calibration]
-        rows += run_trial(p, lag, a.bootstrap_s, not a.no_batch, online, not a.no_cal_compare, a.lag_solver, a.lag_only)
+        rows += run_trial(p, lag, a.bootstrap_s, not a.no_batch, online, not a.no_cal_compare, a.lag_solver, a.lag_only,
+                          a.calib_states)
         print(f"trial {trial_number(p):02d} done", file=sys.stderr, flush=True)
     cols = ["trial", "method", "rt_factor", "p50_ms", "p99_ms", "cpu_rt", "p99_cpu_ms", "max_cpu_ms", "p99_btw_cpu_ms",
             "max_btw_cpu_ms", "filtered_deg", "smoothed_deg", "vs_batch_deg", "E_max",
             "seconds", "bootstrap_s", "failed", "cal_z", "cal_z_white", "whiteness", "cal_dD_rel", "refit_z", "refit_z_bF",
-            "F_batch_max", "refit_dD_rel",
+            "refit_z_white", "refit_z_white_bF", "V_max", "F_batch_max", "refit_dD_rel",
             "applied", "refits"]
     print_table(rows, cols)
     means = _means(rows)

@@ -1,5 +1,6 @@
-"""Online calibration of a stream (imugraph.graphs.stream_calib + StreamSmoother): the closed-form refit
-against the truth, and the streamed calibration converging from a perturbed start."""
+"""Online calibration of a stream by the closed-form refit (imugraph.graphs.stream_calib + StreamSmoother,
+`StreamOptions(calib_states=False)`): the refit against the truth, and the streamed calibration converging from
+a perturbed start. θ as a graph state (the default): tests/test_stream_calstate.py."""
 
 from dataclasses import replace
 
@@ -58,7 +59,7 @@ def test_final_graph_reissues_every_magnetometer_factor(field):
 
     session, truth = distorted_session(3, 12.0, 50.0)
     cal = truth.to_calibration()
-    sm = StreamSmoother(cal, 50.0, StreamOptions(calib_every_s=2.0, field_sigma=field))
+    sm = StreamSmoother(cal, 50.0, StreamOptions(calib_every_s=2.0, field_sigma=field, calib_states=False))
     for i in range(session.n):
         sm.push(session.t[i], session.gyr[i], session.acc[i], session.mag[i])
     factors = sm._solver.getFactorsUnsafe()
@@ -84,7 +85,7 @@ def test_streamed_calibration_converges_to_the_truth():
     scale = np.cbrt(abs(np.linalg.det(cal.D)))
     rng = np.random.default_rng(0)
     start = replace(cal, D=cal.D + 0.01 * scale * rng.standard_normal((3, 3)), o=cal.o + 0.01 * scale * rng.standard_normal(3))
-    sm = StreamSmoother(start, 50.0, StreamOptions(calib_every_s=2.0, calib_memory_s=10.0),
+    sm = StreamSmoother(start, 50.0, StreamOptions(calib_every_s=2.0, calib_memory_s=10.0, calib_states=False),
                         g0=float(np.median(np.linalg.norm(session.acc, axis=1))))
     for i in range(session.n):
         sm.push(session.t[i], session.gyr[i], session.acc[i], session.mag[i])

@@ -4,8 +4,9 @@ re-estimated online (held fixed with `--fixed-calibration` when the parser offer
 the fixed-lag solver for --lag: chain (default), incremental or batch, `StreamOptions.fixed_lag_solver`).
 
 Writes (DESIGN.md): orientation.npz (smoothed, at the end), orientation_filtered.npz (the estimate available
-when each sample arrived), calibration.json (the calibration at the end), calibration_history.json (the
-start calibration and one row per online refit: t, D, o, dip_deg, std), timing.json (updates, seconds,
+when each sample arrived), calibration.json (the calibration at the end; with StreamOptions.calib_states the streamed D, o,
+dip estimated with the orientations, imugraph.graphs.stream_calstate), calibration_history.json (the start
+calibration and one row per online refit: t, D, o, dip_deg, std, ...), timing.json (updates, seconds,
 p50_ms, p99_ms, plus max_ms, realtime_factor, the CPU-time figures, the between-keyframe steps'
 p50/p99/max, bootstrap_seconds, bootstrap_samples and the arrival counters; docs/stream.md).
 """

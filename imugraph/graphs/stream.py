@@ -27,9 +27,11 @@ still open (`late_inserted`), else dropped (`late_dropped`); rows with non-finit
 are dropped (`invalid`); a time step over 1.5 nominal steps is a gap (`gaps`, `missing`): the gyro is
 integrated across it (held rate) and the covariances grow with the step. A NaN magnetometer row is "no
 sample" (lower magnetometer rates); a keyframe interval without one gets no magnetometer factor.
-Online calibration (options.online_calibration): see `imugraph.graphs.stream_online` (D, o re-estimated,
-new magnetometer factors use the latest well-determined refit); gyro bias (per segment) and gravity are
-estimated with the orientations.
+Online calibration (options.online_calibration): by default the closed-form refit on fixed orientations
+(`imugraph.graphs.stream_online`, stream_calib); with calib_states θ = (D, o, dip) is a state of the graph in
+every magnetometer factor, pinned at the start calibration, and the streamed calibration is what the data say
+about it jointly with the orientations (`imugraph.graphs.stream_calstate`). Gyro bias (per segment) and
+gravity are estimated with the orientations.
 """
 
 from __future__ import annotations
@@ -46,31 +48,25 @@ import numpy as np
 from imugraph import keys
 from imugraph.calibration.result import Calibration
 from imugraph.errors import SessionError
-from imugraph.graphs.cpp_velocity import (G_KEY, SIGMA_ACC_BIAS_RW, SIGMA_G, SIGMA_POS, gauss_markov_factors,
-                                          imu_bias_key, pose_key, split_noise, super_sample_pim)
+from imugraph.graphs.cpp_velocity import G_KEY, imu_bias_key, pose_key, split_noise, super_sample_pim
 from imugraph.graphs.stream_interval import (NAN3 as _NAN3, Q_ID, ArrivalMixin, gauss_markov_factor,
                                              interval_preintegration, lead_interval, qmul, qpos, qstep,
                                              row3 as _row3)
 from imugraph.graphs.orientation_init import triad
 from imugraph.graphs.stream_calib import OnlineMagCalibration
-from imugraph.graphs.stream_field import field_key, field_start_prior, field_step_factor
+from imugraph.graphs.stream_calstate import CAL_KEY
+from imugraph.graphs.stream_field import field_key, field_step_factor
 from imugraph.graphs.stream_lag import window_rotations
 from imugraph.graphs.stream_online import OnlineCalibrationMixin
 from imugraph.graphs.stream_options import (SIGMA_WEAK_POSE, StreamOptions, StreamStats, acc_lead, make_solver,
                                             velocity_process)
 from imugraph.graphs.stream_output import StreamOutputMixin
+from imugraph.graphs.stream_start import KeyframeStartMixin, _quat
 
 __all__ = ["StreamOptions", "StreamSmoother", "StreamStats"]
 
 
-def _quat(R: gtsam.Rot3) -> np.ndarray:
-    """w, x, y, z of a Rot3 (w ≥ 0)."""
-    q = R.toQuaternion()
-    out = np.array([q.w(), q.x(), q.y(), q.z()])
-    return -out if out[0] < 0 else out
-
-
-class StreamSmoother(OnlineCalibrationMixin, ArrivalMixin, StreamOutputMixin):
+class StreamSmoother(OnlineCalibrationMixin, KeyframeStartMixin, ArrivalMixin, StreamOutputMixin):
     """Push samples in arrival order; get the filtered orientation of each at once, the smoothed ones at the end.
 
     Args:
@@ -98,8 +94,11 @@ class StreamSmoother(OnlineCalibrationMixin, ArrivalMixin, StreamOutputMixin):
         tau = cal.coverage.get("noise_correlation", {}) if isinstance(cal.coverage, dict) else {}
         self._sig_y = np.asarray(cal.noise.get("mag", np.full(3, 0.01 * scale)), float) * np.sqrt(tau.get("mag", 1.0))
         self._set_calibration(cal)
+        # θ = (D, o, δ) a state of the graph (stream_calstate; iSAM2 and the chain lag), else the closed-form refit
+        self._calstate = bool(options.online_calibration and options.calib_states and (options.lag_s is None or self._chain))
         self._online = OnlineMagCalibration(cal, options.calib_prior_rel, estimate_dip=options.calib_dip,
-                                            use_start_std=options.calib_prior_from_start) if options.online_calibration else None
+                                            use_start_std=options.calib_prior_from_start) if options.online_calibration and not self._calstate else None
+        self._init_calstate(cal)
         self._pending: deque = deque()       # intervals not yet folded: (k, t_k, kRb (n,3,3), y (n,3))
         self._next_refit, self._refit_due = options.calib_every_s, False   # due: runs between keyframes
         self._hist_y, self._mag_index = [], {}   # iSAM2: per-interval y (keep_history), keyframe → index of its
@@ -116,6 +115,7 @@ class StreamSmoother(OnlineCalibrationMixin, ArrivalMixin, StreamOutputMixin):
         self._acc_tail = np.zeros((0, 3))    # the last n accelerometer rows before the open interval
         self._estimate_g = options.g is None
         self._g = float(options.g if options.g is not None else g0)
+        self._global_keys = ((G_KEY,) if self._estimate_g else ()) + ((CAL_KEY,) if self._calstate else ())   # re-stamped
         self._pim_params = gtsam.PreintegrationParams.MakeSharedU(self._g)
         self._solver = make_solver(options)   # a failed update is counted and the prediction kept, never a crash
         self._weak_pose = gtsam.noiseModel.Isotropic.Sigma(6, SIGMA_WEAK_POSE)
@@ -273,7 +273,7 @@ class StreamSmoother(OnlineCalibrationMixin, ArrivalMixin, StreamOutputMixin):
         values.insert(keys.vel(k + 1), self._v + c)
         if self.opt.lag_s is None or self.opt.fixed_lag_solver != "batch":     # iSAM2 inside
             graph.add(gtsam.PriorFactorPose3(pose_key(k + 1), values.atPose3(pose_key(k + 1)), self._weak_pose))
-        for key in (pose_key(k + 1), keys.vel(k + 1), imu_bias_key(seg)) + ((G_KEY,) if self._estimate_g else ()):
+        for key in (pose_key(k + 1), keys.vel(k + 1), imu_bias_key(seg)) + self._global_keys:
             stamps[key] = t_next - self._t0
         self._n_factors += graph.size()
         self._update(graph, values, stamps, k + 1, seg, R_next)
@@ -288,45 +288,10 @@ class StreamSmoother(OnlineCalibrationMixin, ArrivalMixin, StreamOutputMixin):
         self._maintained = not self._chain
         if self._online is not None:
             self._pending.append((k, self._kf_t[k] - self._t0, kRb, y))
+        if self._online is not None or self._calstate:
             self._calibrate(t_next - self._t0)
         self.stats.update_s.append(time.perf_counter() - start)
         self.stats.update_cpu_s.append(time.thread_time() - start_cpu)
-
-    def _start(self, graph, values, stamps, kRb, a, m_cal, ok) -> None:
-        """Keyframe 0: TRIAD of interval 0's mean accelerometer and field, gauges, gravity."""
-        n = len(ok)
-        up = np.einsum("mij,mj->i", kRb[:n], a[:n])
-        fld = np.einsum("mij,mj->i", kRb[:n][ok], m_cal[ok]) if ok.any() else np.cross(up, [0.0, 1.0, 0.0])
-        self._nRk = gtsam.Rot3(triad(up[None], fld[None])[0])
-        self._q_nk = tuple(_quat(self._nRk))
-        values.insert(pose_key(0), gtsam.Pose3(self._nRk, np.zeros(3)))
-        values.insert(keys.vel(0), np.zeros(3))
-        graph.add(gauss_markov_factors(np.array([1.0]), self._sig_v, self._tau_v)[0])
-        graph.add(gtsam.PoseTranslationPrior3D(pose_key(0), np.zeros(3), gtsam.noiseModel.Isotropic.Sigma(3, SIGMA_POS)))
-        if self._estimate_g:
-            n_grav = np.array([0.0, 0.0, -self._g])
-            values.insert(G_KEY, n_grav)
-            graph.add(gtsam.PriorFactorVector(G_KEY, n_grav, gtsam.noiseModel.Diagonal.Sigmas(SIGMA_G)))
-        stamps[pose_key(0)] = stamps[keys.vel(0)] = 0.0
-        if self._field:
-            values.insert(field_key(0), np.zeros(3))
-            graph.add(field_start_prior(field_key(0), self.opt.field_sigma))
-            stamps[field_key(0)] = 0.0
-
-    def _new_segment(self, graph, values, seg: int, elapsed: float) -> None:
-        """A gyro-bias segment: prior about the calibration's bias, random walk from the previous one."""
-        o = self.opt
-        b_hat = gtsam.imuBias.ConstantBias(np.zeros(3), self._b_hat)
-        prior = gtsam.noiseModel.Diagonal.Sigmas(np.r_[np.full(3, o.acc_bias_sigma), np.full(3, o.bias_prior_sigma)])
-        values.insert(imu_bias_key(seg), gtsam.imuBias.ConstantBias(np.zeros(3), np.array(self._b_now)))
-        graph.add(gtsam.PriorFactorConstantBias(imu_bias_key(seg), b_hat, prior))
-        if self._seg >= 0:
-            # the batch path spreads the walk over equal segments of the whole session; here: segment length
-            rw = gtsam.noiseModel.Diagonal.Sigmas(np.r_[np.full(3, SIGMA_ACC_BIAS_RW),
-                                                        np.full(3, max(o.bias_rw, 1e-9) * np.sqrt(o.bias_segment_s))])
-            graph.add(gtsam.BetweenFactorConstantBias(imu_bias_key(self._seg), imu_bias_key(seg),
-                                                      gtsam.imuBias.ConstantBias(), rw))
-        self._seg = seg
 
     def _update(self, graph, values, stamps, k_new: int, seg: int, R_pred) -> None:
         try:
@@ -388,7 +353,7 @@ class StreamSmoother(OnlineCalibrationMixin, ArrivalMixin, StreamOutputMixin):
             # the keyframes still in the window: their latest estimate (the others' is the one they left with)
             for k, R in window_rotations(self._solver).items():
                 self._smoothed_kf.setdefault(k, R)
-        if self._online is not None and self._k > 0:
+        if (self._online is not None or self._calstate) and self._k > 0:
             self._calibrate(self._kf_t[-1] - self._t0, flush=True)
         if self.opt.lag_s is None and self._k > 0:
             for _ in range(self.opt.final_updates):

@@ -1,4 +1,11 @@
-"""The online-calibration half of `StreamSmoother` (imugraph.graphs.stream): which keyframe intervals are
+"""The online-calibration half of `StreamSmoother` (imugraph.graphs.stream).
+
+With StreamOptions.calib_states: θ = (vec D, o, dip) is a state of the graph (`imugraph.graphs.stream_calstate`):
+θ's value and pin at keyframe 0 (`_add_cal_state`), every keyframe's magnetometer factor on (pose, d_k, θ)
+(`_mag_factor`), and every calib_every_s a history row with the streamed θ and its std from iSAM2's estimate
+and marginal covariance of θ (`_record_state`, stream_calstate eq. 3–6); at the end that θ is `cal`.
+
+Default (calib_states=False): the closed-form refit on fixed orientations: which keyframe intervals are
 folded into `OnlineMagCalibration`'s running sums and when, when a refit replaces the calibration of new
 magnetometer factors, and the end-of-stream graph with every magnetometer factor re-issued (iSAM2).
 
@@ -25,6 +32,8 @@ import numpy as np
 from imugraph import keys
 from imugraph.calibration.result import Calibration
 from imugraph.graphs.cpp_velocity import pose_key, robust
+from imugraph.graphs.stream_calstate import (CAL_KEY, PIN_REL, WhitenessSums, cal_mag_factor, calibration_of,
+                                             data_estimate, theta_of, weak_sigmas)
 from imugraph.graphs.stream_field import field_key, field_mag_factor, linearized_once
 
 
@@ -42,8 +51,57 @@ class OnlineCalibrationMixin:
     @property
     def calibration_history(self) -> list:
         """Rows {t (s since the first sample), D, o, dip_deg, std, samples, rejected, applied}, one per refit
-        (`applied`: it became the calibration of new magnetometer factors; else it was not well determined)."""
+        (`applied`: it became the calibration of new magnetometer factors; else it was not well determined).
+        With θ as a graph state: one row per calib_every_s, θ's estimate and marginal std then (`applied`
+        False: the orientations keep the start calibration, θ is pinned there, stream_calstate)."""
+        if self._calstate:
+            return self._cal_hist
         return self._online.history if self._online is not None else []
+
+    # ------------------------------------------------------------------ θ as a graph state (stream_calstate)
+    def _init_calstate(self, cal: Calibration) -> None:
+        self._theta0 = theta_of(cal)         # the pin (stream_calstate eq. 3)
+        self._theta_lin = self._theta0.copy()   # θ at which new magnetometer factors are linearised (eq. 5)
+        self._cal_hist: list = []
+        self._weak_sig = weak_sigmas(cal, self.opt.calib_prior_rel)
+        self._pin_sig = PIN_REL * self._weak_sig
+        self._online_scale = float(np.cbrt(abs(np.linalg.det(cal.D))))
+        self._streamed_cal = None            # latest streamed calibration (eq. 4)
+        self._white = WhitenessSums()        # eq. (6)
+        self._gated = 0                      # keyframes without information on θ (calib_gate)
+
+    def _add_cal_state(self, graph, values, stamps) -> None:
+        """θ's value and pin at keyframe 0."""
+        values.insert(CAL_KEY, self._theta0)
+        graph.add(gtsam.PriorFactorVector(CAL_KEY, self._theta0.copy(), gtsam.noiseModel.Diagonal.Sigmas(self._pin_sig)))
+        stamps[CAL_KEY] = 0.0
+
+    def _record_state(self, elapsed: float) -> None:
+        """A history row: the streamed θ and its std (stream_calstate eq. 4) from iSAM2's θ̂ and marginal covariance."""
+        self._refit_due = False
+        isam = self._solver.isam if self._chain else self._solver
+        try:
+            theta, cov = data_estimate(isam.calculateEstimateVector(CAL_KEY), isam.marginalCovariance(CAL_KEY),
+                                       self._theta0, self._pin_sig, self._weak_sig)
+        except (RuntimeError, np.linalg.LinAlgError):       # counted as a failed update; no row
+            self.stats.failed_updates += 1
+            return
+        white = calibration_of(self.cal, theta, cov).std
+        if max(np.max(white["D"]), np.max(white["o"])) < self.opt.calib_lin_rel * self._online_scale:
+            self._theta_lin = theta          # well determined: new factors linearised there (stream_calstate eq. 5)
+        self._white.end_block()
+        V = self._white.factor(self._theta0)        # eq. (6): std of row j of D and o_j × √max(1, V_j)
+        if V is not None:
+            f = np.sqrt(np.maximum(V, 1.0))
+            s = np.r_[np.repeat(f, 3), f, f.max()]
+            cov = cov * s[:, None] * s[None, :]
+        cal = self._streamed_cal = calibration_of(self.cal, theta, cov)
+        self._cal_hist.append({"t": float(elapsed), "D": cal.D.tolist(), "o": cal.o.tolist(), "dip_deg": cal.dip_deg,
+                               "std": {"D": cal.std["D"].tolist(), "o": cal.std["o"].tolist(), "dip_deg": cal.std["dip_deg"]},
+                               "whiteness": None if V is None else V.tolist(),
+                               "std_white": {"D": white["D"].tolist(), "o": white["o"].tolist(), "dip_deg": white["dip_deg"]},
+                               "samples": float(self._k), "rejected": int(self._gated), "applied": False})
+        self.stats.calib_refits += 1
 
     def _keyframe_R(self, k: int) -> np.ndarray | None:
         """Latest estimate of keyframe k's nRb (the one it left the window with, under a lag)."""
@@ -70,12 +128,18 @@ class OnlineCalibrationMixin:
         if flush or elapsed >= self._next_refit:
             self._next_refit = elapsed + self.opt.calib_every_s
             if flush or not self._mid:
-                self._refit(elapsed)
+                self._refit(elapsed, flush)
             else:       # on the next sample between keyframes (StreamSmoother._between_keyframes): same data
                 self._refit_due = True
 
-    def _refit(self, elapsed: float) -> None:
-        """A refit recorded in the history, and the calibration of new magnetometer factors when well determined."""
+    def _refit(self, elapsed: float, flush: bool = False) -> None:
+        """A refit recorded in the history, and the calibration of new magnetometer factors when well determined
+        (with θ as a graph state: `_record_state`)."""
+        if self._calstate:      # at the end the streamed calibration becomes `cal` (calibration.json)
+            self._record_state(elapsed)
+            if flush and self._streamed_cal is not None:
+                self.cal = self._streamed_cal
+            return
         self._refit_due = False
         cal = self._online.refit(elapsed)
         # swap in only a well-determined refit: a poorly conditioned early one would bias the next
@@ -122,6 +186,15 @@ class OnlineCalibrationMixin:
         keyframe k and averaged (full covariance), against the current n_mag. With the field perturbation:
         stream_field's factor against n + d_k, linearised once at keyframe k's latest estimate (exact=False,
         for the incremental solvers; see stream_field.linearized_once) or the exact CustomFactor."""
+        if self._calstate:       # on (pose_k, d_k, θ), linearised once (stream_calstate eq. 1–2)
+            f, rows = cal_mag_factor(pose_key(k), gtsam.Pose3(self._nRk, self._p), field_key(k) if self._field else None,
+                                     self._d, self._theta_lin, kRb, y, self._sig_y, self.opt.huber_k, self._theta0,
+                                     None if self.opt.calib_gate is None else self.opt.calib_gate * self._online_scale)
+            if rows is not None:
+                self._white.add(*rows)
+            else:
+                self._gated += 1
+            return f
         m_cal = (y - self.cal.o) @ self._D_inv.T
         ok = np.all(np.isfinite(m_cal), axis=1)
         m_avg = np.einsum("mij,mj->i", kRb[ok], m_cal[ok]) / ok.sum()

@@ -38,6 +38,17 @@ class StreamOptions:
             calibration of new magnetometer factors — judged on the reported std, which carries the residuals'
             whiteness factor (stream_calib eq. 3), or with calib_swap_white on the white-noise std; calib_dip:
             re-estimate the dip too (off: it drifted on simulation, see stream_online).
+        calib_states: with online_calibration under iSAM2 or the chain lag, θ = (D, o, dip) is a state of the
+            graph in every magnetometer factor, pinned at the start calibration, and the streamed calibration is
+            what the data say about it jointly with the orientations (`imugraph.graphs.stream_calstate` eq. 3–4,
+            weak prior calib_prior_rel × scale; the orientations keep the start calibration); the refit options
+            above then do not apply. False (default): the closed-form refit on fixed orientations (stream_calib), whose
+            swapped-in refits do reach the orientations; on (measured, docs/stream.md): D within 0.3–0.7 % of the
+            batch's instead of 0.8–5.5 %, but 10/17 within 3 model std (refit 11/17) and a slower periodic step.
+            calib_lin_rel: once every std of the streamed D, o is below calib_lin_rel × field scale, new
+            magnetometer factors are linearised at the streamed θ (stream_calstate eq. 5; 0: never). calib_gate:
+            a keyframe whose mean field residual exceeds calib_gate × field scale gives no information on θ
+            (a disturbance; None: every keyframe), as the refit's sample gate.
         factorization: of iSAM2 (also inside the incremental fixed lag), "QR" or "CHOLESKY". QR by default: on
             BROAD 30 (bootstrap dip 86°: a nearly vertical field) Cholesky threw IndeterminantLinearSystem at the
             first update and then at every later one (1726 of 1750 with the incremental lag: the output was
@@ -91,6 +102,9 @@ class StreamOptions:
     calib_memory_s: float | None = 20.0
     calib_swap_rel: float = 0.002
     calib_swap_white: bool = False
+    calib_states: bool = False
+    calib_lin_rel: float = 0.01
+    calib_gate: float | None = 0.3
     field_sigma: float | tuple | None = (0.015, 0.003, 0.015)
     field_tau: float = 1.0
     lag_hold_s: float = 0.5
@@ -172,7 +186,8 @@ def isam2_thresholds(rot_threshold: float) -> "gtsam.ISAM2ThresholdMap":
     m.insert(("v", np.full(3, 0.5)))
     m.insert(("b", np.r_[np.full(3, 1e-3), np.full(3, rot_threshold / 10)]))
     m.insert(("g", np.full(3, 0.1)))
-    m.insert(("f", np.full(3, 0.05)))      # field perturbation d_k (unit-field units; σ_d 0.003–0.015)
+    m.insert(("f", np.full(3, 0.05)))
+    m.insert(("c", np.full(13, 1e9)))      # θ (stream_calstate): its factors are linear containers, never relinearised      # field perturbation d_k (unit-field units; σ_d 0.003–0.015)
     return m
 
 
