@@ -22,6 +22,8 @@ def run_diagnose(args: argparse.Namespace) -> int:
 
     progress = common.Progress(getattr(args, "quiet", False))
     path = common.resolve_session_path(args.session, getattr(args, "data_dir", None))
+    if _is_body_session(Path(path)):                      # multi-IMU: imugraph.diagnose.body (issue 5, G1)
+        return _run_body(args, Path(path), progress)
     session = common.load(path, progress)
     out = common.out_dir_for(getattr(args, "out", None), Path(path).stem)
     names = getattr(args, "effects", None)
@@ -30,6 +32,35 @@ def run_diagnose(args: argparse.Namespace) -> int:
                               effects=tuple(n.strip() for n in names.split(",") if n.strip()) if names else None)
     with progress.library_output():
         diag = diagnose(session, options, progress=progress.say)
+    paths = write_report(diag, out)
+    progress.say(f"wrote {', '.join(sorted(paths))} in {out}")
+    print(summary_table(diag))
+    return 0
+
+
+def _is_body_session(path: Path) -> bool:
+    """A multi-IMU session (imugraph.io.body_session.read_body_session): own folder with session.json, a
+    gaittoolbox Xsens MTw folder, or an .mvnx file."""
+    if path.is_dir():
+        return (path / "session.json").exists() or any(path.glob("*_00B4*.txt"))
+    return path.suffix.lower() == ".mvnx"
+
+
+def _run_body(args: argparse.Namespace, path: Path, progress) -> int:
+    """The body diagnosis (imugraph.diagnose.body.run.diagnose_body) and its report."""
+    from imugraph.diagnose.body.report import summary_table, write_report
+    from imugraph.diagnose.body.run import BodyDiagnoseOptions, diagnose_body
+    from imugraph.io.body_session import read_body_session
+
+    progress.say(f"reading body session {path}")
+    session = read_body_session(path)
+    progress.say(f"{len(session.sensors)} sensors, {session.n} samples, {session.t[-1] - session.t[0]:.1f} s")
+    names = getattr(args, "effects", None)
+    options = BodyDiagnoseOptions(seed=int(getattr(args, "seed", 0) or 0),
+                                  effects=tuple(n.strip() for n in names.split(",") if n.strip()) if names else None)
+    out = common.out_dir_for(getattr(args, "out", None), path.stem)
+    with progress.library_output():
+        diag = diagnose_body(session, options, progress=progress.say)
     paths = write_report(diag, out)
     progress.say(f"wrote {', '.join(sorted(paths))} in {out}")
     print(summary_table(diag))

@@ -1,0 +1,149 @@
+"""Issue 5 (body sessions): validation harness of `imugraph diagnose` on multi-IMU sessions (imugraph.diagnose.body).
+
+Hosts (nothing copied from the data directory):
+    cmu_lower     CMU 131_02 BVH, the 7 lower-body sensors, simulated (benchmarks.body_bench: random placements
+                  ≤ 30°, MEMS noise and biases), --duration s after the 3 s N-pose, 60 Hz
+    xsens_lower   the Xsens MVN BVH of the gaittoolbox walk, same
+    xsens_full    the same motion, all 17 sensors
+    real_walk     the REAL gaittoolbox walk (7 Xsens MTw, 100 Hz, 25 s)
+Per host and label (none, soft_tissue, gyro_bias_drift, accelerometer_bias) one case: the effect's own `inject`
+with randomised parameters (ranges in each module's RANGES), a random sensor and, for soft_tissue, a random
+window in half of the cases; the label is hidden from the diagnoser (it gets the modified session only).
+Prints the confusion matrix (true label → verdict), the sensor hit rate, the window IoU of windowed
+soft_tissue cases (diagnosed t_start/t_end = span of the sensor's located gap), the held-out shrink of the
+verdict's effect, and the time per case; then the real walk with nothing injected, with the left thigh's
+entries (issue 4 found its axial rotation disagreeing with Vicon).
+
+    .venv/bin/python benchmarks/diagnose_body.py [--hosts cmu_lower,xsens_lower,xsens_full,real_walk]
+                                                 [--duration 20] [--seed 0] [--out diagnose_body.json]
+Writes bench_out/<out>.
+"""
+
+from __future__ import annotations
+
+import os
+
+for _var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
+    os.environ[_var] = "1"
+
+import argparse  # noqa: E402
+import sys  # noqa: E402
+import time  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import numpy as np  # noqa: E402
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from benchmarks.output import write_json  # noqa: E402
+
+LABELS = ("none", "soft_tissue", "gyro_bias_drift", "accelerometer_bias")
+HOSTS = ("cmu_lower", "xsens_lower", "xsens_full", "real_walk")
+
+
+def host_session(name: str, duration: float, seed: int):
+    """The undisturbed body session of a host (module doc)."""
+    if name == "real_walk":
+        from imugraph.config import data_dir
+        from imugraph.io.body_session import read_body_session
+        return read_body_session(data_dir() / "gaittoolbox" / "rawimu")
+    from benchmarks.body_bench import simulated_session
+    motion = {"cmu_lower": "cmu131_02", "xsens_lower": "xsens", "xsens_full": "xsens"}[name]
+    _, session, _ = simulated_session(motion, seed, duration, lower=name.endswith("lower"))
+    return session
+
+
+def iou(a0, a1, b0, b1) -> float:
+    if None in (a0, a1, b0, b1):
+        return 0.0
+    inter = max(0.0, min(a1, b1) - max(a0, b0))
+    union = max(a1, b1) - min(a0, b0)
+    return inter / union if union > 0 else 0.0
+
+
+def run_case(host: str, session, label: str, rng: np.random.Generator) -> dict:
+    from imugraph.diagnose.body.run import body_effects, diagnose_body
+
+    truth = {"sensor": None, "t_start": None, "t_end": None, "params": {}}
+    if label != "none":
+        eff = next(e for e in body_effects() if e.name == label)
+        window = "random" if (label == "soft_tissue" and rng.random() < 0.5) else None
+        session, truth = eff.inject(session, rng, window=window) if label == "soft_tissue" else \
+            eff.inject(session, rng)
+    t0 = time.perf_counter()
+    d = diagnose_body(session)
+    secs = time.perf_counter() - t0
+    top = next((e for e in d.effects if e["name"] == d.verdict and e["sensor"] == d.sensor), None)
+    rec = {"host": host, "label": label, "truth": truth, "verdict": d.verdict, "sensor": d.sensor,
+           "sensor_hit": d.sensor == truth.get("sensor") if label != "none" else d.sensor is None,
+           "seconds": secs, "timing": d.timing, "n_sensors": len(session.sensors),
+           "duration_s": float(session.t[-1] - session.t[0]),
+           "shrink": None if top is None else top["shrink"], "loglik_gain": None if top is None else top["loglik_gain"],
+           "effects_top5": [{k: e[k] for k in ("name", "sensor", "channel", "loglik_gain", "loglik_gain_folds", "shrink",
+                                               "size", "significant", "relevant", "stage")} for e in d.effects[:5]],
+           "soft_tissue_per_sensor": {e["sensor"]: {k: e[k] for k in ("loglik_gain", "shrink", "size", "significant",
+                                                                       "relevant", "stage", "channel", "params")}
+                                      for e in d.effects if e["name"] == "soft_tissue"},
+           "gaps": d.gaps, "locations": d.locations[:10]}
+    if label == "soft_tissue" and truth.get("t_start") is not None:
+        mine = [e for e in d.effects if e["name"] == "soft_tissue" and e["sensor"] == truth["sensor"]]
+        t_s, t_e = (mine[0]["t_start"], mine[0]["t_end"]) if mine else (None, None)
+        rec["window_iou"] = iou(t_s, t_e, truth["t_start"], truth["t_end"])
+    print(f"  {host:<12} {label:<19} → {d.verdict:<19} {str(d.sensor):<14} (true sensor {truth.get('sensor')}) "
+          f"shrink {rec['shrink'] if rec['shrink'] is None else round(rec['shrink'], 2)}  {secs:.1f} s", flush=True)
+    return rec
+
+
+def summary(records: list) -> dict:
+    conf = {a: {b: 0 for b in LABELS} for a in LABELS}
+    for r in records:
+        conf[r["label"]][r["verdict"] if r["verdict"] in LABELS else "none"] += 1
+    injected = [r for r in records if r["label"] != "none"]
+    correct = [r for r in injected if r["verdict"] == r["label"] and r["sensor_hit"]]
+    ious = [r["window_iou"] for r in records if "window_iou" in r]
+    shrinks = [r["shrink"] for r in correct if r["shrink"] is not None]
+    sims_none = [r for r in records if r["label"] == "none" and r["host"] != "real_walk"]
+    return {"confusion": conf, "top1_effect_and_sensor": len(correct) / max(len(injected), 1),
+            "none_on_clean_simulations": sum(r["verdict"] == "none" for r in sims_none) / max(len(sims_none), 1),
+            "window_iou": ious, "median_shrink_correct": float(np.median(shrinks)) if shrinks else None,
+            "seconds": [r["seconds"] for r in records]}
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--hosts", default=",".join(HOSTS))
+    p.add_argument("--labels", default=",".join(LABELS))
+    p.add_argument("--duration", type=float, default=20.0)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--out", default="diagnose_body.json")
+    a = p.parse_args(argv)
+    rng = np.random.default_rng(a.seed)
+    records = []
+    for host in [h for h in a.hosts.split(",") if h]:
+        base = host_session(host, a.duration, a.seed)
+        print(f"{host}: {len(base.sensors)} sensors, {base.n} samples, {base.rate:.0f} Hz", flush=True)
+        for label in [x for x in a.labels.split(",") if x]:
+            records.append(run_case(host, base, label, rng))
+    s = summary(records)
+    print("\nconfusion (rows: injected, columns: verdict)")
+    print(f"{'':<20}" + "".join(f"{c[:12]:>13}" for c in LABELS))
+    for r in LABELS:
+        print(f"{r:<20}" + "".join(f"{s['confusion'][r][c]:>13}" for c in LABELS))
+    print(f"top-1 (effect and sensor) on injected cases: {s['top1_effect_and_sensor']:.2f}; "
+          f"none on clean simulations: {s['none_on_clean_simulations']:.2f}; window IoU {np.round(s['window_iou'], 2)}; "
+          f"median held-out shrink (correct): {s['median_shrink_correct']}")
+    real = [r for r in records if r["host"] == "real_walk" and r["label"] == "none"]
+    for r in real:
+        lt = r["soft_tissue_per_sensor"].get("LeftUpperLeg", {})
+        print(f"real walk, nothing injected: verdict {r['verdict']} ({r['sensor']}), {r['seconds']:.1f} s; "
+              f"left thigh gaps {({c: round(v['gap'], 2) for c, v in r['gaps']['LeftUpperLeg'].items()})}; "
+              f"left thigh soft_tissue: G {lt.get('loglik_gain', float('nan')):+.3f}, shrink "
+              f"{lt.get('shrink', float('nan')):.2f}, size {lt.get('size')}, significant {lt.get('significant')}, "
+              f"relevant {lt.get('relevant')}, stage {lt.get('stage')}")
+    path = write_json(a.out, {"issue": "5 (body)", "args": vars(a), "summary": s, "records": records})
+    print(f"wrote {path}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,76 @@
+"""Simulation of a body session from its fitted model (docs/diagnose_body.md §2).
+
+The fitted model is the truth: the result's segment motion (`BodyResult.n_quat`, `n_pos`), the fitted
+sensor-to-segment poses, and per sensor
+
+    ỹ_g,i = s_ω_i + b̂_g(t_i) + e_g,i,   ỹ_a,i = nR_s,iᵀ (n_a_i − g_n) + b̂_a(t_i) + e_a,i,   e ~ N(0, σ²)    (BS1)
+
+with s_ω, n_a from imugraph.sim.body.simulate_body (the segment motion first low-passed, zero-phase 4th-order
+Butterworth at `LOWPASS_HZ`: the fitted orientations carry the integrated gyro noise, whose derivative times a
+lever arm — σ_ω √2/dt · 0.4 m ≈ 0.1 m/s² at 60 Hz — would otherwise enter the simulated accelerometer as
+noise the model does not have: measured, simulated acc residuals 10× the recording's on a simulated walk) ((P1)–(P3) there; readings by imugraph.sim.sensors'
+(S1)–(S3)), b̂ the fitted bias path (piecewise constant, per keyframe) and σ the model's white noise (the
+N-pose rest's, as the graph uses). Same time base and sensors as the recording; the magnetometer is the
+simulator's ideal one (the base model uses it for the initial headings only).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.signal import butter, filtfilt
+
+from imugraph.diagnose.body.fit import BodyFit, fit_body
+from imugraph.geometry import quat_normalize
+from imugraph.io.body_session import BodySession
+
+LOWPASS_HZ = 10.0
+
+
+def smooth_motion(t: np.ndarray, n_quat: np.ndarray, n_pos: np.ndarray, cutoff_hz: float = LOWPASS_HZ):
+    """Zero-phase low-pass of segment quaternions (sign-continuous, renormalised) and the root position;
+    the other origins follow by the caller's forward kinematics."""
+    dt = float(np.median(np.diff(t)))
+    if cutoff_hz >= 0.5 / dt or t.size < 30:
+        return n_quat, n_pos
+    q = np.array(n_quat, float)
+    flip = np.sum(q[1:] * q[:-1], axis=-1) < 0                          # (T−1, S) sign changes
+    sign = np.concatenate([np.ones((1,) + flip.shape[1:]), np.cumprod(np.where(flip, -1.0, 1.0), axis=0)])
+    q = q * sign[..., None]
+    b, a = butter(4, cutoff_hz * 2 * dt)
+    return quat_normalize(filtfilt(b, a, q, axis=0)), filtfilt(b, a, n_pos, axis=0)
+
+
+def simulate_from_fit(bfit: BodyFit, rng: np.random.Generator, name_suffix: str = "+sim") -> BodySession:
+    """A body session drawn from the fitted model (BS1), with the truth of `simulate_body`."""
+    from imugraph.body.placement import Placement
+    from imugraph.diagnose.effects.base import replace_session
+    from imugraph.sim.body import BodyMotion, simulate_body
+    from imugraph.sim.sensors import SensorParams
+
+    s = bfit.session
+    res = bfit.result
+    skel = s.skeleton
+    t = np.asarray(s.t, float)
+    q, p = smooth_motion(t, np.asarray(res.n_quat, float), np.asarray(res.n_pos, float))
+    motion = BodyMotion(t, tuple(skel.names), q, skel.forward_kinematics(q, p[:, 0]))
+    placements = {n: Placement(bRs=sf.bRs, b_pos=sf.b_pos) for n, sf in bfit.sensors.items()}
+    params = {n: SensorParams(gyro_noise=sf.sigma_gyr, acc_noise=sf.sigma_acc, g=bfit.g)
+              for n, sf in bfit.sensors.items()}
+    sim = simulate_body(motion, skel, placements, params, rng, name=s.name + name_suffix)
+    sensors = {}
+    for n, ses in sim.sensors.items():
+        sf = bfit.sensors[n]
+        sensors[n] = replace_session(ses, gyr=ses.gyr + sf.b_gyr, acc=ses.acc + sf.b_acc)
+    return BodySession(sim.t, sensors, skel, sim.truth, s.source, sim.name, dict(s.meta, simulated_from_fit=True))
+
+
+def fit_simulation(sim: BodySession, real: BodyFit, opts=None) -> BodyFit:
+    """Fit a simulation exactly like the recording (same options; the N-pose window the real fit found)."""
+    from dataclasses import replace
+
+    from imugraph.graphs.body_model import BodyOptions
+
+    opts = BodyOptions() if opts is None else opts
+    if opts.npose is None and real.info.get("npose_window") is not None:
+        opts = replace(opts, npose=tuple(real.info["npose_window"]))
+    return fit_body(sim, opts)
