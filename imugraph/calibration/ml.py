@@ -23,6 +23,7 @@ from imugraph.calibration.noise import field_dof, reestimate
 from imugraph.calibration.options import Options  # noqa: F401  (public here: ml.Options)
 from imugraph.calibration.acc_timing import session_lead, with_lead
 from imugraph.calibration.gyro_rate import update_rate_error
+from imugraph.calibration.field_select import calibrate_selected
 from imugraph.calibration.result import Calibration
 from imugraph.factors.gyro import keyframe_layout, preintegrate
 from imugraph.calibration.disturbance import apply_windows, detect_windows, fit_offsets
@@ -80,6 +81,8 @@ def calibrate(session: Session, options: Options | None = None, initial=None,
     from imugraph.errors import CalibrationError
 
     opt = options or Options()
+    if opt.field_select:     # the field process chosen per recording by held-out prediction (field_select.py)
+        return calibrate_selected(session, opt, initial, allow_weak)
     weak_reason = None
     if initial is None:
         from imugraph.calibration.initial import initial_calibration

@@ -133,3 +133,18 @@ class Options:
     #   never settled (rounds ran to max_outer, 2–3× the time) and BROAD 04 went 0.563 → 1.176°. Fixed settings
     #   measured with weak_mag_delay (tuned on BROAD, so evidence only, not adopted): field_sigma=(0.015, 0.006,
     #   0.015): mean 0.637° (15 0.827°, 16 0.376°; 32 0.476 → 0.608°); field_tau=3.0: mean 0.650° (32 → 0.566°).
+    field_select: bool = False        # σ_d, τ_d (and nothing else) chosen per recording among a small grid
+    #   (calibration/field_select.DEFAULT_CANDIDATES: these settings, σ_y ×2, τ_d ×3, both) by K-fold held-out
+    #   prediction of the magnetometer (blocks of field_select_block_s held out in turn; the smoother without
+    #   them predicts them); the truth is not used. Cost: candidates × folds + 1 calibrations (≈ 9×: 20–86 s
+    #   CPU per BROAD trial). BROAD (G5, benchmarks/g5_field_select.py, all 17): mean 0.666° → 0.648°, behind
+    #   offline VQF 4 → 2 trials (02 0.473 → 0.488°, 16 0.401 → 0.379° vs 0.370°; 15 0.879 → 0.821°, 06 0.557 →
+    #   0.526° now ahead); τ_d ×3 or σ_y ×2 & τ_d ×3 chosen on 16 of 17, each with paired z 2.4–11.1. Worse:
+    #   32 0.476 → 0.608° (σ_y ×2 chosen, scores 0.03 % apart yet z 2.55: its held-out error is mostly the
+    #   clipped magnet samples), 26 +0.024°, 02/04 +0.015°, 34 +0.012°. The score keeps falling for τ_d ×10 (01,
+    #   02, 16): the grid's edge decides τ_d. The same held-out score cannot judge the gyro map (02/01/04: map
+    #   on vs off within 0.6 %, and on 04 it prefers off, 0.563 → 1.173°). Off (G5)
+    field_select_block_s: float = 2.0  # length of the held-out blocks, s
+    field_select_folds: int = 2        # folds (block b held out in fold b mod folds)
+    field_select_z: float = 2.0        # the best candidate replaces these settings only when its held-out score
+    #   is lower by ≥ this many standard errors, paired over the blocks (field_select.choose)
