@@ -92,8 +92,9 @@ class OnlineMagCalibration:
     def forget(self, factor: float) -> None:
         """Down-weight everything folded so far by `factor` (0..1): exponential forgetting of samples whose
         orientations were estimated with an older calibration."""
-        for name in ("S", "Qb", "Pb", "Yb", "blocks"):
-            setattr(self, name, getattr(self, name) * factor)
+        for name in ("S", "Qb", "Pb", "Yb"):       # in place (the same products; no new arrays)
+            getattr(self, name).__imul__(factor)
+        self.blocks *= factor
 
     # the running sums of (1), views into S
     n = property(lambda self: self.S[6, 6], doc="(weighted) number of samples folded in")
@@ -112,16 +113,21 @@ class OnlineMagCalibration:
         returns the number used. (The stream's field perturbation d_k is not used: it is zero-mean, and
         folding the graph's d_k in kept the start calibration's error, see stream_online.)"""
         y = np.asarray(y, float).reshape(-1, 3)
-        ok = np.all(np.isfinite(y), axis=1)
-        if not ok.any():
-            return 0
-        y, R = y[ok], np.asarray(nRb, float).reshape(-1, 3, 3)[ok]
-        u, w = R[:, 0, :], -R[:, 2, :]                  # bRn·e_x, −bRn·e_z (rows of nRb)
+        ok = np.isfinite(y).all(axis=1)
+        R = np.asarray(nRb, float).reshape(-1, 3, 3)
+        if not ok.all():                               # (the fancy indexing only where a row is missing)
+            if not ok.any():
+                return 0
+            y, R = y[ok], R[ok]
         c = self.current
-        pred = (np.cos(c.dip_rad) * u + np.sin(c.dip_rad) * w) @ c.D.T + c.o
+        xi = np.empty((len(y), 10))                    # ξ_i = (u_i, w_i, 1, y_i)
+        xi[:, :3], xi[:, 3:6], xi[:, 6], xi[:, 7:] = R[:, 0, :], R[:, 2, :], 1.0, y
+        np.negative(xi[:, 3:6], out=xi[:, 3:6])        # u, w = bRn·e_x, −bRn·e_z (rows of nRb)
+        pred = (np.cos(c.dip_rad) * xi[:, :3] + np.sin(c.dip_rad) * xi[:, 3:6]) @ c.D.T + c.o
         keep = np.linalg.norm(y - pred, axis=1) <= self.gate
-        self.rejected += int((~keep).sum())
-        xi = np.hstack([u[keep], w[keep], np.ones((int(keep.sum()), 1)), y[keep]])      # (m, 10)
+        if not keep.all():
+            self.rejected += int((~keep).sum())
+            xi = xi[keep]
         self.S += xi.T @ xi
         self._blk += xi.sum(0)
         return len(xi)

@@ -20,10 +20,12 @@ exactly linear: `LinearContainerFactor`s of `JacobianFactor`s, like the bounded-
 
 from __future__ import annotations
 
+import math
+
 import gtsam
 import numpy as np
 
-from imugraph.factors.field import field_key, field_sigmas, field_steps
+from imugraph.factors.field import field_key, field_sigmas, field_steps  # noqa: F401 (re-exported)
 
 __all__ = ["field_key", "field_mag_factor", "field_start_prior", "field_step_factor", "field_sigmas", "linearized_once"]
 
@@ -52,10 +54,13 @@ def field_start_prior(field_0: int, sigma_d) -> gtsam.PriorFactorVector:
 
 
 def field_step_factor(field_k: int, field_next: int, dt_k: float, sigma_d, tau_d: float) -> gtsam.LinearContainerFactor:
-    """(d_{k+1} − φ_k d_k)/σ_w,k ~ N(0, I), φ_k = exp(−Δt_k/τ_d), σ_w,k = σ_d √(1 − φ_k²): eq. (2), exact."""
-    phi, sigma_w = field_steps(np.array([float(dt_k)]), sigma_d, tau_d)
-    sig_w = sigma_w[0]
-    jf = gtsam.JacobianFactor(field_k, np.diag(-phi[0] / sig_w), field_next, np.diag(1.0 / sig_w), _ZERO3, _UNIT3)
+    """(d_{k+1} − φ_k d_k)/σ_w,k ~ N(0, I), φ_k = exp(−Δt_k/τ_d), σ_w,k = σ_d √(1 − φ_k²): eq. (2), exact.
+    The coefficients of `imugraph.factors.field.field_steps` in scalar arithmetic (one interval per call:
+    the array version's overhead was half of this function's time; tests/test_stream_field.py compares)."""
+    phi = math.exp(-float(dt_k) / max(tau_d, 1e-9))                    # gauss_markov with σ = 1
+    unit_w = math.sqrt(max(1.0 - phi * phi, 1e-12))
+    sig_w = unit_w * field_sigmas(sigma_d)                             # σ_w,k per nav axis
+    jf = gtsam.JacobianFactor(field_k, np.diag(-phi / sig_w), field_next, np.diag(1.0 / sig_w), _ZERO3, _UNIT3)
     lin = gtsam.Values()
     lin.insert(field_k, _ZERO3)
     lin.insert(field_next, _ZERO3)

@@ -197,8 +197,10 @@ class OnlineCalibrationMixin:
             return f
         m_cal = (y - self.cal.o) @ self._D_inv.T
         ok = np.all(np.isfinite(m_cal), axis=1)
-        m_avg = np.einsum("mij,mj->i", kRb[ok], m_cal[ok]) / ok.sum()
-        cov = np.einsum("mij,jl,mkl->ik", kRb[ok], self._S_m, kRb[ok]) / ok.sum() ** 2
+        R, m_ok = (kRb, m_cal) if ok.all() else (kRb[ok], m_cal[ok])
+        n_ok = len(R)
+        m_avg = np.einsum("mij,mj->i", R, m_ok) / n_ok                      # mean of kRb_i m_i
+        cov = np.einsum("mij,mkj->ik", R @ self._S_m, R) / n_ok**2          # Σ_i kRb_i S_m kRb_iᵀ / n²
         mdl = robust(gtsam.noiseModel.Gaussian.Covariance(cov), self.opt.huber_k)
         if self._field:          # against n + d_k (imugraph.graphs.stream_field eq. 3)
             f = field_mag_factor(pose_key(k), field_key(k), m_avg, self.cal.n_mag, mdl)

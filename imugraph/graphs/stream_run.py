@@ -166,9 +166,13 @@ def stream_session(session: Session, cal: Optional[Calibration] = None, options:
     say(f"streaming {session.n} samples ({'iSAM2' if options.lag_s is None else f'lag {options.lag_s:g} s'})")
     start, start_cpu = time.perf_counter(), time.process_time()
     push = smoother.push
-    t, gyr, acc, mag = session.t, session.gyr, session.acc, session.mag
-    for i in range(session.n):
-        filtered[i] = push(t[i], gyr[i], acc[i], mag[i])
+    # rows as Python floats (one tolist per channel and block, not a numpy row view per sample: the push path
+    # takes lists as they are, stream_interval.row3); blocks keep the lists' memory bounded on long sessions
+    for i0 in range(0, session.n, 4096):
+        blk = slice(i0, i0 + 4096)
+        rows = zip(session.t[blk].tolist(), session.gyr[blk].tolist(), session.acc[blk].tolist(), session.mag[blk].tolist())
+        for i, row in enumerate(rows, i0):
+            filtered[i] = push(*row)
     smoother.finish()
     seconds, cpu_seconds = time.perf_counter() - start, time.process_time() - start_cpu
     smoothed = smoother.smoothed()
