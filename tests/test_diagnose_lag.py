@@ -24,9 +24,13 @@ def lagged():
     return s, s.with_mag(mag)
 
 
-def test_base_model_estimates_and_removes_the_magnetometer_lag(lagged):
+@pytest.mark.parametrize("subsample", [False, True])
+def test_base_model_estimates_and_removes_the_magnetometer_lag(lagged, subsample, monkeypatch):
     """τ_m within one sample (the gyro-referenced estimate on a slow 1 rad/s RMS rotation of 25 s), and the
     fitted session's field is the recording's shifted back by round(τ_m/Δt) whole rows (known answer)."""
+    import imugraph.diagnose.fit as fitmod
+
+    monkeypatch.setattr(fitmod, "SUBSAMPLE_LAG", subsample)       # (B3') is opt-in (G6)
     _, late = lagged
     f = fit_base(late)
     dt = float(np.median(np.diff(late.t)))
@@ -34,7 +38,19 @@ def test_base_model_estimates_and_removes_the_magnetometer_lag(lagged):
     assert abs(tau - LAG_SAMPLES * dt) < dt, tau
     k = int(round(tau / dt))
     assert k >= 1
-    assert np.array_equal(f.session.mag[:-k], late.mag[k:], equal_nan=True)
+    # (B3', G6) the ≤ ½ sample left by the whole rows is in the prediction: the fitted field is the row-
+    # shifted recording minus h(t − τ_f) − h(t), bounded by ‖D‖·|n|·|τ_f|·|ω| per sample
+    if not subsample:
+        assert np.array_equal(f.session.mag[:-k], late.mag[k:], equal_nan=True)
+        assert np.all(np.isnan(f.session.mag[-k:]))
+        return
+    frac = f.info["mag_subsample_s"]
+    assert abs(frac - (tau - k * dt)) < 1e-12 and abs(frac) <= 0.5 * dt + 1e-12
+    d = f.session.mag[:-k] - late.mag[k:]
+    fin = np.all(np.isfinite(d), axis=1)
+    assert np.array_equal(fin, np.all(np.isfinite(late.mag[k:]), axis=1))
+    bound = np.linalg.norm(f.calibration.D, 2) * abs(frac) * np.linalg.norm(f.b_omega[:-k], axis=1)[fin]
+    assert np.all(np.linalg.norm(d[fin], axis=1) <= 1.05 * bound + 1e-9)
     assert np.all(np.isnan(f.session.mag[-k:]))
     assert np.array_equal(f.session.gyr, late.gyr) and np.array_equal(f.session.acc, late.acc)
 

@@ -18,7 +18,18 @@ delays more than its magnetometer is a calibrated property too. The price: an in
 the field along with the late gyro and is then seen in the accelerometer only (BROAD 01 + 31.6 ms gyro
 delay: τ_m −21.4 ms). Clamping τ_m ≥ 0 was measured and not kept: that case stayed none (time_offset
 on mag 4.4 samples, (A2) 0.19) and sim01 + 21 ms gyro delay fell from shrink 0.61 to 0.50.
-`Fit.session` is that aligned session and `Fit.info["mag_delay_s"]` holds τ_m. The delay
+The whole-sample shift leaves τ_f = τ_m − round(τ_m/Δt)·Δt (≤ ½ sample), which on fast crops was a
+relevant misfit (BROAD 07: the magnetometer's whitened cost 14–22 % above its value with τ_f removed,
+named by time_offset; docs/diagnose.md §4 G2). It goes into the PREDICTION (issue 5, G6):
+
+    h_mag(t_j) = D · R(t_j − τ_f)ᵀ n_mag + o,   R(t_j − τ_f) = R̂_j Exp(−τ_f ω̂_j)                          (B3')
+
+applied as a model offset, not an interpolation of the data (which averages neighbouring samples'
+noise): a first fit gives R̂, ω̂, D; the field is then fitted as b_mag − (h(t_j − τ_f) − h(t_j)) of that
+fit (`subsample_lag_offset`; every sample keeps its own noise), so that the final fit's residual is
+b_mag − h_mag(t_j − τ_f) to first order in the change between the two fits. One extra calibration per
+fresh fit; the simulations are drawn on the fitted (lag-free) time base and need none.
+`Fit.session` is that aligned session and `Fit.info["mag_delay_s"]` holds τ_m (`mag_subsample_s` τ_f). The delay
 is estimated only for a fresh fit (`initial` not given): the refits and the simulations' fits work on
 data already on the gyro's time base.
 
@@ -52,6 +63,9 @@ from imugraph.geometry import logmap, quat_to_rotmat, rotmat_to_quat
 from imugraph.io.session import Session
 
 CHANNELS = ("gyr", "acc", "mag")
+# (B3') opt-in (G6): measured only together with effects/joint.ENABLED (docs/diagnose.md §4 G6); off by
+# default until measured alone on the harness.
+SUBSAMPLE_LAG = False
 
 
 @dataclass
@@ -175,6 +189,13 @@ def fit_base(session: Session, options=None, initial=None, extended: dict | None
             from imugraph.calibration.alignment import undelay_magnetometer
 
             session = session.with_mag(undelay_magnetometer(session.t, session.mag, delay))
+            frac = delay - np.round(delay / float(np.median(session.dt))) * float(np.median(session.dt))
+            if SUBSAMPLE_LAG and abs(frac) > 1e-9:                                  # (B3') the ≤ ½ sample left
+                first = fit_base(session, opt, initial=initial)
+                session = session.with_mag(session.mag - subsample_lag_offset(first, frac))
+                fit = fit_base(session, opt, initial=initial)
+                fit.info.update(mag_delay_s=delay, mag_subsample_s=frac)
+                return fit
     est = calibrate(session, opt, initial=initial, allow_weak=True)
     cal = est.calibration
     nRb = quat_to_rotmat(est.quat)
@@ -194,6 +215,18 @@ def fit_base(session: Session, options=None, initial=None, extended: dict | None
                "rest": getattr(initial, "rest", None), "mag_delay_s": delay})
     fit.residuals = _raw_residuals(fit)
     return fit
+
+
+def subsample_lag_offset(fit: Fit, frac_s: float) -> np.ndarray:
+    """(N, 3) h_mag(t_j − τ_f) − h_mag(t_j) of a fit: the predicted field at the orientation the body had
+    τ_f earlier, R(t_j − τ_f) = R̂_j Exp(−τ_f ω̂_j), minus the prediction at R̂_j (B3')."""
+    from imugraph.geometry import expmap
+
+    cal = fit.calibration
+    R_lag = fit.nRb @ expmap(-frac_s * fit.b_omega)
+    h = (np.transpose(fit.nRb, (0, 2, 1)) @ cal.n_mag) @ np.asarray(cal.D).T
+    h_lag = (np.transpose(R_lag, (0, 2, 1)) @ cal.n_mag) @ np.asarray(cal.D).T
+    return h_lag - h
 
 
 def _initial(session: Session):

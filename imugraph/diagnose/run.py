@@ -69,7 +69,8 @@ class Diagnosis:
                 "effects": [r.as_dict() for r in self.effects],
                 "null_gap": dict(self.null_gap), "null_fold_gap": dict(self.null_fold_gap),
                 "sigma": {c: np.asarray(self.real.sigma[c]).tolist() for c in CHANNELS},
-                "base_model": {"mag_delay_s": float(self.real.info.get("mag_delay_s", 0.0))},
+                "base_model": {"mag_delay_s": float(self.real.info.get("mag_delay_s", 0.0)),
+                               "mag_subsample_s": float(self.real.info.get("mag_subsample_s", 0.0))},
                 "session": {"name": self.real.session.name, "source": self.real.session.source,
                             "samples": self.real.n, "rate_hz": self.real.session.rate},
                 "timing_s": dict(self.timing)}

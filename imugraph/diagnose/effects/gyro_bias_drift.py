@@ -3,10 +3,13 @@
 Model: b_gyr,j = ω_j + δ_ω + β(t_j) + e_ω with a smooth drift β(t) = Σ_p c_p P_p(τ_j), P_p the Legendre
 polynomials of degree 1…3 in τ = 2(t − t₀)/(t₁ − t₀) − 1 (9 parameters; the constant is the base bias).
 
-Fit (first order, base rule 1): the base model's bias segments b_s(j) absorb part of a drift; the extended
-model's bias is b̄ + β(t), so the gyro changes by Δω_j = b_s(j) − b̄ − β(t_j) and every channel's
-residuals move linearly with the coefficients c_p (base (E1)–(E3)): linear least squares over the training
-samples of all channels, whitened by σ. β is smooth and global, so the held-out blocks are interpolated.
+Fit: the keyframes-fixed first-order fit (`_fit_first_order`, effects/base.py rule 1) by default;
+with effects/joint.ENABLED (issue 5, G6, opt-in): the coefficients c_p jointly with the trajectory (effects/joint.py (J1): keyframe
+rotations, constant bias and magnetometer calibration re-estimated with them on the training samples of
+every channel, the base fit's σ); the extended model's bias is b̄ + β(t), so the gyro changes by
+Δω_j = b_s(j) − b̄ − β(t_j). β is smooth and global, so the held-out blocks are interpolated. (Before: the
+keyframes held fixed, and the alternation of refit.py grew the drift on clean hosts as on injected ones:
+clean BROAD 04 0.54 → 1.20 °/s from 1 to 8 rounds, docs/diagnose.md §4 G2.)
 
 The base model has ONE constant bias (imugraph.diagnose.fit), so a drift is left to this effect.
 Relevance (`size`): peak-to-peak of β ≥ 0.1 °/s.
@@ -20,8 +23,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from imugraph.diagnose.effects.base import (Correction, Effect, check_train, gyro_exact, gyro_refit, noise_scale,
+from imugraph.diagnose.effects import joint
+from imugraph.diagnose.effects.base import (Correction, Effect, check_train, gyro_refit, noise_scale,
                                              replace_session)
+from imugraph.diagnose.effects.gyro_scale import FirstOrderCorrection, GyroCorrection
 from imugraph.diagnose.effects.trajectory import cached_columns
 
 RANGES = {"drift_deg_s": (0.2, 1.0), "shapes": ("warm-up", "linear", "wander")}
@@ -35,9 +40,7 @@ def legendre_basis(t: np.ndarray, t0: float, t1: float, degree: int = DEGREE) ->
     return np.stack([np.polynomial.legendre.Legendre.basis(p)(tau) for p in range(1, degree + 1)], axis=1)
 
 
-class DriftCorrection(Correction):
-    def raw_residuals(self, fit) -> dict:
-        return gyro_exact(fit, self.deltas["d_omega"])
+DriftCorrection = GyroCorrection
 
 
 class GyroBiasDrift(Effect):
@@ -71,7 +74,31 @@ class GyroBiasDrift(Effect):
                                meta={"injected": {self.name: truth}}), truth
 
     def fit(self, fit, train, window=None) -> Correction:
+        """β's coefficients jointly with the trajectory, δ_ω and the magnetometer calibration on the
+        training samples (effects/joint.py (J1)); Δω = b_s(j) − b̄ − β(t_j) (linear in the coefficients)."""
         train = check_train(fit, train)
+        if not joint.ENABLED:
+            return self._fit_first_order(fit, train)
+        t = fit.session.t
+        B = legendre_basis(t, float(t[0]), float(t[-1]))
+        seg = fit.b_gyr_bias - np.asarray(fit.calibration.gyro_bias, float)         # b_s(j) − b̄
+
+        def exact(p):
+            return seg - B @ np.asarray(p, float).reshape(B.shape[1], 3)            # Δω = b_s − b̄ − β
+
+        out = joint.fit_gyro_effect(fit, train, exact, B.shape[1] * 3, tag=self.name)
+        C = out["p"].reshape(B.shape[1], 3)
+        beta = B @ C
+        corr = DriftCorrection(self.name, {"legendre_coefficients_rad_s": C.tolist(),
+                                           "peak_to_peak_deg_s": float(np.rad2deg(np.max(np.ptp(beta, axis=0))))},
+                               n_params=C.size, channel=self.channel,
+                               deltas={"d_omega": out["d_omega"], "d_effect": out["d_effect"],
+                                           "residuals": out["residuals"], "of": fit})
+        corr.deltas["noise_scale"] = noise_scale(fit, out["residuals"], train, ["gyr", "acc", "mag"])
+        return corr
+
+    def _fit_first_order(self, fit, train) -> Correction:
+        """The keyframes-fixed fit (before G6; the default, see joint.ENABLED)."""
         t = fit.session.t
         B = legendre_basis(t, float(t[0]), float(t[-1]))
         seg = fit.b_gyr_bias - np.asarray(fit.calibration.gyro_bias, float)         # b_s(j) − b̄
@@ -99,7 +126,7 @@ class GyroBiasDrift(Effect):
         C = coef.reshape(B.shape[1], 3)
         beta = B @ C
         d_omega = seg - beta
-        corr = DriftCorrection(self.name, {"legendre_coefficients_rad_s": C.tolist(),
+        corr = FirstOrderCorrection(self.name, {"legendre_coefficients_rad_s": C.tolist(),
                                            "peak_to_peak_deg_s": float(np.rad2deg(np.max(np.ptp(beta, axis=0))))},
                                n_params=C.size, channel=self.channel, deltas={"d_omega": d_omega})
         res = corr.raw_residuals(fit)
