@@ -26,12 +26,21 @@ def run_diagnose(args: argparse.Namespace) -> int:
         return _run_body(args, Path(path), progress)
     session = common.load(path, progress)
     out = common.out_dir_for(getattr(args, "out", None), Path(path).stem)
-    names = getattr(args, "effects", None)
     options = DiagnoseOptions(keyframe_hz=float(getattr(args, "keyframe_hz", 5.0) or 5.0),
-                              seed=int(getattr(args, "seed", 0) or 0),
-                              effects=tuple(n.strip() for n in names.split(",") if n.strip()) if names else None)
+                              seed=int(getattr(args, "seed", 0) or 0), effects=_effect_names(args))
     with progress.library_output():
         diag = diagnose(session, options, progress=progress.say)
+    return _report(diag, out, progress, write_report, summary_table)
+
+
+def _effect_names(args: argparse.Namespace) -> tuple | None:
+    """--effects a,b as a tuple of names (None: the whole library)."""
+    names = getattr(args, "effects", None)
+    return tuple(n.strip() for n in names.split(",") if n.strip()) if names else None
+
+
+def _report(diag, out: Path, progress, write_report, summary_table) -> int:
+    """Write the report files, say where, print the summary table."""
     paths = write_report(diag, out)
     progress.say(f"wrote {', '.join(sorted(paths))} in {out}")
     print(summary_table(diag))
@@ -55,13 +64,8 @@ def _run_body(args: argparse.Namespace, path: Path, progress) -> int:
     progress.say(f"reading body session {path}")
     session = read_body_session(path)
     progress.say(f"{len(session.sensors)} sensors, {session.n} samples, {session.t[-1] - session.t[0]:.1f} s")
-    names = getattr(args, "effects", None)
-    options = BodyDiagnoseOptions(seed=int(getattr(args, "seed", 0) or 0),
-                                  effects=tuple(n.strip() for n in names.split(",") if n.strip()) if names else None)
+    options = BodyDiagnoseOptions(seed=int(getattr(args, "seed", 0) or 0), effects=_effect_names(args))
     out = common.out_dir_for(getattr(args, "out", None), path.stem)
     with progress.library_output():
         diag = diagnose_body(session, options, progress=progress.say)
-    paths = write_report(diag, out)
-    progress.say(f"wrote {', '.join(sorted(paths))} in {out}")
-    print(summary_table(diag))
-    return 0
+    return _report(diag, out, progress, write_report, summary_table)

@@ -66,6 +66,20 @@ class BodyEffect:
         raise NotImplementedError
 
 
+class PerSensorEffect(BodyEffect):
+    """A single-IMU effect applied to one sensor of a body session: `single` is the single-IMU module's
+    EFFECT, whose injection (ranges, draws) is reused on the chosen sensor's Session."""
+
+    single = None
+
+    def inject(self, session, rng: np.random.Generator, *, sensor: str | None = None, window=None,
+               strength=None):
+        sensor = pick_sensor(session, rng, sensor)
+        new, truth = self.single.inject(session.sensors[sensor], rng, window=window, strength=strength)
+        truth = dict(truth, sensor=sensor)
+        return with_sensor(session, sensor, new, {"injected": {self.name: truth}}), truth
+
+
 def check_sensor(session, sensor: str) -> None:
     if sensor not in session.sensors:
         raise SessionError(getattr(session, "source", "<memory>"), "sensor", f"'{sensor}'",

@@ -12,21 +12,15 @@ from __future__ import annotations
 
 import numpy as np
 
-from imugraph.diagnose.body.effects.base import (BodyCorrection, BodyEffect, changed_columns, linear_fit,
-                                                  pick_sensor, with_sensor)
+from imugraph.diagnose.body.effects.base import BodyCorrection, PerSensorEffect, changed_columns, linear_fit
 from imugraph.diagnose.effects.gyro_bias_drift import EFFECT as SINGLE, RANGES, RELEVANT_DEG_S, legendre_basis
 
 
-class BodyGyroBiasDrift(BodyEffect):
+class BodyGyroBiasDrift(PerSensorEffect):
     name = "gyro_bias_drift"
     channel = "gyr"
     ranges = RANGES
-
-    def inject(self, session, rng, *, sensor=None, window=None, strength=None):
-        sensor = pick_sensor(session, rng, sensor)
-        new, truth = SINGLE.inject(session.sensors[sensor], rng, window=window, strength=strength)
-        truth = dict(truth, sensor=sensor)
-        return with_sensor(session, sensor, new, {"injected": {self.name: truth}}), truth
+    single = SINGLE
 
     def fit(self, bfit, sensor, train, sigma) -> BodyCorrection:
         t = np.asarray(bfit.session.t, float)
