@@ -12,13 +12,12 @@ from __future__ import annotations
 import numpy as np
 
 from imugraph.diagnose.body.effects.base import BodyCorrection, PerSensorEffect, changed_columns, linear_fit
-from imugraph.diagnose.effects.accelerometer_bias import EFFECT as SINGLE, RANGES, RELEVANT_MS2
+from imugraph.diagnose.effects.accelerometer_bias import EFFECT as SINGLE, RELEVANT_MS2
 
 
 class BodyAccelerometerBias(PerSensorEffect):
     name = "accelerometer_bias"
     channel = "pos"
-    ranges = RANGES
     single = SINGLE
 
     def fit(self, bfit, sensor, train, sigma) -> BodyCorrection:

@@ -72,6 +72,11 @@ class PerSensorEffect(BodyEffect):
 
     single = None
 
+    @property
+    def ranges(self) -> dict:
+        """The single-IMU module's injection ranges."""
+        return self.single.ranges
+
     def inject(self, session, rng: np.random.Generator, *, sensor: str | None = None, window=None,
                strength=None):
         sensor = pick_sensor(session, rng, sensor)

@@ -13,13 +13,12 @@ from __future__ import annotations
 import numpy as np
 
 from imugraph.diagnose.body.effects.base import BodyCorrection, PerSensorEffect, changed_columns, linear_fit
-from imugraph.diagnose.effects.gyro_bias_drift import EFFECT as SINGLE, RANGES, RELEVANT_DEG_S, legendre_basis
+from imugraph.diagnose.effects.gyro_bias_drift import EFFECT as SINGLE, RELEVANT_DEG_S, legendre_basis
 
 
 class BodyGyroBiasDrift(PerSensorEffect):
     name = "gyro_bias_drift"
     channel = "gyr"
-    ranges = RANGES
     single = SINGLE
 
     def fit(self, bfit, sensor, train, sigma) -> BodyCorrection:
