@@ -33,16 +33,17 @@ from imugraph.calibration.initial import initial_calibration, weak_initial  # no
 from imugraph.errors import CalibrationError  # noqa: E402
 
 
-def _initial(s):
+def _initial(s, options):
+    """calibrate's own initial estimate (weak path with its lag setting) for the held runs."""
     try:
         return initial_calibration(s)
     except CalibrationError as exc:
-        return weak_initial(s, str(exc))
+        return weak_initial(s, str(exc), options.weak_mag_delay)
 
 
 def held(s, D, o, options):
     """calibrate with D, o held (tight prior) and the dip free."""
-    init = _initial(s)
+    init = _initial(s, options)
     if hasattr(init, "__dataclass_fields__"):
         init = replace(init, D=np.array(D, float), o=np.array(o, float))
     else:

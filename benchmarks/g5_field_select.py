@@ -54,13 +54,13 @@ def main(argv: list[str]) -> int:
     for num, s, mask in iter_broad(select):
         err = lambda q: orientation_error(q, s.quat, mask, s.rate).rms_deg   # noqa: E731
         t0 = time.process_time()
-        best, table, _ = fs.select(s, options, cands, block, folds, allow_weak=True)
+        best, table, init = fs.select(s, options, cands, block, folds, allow_weak=True)
         t_sel = time.process_time() - t0
         full = {}
         for r in table:
             c = r["candidate"]
             if full_all or c == best or c == fs.Candidate():
-                full[c] = err(calibrate(s, c.apply(options), allow_weak=True).quat)
+                full[c] = err(calibrate(s, c.apply(options), initial=init, allow_weak=True).quat)
         row = {"trial": num, "offline_vqf": round(err(vqf_offline(s)), 3),
                "default": round(full[fs.Candidate()], 3), "chosen": best.label(),
                "selected": round(full[best], 3), "select_cpu_s": round(t_sel, 1),

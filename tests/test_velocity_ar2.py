@@ -8,8 +8,8 @@ import pytest
 from scipy.linalg import solveh_banded
 
 from imugraph import keys
-from imugraph.calibration.velocity_ar2 import (banded_inverse_bands, chain_bands, fit_ar2, update_ar2)
-from imugraph.calibration.velocity_process import update_velocity_process
+from imugraph.calibration.velocity_ar2 import fit_ar2, update_ar2
+from imugraph.calibration.velocity_process import banded_inverse_bands, chain_bands, update_velocity_process
 from imugraph.factors.robust import Kernel
 from imugraph.factors.velocity import ar2_residuals, ar2_stationary
 from imugraph.geometry import expmap

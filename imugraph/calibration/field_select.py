@@ -186,10 +186,10 @@ def calibrate_selected(session: Session, options, initial=None, allow_weak: bool
     from imugraph.calibration import ml
 
     best, table, init = select(session, options, initial=initial, allow_weak=allow_weak)
-    est = ml.calibrate(session, best.apply(options), initial=init, allow_weak=allow_weak)
-    est.info["field_select"] = {"chosen": best.label(),
-                                "field_sigma": best.apply(options).field_sigma,
-                                "field_tau": best.apply(options).field_tau,
+    opt_best = best.apply(options)
+    est = ml.calibrate(session, opt_best, initial=init, allow_weak=allow_weak)
+    est.info["field_select"] = {"chosen": best.label(), "field_sigma": opt_best.field_sigma,
+                                "field_tau": opt_best.field_tau,
                                 "scores": [{"candidate": r["candidate"].label(), "score": r["score"],
                                             "folds": r["folds"], "z": r.get("z")} for r in table]}
     return est

@@ -27,7 +27,7 @@ loosest allowed first-order process: "bounded" keeps the short-term steps from t
 from __future__ import annotations
 
 import numpy as np
-from imugraph.calibration.velocity_process import banded_inverse_bands, chain_bands  # noqa: F401 (public here too)
+from imugraph.calibration.velocity_process import chain_inverse_bands
 from imugraph.factors.velocity import ar2_stationary
 
 ROOT_MARGIN = 0.01          # distance kept from the edges of the stationary triangle
@@ -89,8 +89,7 @@ def update_ar2(vel_state: dict, block, nRk: np.ndarray, record: dict | None, sig
     K = len(s)
     if K < 5:
         return 0.0
-    ab = chain_bands(block, nRk, s)
-    Z = np.stack([banded_inverse_bands(ab[:, :, i]) for i in range(3)], axis=2)
+    Z = chain_inverse_bands(block, nRk, s)
     syy, sxy, sxx = ar2_objective_terms(lag_moments(s[:, :3], Z))
     dt = float(np.median(block.dt_k))
     phi_max = float(np.exp(-dt / tau_bounds[1]))

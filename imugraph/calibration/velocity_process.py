@@ -53,11 +53,14 @@ def chain_covariance(block, nRk: np.ndarray, s: np.ndarray) -> tuple[np.ndarray,
     the first two bands of the inverse of its precision (`chain_bands`; tridiagonal for the first-order
     chain: Λ_00 += 1/σ_v²; interval k: a_k = w_k/σ_dv,k² on [[1, −1], [−1, 1]], b_k = 1/σ_w,k² on
     [[φ_k², −φ_k], [−φ_k, 1]]; rest keyframe k: Λ_kk += 1/σ_rest²)."""
-    ab = chain_bands(block, nRk, s)
-    if block.ar2 is None:
-        ab = ab[:2]                                       # tridiagonal
-    Z = np.stack([banded_inverse_bands(ab[:, :, i]) for i in range(3)], axis=2)
+    Z = chain_inverse_bands(block, nRk, s, 2 if block.ar2 is None else 3)   # tridiagonal for first order
     return Z[0], Z[1, :-1]
+
+
+def chain_inverse_bands(block, nRk: np.ndarray, s: np.ndarray, bands: int = 3) -> np.ndarray:
+    """The first `bands` bands of Λ⁻¹ per nav axis (bands, K, 3) from the chain's first `bands` precision bands."""
+    ab = chain_bands(block, nRk, s)[:bands]
+    return np.stack([banded_inverse_bands(ab[:, :, i]) for i in range(3)], axis=2)
 
 
 def banded_inverse_bands(ab: np.ndarray) -> np.ndarray:
