@@ -295,7 +295,7 @@ class StreamSmoother(OnlineCalibrationMixin, KeyframeStartMixin, ArrivalMixin, S
 
     def _update(self, graph, values, stamps, k_new: int, seg: int, R_pred) -> None:
         try:
-            chain = self.opt.lag_s is not None and self.opt.fixed_lag_solver == "chain"
+            chain = self._chain
             if self.opt.lag_s is None or chain:
                 if chain:      # only the keyframes leaving the window are read back (their smoothed output)
                     left = self._solver.update(graph, values, stamps)
@@ -349,7 +349,7 @@ class StreamSmoother(OnlineCalibrationMixin, KeyframeStartMixin, ArrivalMixin, S
             last = self._buf.pop()
             self._close(last[0])
             self._buf = [last]
-        if self.opt.lag_s is not None and self.opt.fixed_lag_solver == "chain" and self._k > 0:
+        if self._chain and self._k > 0:
             # the keyframes still in the window: their latest estimate (the others' is the one they left with)
             for k, R in window_rotations(self._solver).items():
                 self._smoothed_kf.setdefault(k, R)

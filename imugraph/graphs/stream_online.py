@@ -105,7 +105,7 @@ class OnlineCalibrationMixin:
 
     def _keyframe_R(self, k: int) -> np.ndarray | None:
         """Latest estimate of keyframe k's nRb (the one it left the window with, under a lag)."""
-        chain = self.opt.lag_s is not None and self.opt.fixed_lag_solver == "chain"
+        chain = self._chain
         if self.opt.lag_s is not None and (not chain or k in self._smoothed_kf):
             return self._smoothed_kf.get(k)
         try:           # iSAM2, or a keyframe still in the chain lag's window

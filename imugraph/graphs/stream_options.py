@@ -8,6 +8,8 @@ from dataclasses import dataclass, field
 import gtsam
 import numpy as np
 
+from imugraph.errors import SessionError
+
 
 @dataclass(frozen=True)
 class StreamOptions:
@@ -148,7 +150,6 @@ def make_solver(options: StreamOptions):
     """The stream's solver: gtsam.ISAM2 (lag_s None) or the fixed lag `options.fixed_lag_solver` ("chain":
     imugraph.graphs.stream_lag.ChainLagSmoother, "incremental" / "batch": gtsam's fixed-lag smoothers), with
     the iSAM2 settings below."""
-    from imugraph.errors import SessionError
     from imugraph.graphs.stream_lag import ChainLagSmoother, keyframe_group
 
     params = gtsam.ISAM2Params()
@@ -186,8 +187,8 @@ def isam2_thresholds(rot_threshold: float) -> "gtsam.ISAM2ThresholdMap":
     m.insert(("v", np.full(3, 0.5)))
     m.insert(("b", np.r_[np.full(3, 1e-3), np.full(3, rot_threshold / 10)]))
     m.insert(("g", np.full(3, 0.1)))
-    m.insert(("f", np.full(3, 0.05)))
-    m.insert(("c", np.full(13, 1e9)))      # θ (stream_calstate): its factors are linear containers, never relinearised      # field perturbation d_k (unit-field units; σ_d 0.003–0.015)
+    m.insert(("f", np.full(3, 0.05)))      # field perturbation d_k (unit-field units; σ_d 0.003–0.015)
+    m.insert(("c", np.full(13, 1e9)))      # θ (stream_calstate): its factors are linear containers, never relinearised
     return m
 
 
@@ -195,7 +196,6 @@ def velocity_process(options: StreamOptions, cal) -> tuple[float, float]:
     """σ_v (m/s), τ_v (s) of the stream's bounded-velocity factors: the options' where set, else the calibration's
     estimate (`Calibration.velocity_sigma/tau`), else the nominal process (`Calibration.velocity_process`, as `smooth_fixed`)."""
     sigma, tau = cal.velocity_process(options.velocity_sigma, options.velocity_tau)
-    from imugraph.errors import SessionError
     for name, x in (("velocity_sigma", sigma), ("velocity_tau", tau)):
         if not (np.isfinite(x) and x > 0):
             raise SessionError("stream", name, repr(x), "a positive number")
@@ -209,7 +209,6 @@ def acc_lead(options: StreamOptions, cal) -> tuple[int, float]:
     Raises:
         SessionError: δ < 0 or not finite — row j would need the accelerometer of a later sample, which a
         causal stream does not have when row j's interval closes."""
-    from imugraph.errors import SessionError
     lead = float(options.acc_lead_samples if options.acc_lead_samples is not None else cal.acc_lead_samples)
     if not (np.isfinite(lead) and 0.0 <= lead <= 1e4):
         raise SessionError("stream", "acc_lead_samples", repr(lead),
