@@ -352,5 +352,12 @@ def train_psd(x: np.ndarray, mask: np.ndarray, nperseg: int) -> tuple[np.ndarray
 
 
 # the gyro's effect on the fitted trajectory (keyframes fixed): imugraph/diagnose/effects/trajectory.py
+
+def huber_weights(z: np.ndarray, k: float) -> np.ndarray:
+    """(M,) weights √w of whitened rows z (M, 3): Huber with threshold k on ‖z‖/√3 (the calibration's kernel)."""
+    a = np.linalg.norm(z, axis=1) / np.sqrt(3)
+    return np.sqrt(np.minimum(1.0, k / np.maximum(a, 1e-12)))
+
+
 from imugraph.diagnose.effects.trajectory import (_EXACT_CACHE, gyro_exact, gyro_refit,  # noqa: E402,F401
                                                   interval_index, interval_mean, reintegrate)

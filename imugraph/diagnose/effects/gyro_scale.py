@@ -27,8 +27,8 @@ from __future__ import annotations
 import numpy as np
 
 from imugraph.diagnose.effects import joint
-from imugraph.diagnose.effects.base import (Correction, Effect, check_train, gyro_exact, gyro_refit, noise_scale,
-                                             replace_session)
+from imugraph.diagnose.effects.base import (Correction, Effect, check_train, gyro_exact, gyro_refit, huber_weights,
+                                             noise_scale, replace_session)
 from imugraph.diagnose.effects.trajectory import cached_columns
 
 RANGES = {"scale": (0.005, 0.03), "misalignment_deg": (0.5, 2.0)}
@@ -149,8 +149,7 @@ class GyroScale(Effect):
             z = [r[c][ok[c]] / sg[c] for c in FIT_CHANNELS]
             # Huber weights per sample (k = HUBER_K on |z|/√3, the calibration's kernel): keyframe intervals
             # pulled by what no gyro parameter explains (hand-held linear acceleration) count less
-            sw = np.concatenate([np.repeat(np.sqrt(np.minimum(1.0, HUBER_K / np.maximum(
-                np.linalg.norm(zc, axis=1) / np.sqrt(3), 1e-12))), 3) for zc in z])
+            sw = np.concatenate([np.repeat(huber_weights(zc, HUBER_K), 3) for zc in z])
             y = np.concatenate([zc.reshape(-1) for zc in z])
             M = M + np.linalg.lstsq(A * sw[:, None], -y * sw, rcond=None)[0].reshape(3, 3)
             d_omega = np.linalg.solve(np.eye(3) + M, w_rate.T).T - w_rate           # (I+M)⁻¹(y−b) − (y−b)

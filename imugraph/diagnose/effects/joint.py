@@ -38,9 +38,10 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-from imugraph.diagnose.effects.base import replace_session
+from imugraph.diagnose.effects.base import huber_weights, replace_session
 from imugraph.diagnose.effects.trajectory import interval_index, reintegrate
-from imugraph.geometry import expmap
+from imugraph.calibration.result import n_mag_from_dip
+from imugraph.geometry import expmap, skew
 
 # Opt-in (G6): used by gyro_scale and gyro_bias_drift when True. Off by default: measured on the harness
 # (docs/diagnose.md §4 G6 (c)) the jointly refitted gyro effects score worse than the base model on
@@ -85,12 +86,6 @@ def _keyframe_jacobian(fit, D: np.ndarray, n_nav: np.ndarray) -> tuple[dict, np.
     bRn = np.transpose(fit.nRb, (0, 2, 1))
     g_b = bRn @ np.array([0.0, 0.0, fit.g])
     n_b = bRn @ n_nav
-
-    def skew(a):
-        z = np.zeros(a.shape[:-1] + (3, 3))
-        z[..., 0, 1], z[..., 0, 2], z[..., 1, 2] = -a[..., 2], a[..., 1], -a[..., 0]
-        z[..., 1, 0], z[..., 2, 0], z[..., 2, 1] = a[..., 2], -a[..., 1], a[..., 0]
-        return z
 
     # d/dv of (Rᵀv) × h = −[h]× Rᵀ v
     A = -skew(g_b) @ bRn                                                     # (N, 3, 3) acc wrt v_j
@@ -148,12 +143,6 @@ def _bias_columns(cur) -> list:
     return out
 
 
-def _huber(z: np.ndarray) -> np.ndarray:
-    """(M,) weights √w of whitened rows z (M, 3): Huber on ‖z‖/√3."""
-    a = np.linalg.norm(z, axis=1) / np.sqrt(3)
-    return np.sqrt(np.minimum(1.0, HUBER_K / np.maximum(a, 1e-12)))
-
-
 def evaluate(fit, state: dict, exact) -> object:
     """The extended model at `state` {"p", "bias", "w", "q"}: keyframes Exp(w_k)R_k, samples integrated
     from y + Δω(p) − δb, the magnetometer at D + ΔD, o + Δo, dip + Δdip (q = (vec ΔD, Δo, Δdip)).
@@ -165,7 +154,7 @@ def evaluate(fit, state: dict, exact) -> object:
     D = np.asarray(cal.D, float) + q[:9].reshape(3, 3)
     o = np.asarray(cal.o, float) + q[9:12]
     dip = float(cal.dip_rad) + q[12]
-    n_nav = np.array([np.cos(dip), 0.0, -np.sin(dip)])                  # calibration.result.n_mag_from_dip
+    n_nav = n_mag_from_dip(dip)
     cur.residuals["mag"] = fit.session.mag - (np.transpose(cur.nRb, (0, 2, 1)) @ n_nav) @ D.T - o   # (R3)
     cur.info = dict(cur.info, mag_calibration={"D": D, "o": o, "dip_rad": dip, "n_nav": n_nav},
                     d_omega=d_omega)
@@ -230,7 +219,7 @@ def joint_fit(fit, train: np.ndarray, exact, n_params: int, steps: int = STEPS,
                 continue
             s = sig[c]
             z = r[idx] / s
-            sw = _huber(z)
+            sw = huber_weights(z, HUBER_K)
             by_channel[c] = _cost(z)
             m = len(idx)
             Jc = J[c][idx] / s[None, :, None] * sw[:, None, None]            # (m, 3, 6)
