@@ -102,10 +102,27 @@ class BodyDiagnosis:
                 "timing": self.timing}
 
 
-def score_candidate(effect, real, a, b, sigma, sensor: str, opt: GapOptions, theta=None) -> dict:
+def base_gaps(real, a, b, sigma, sensor: str, opt: GapOptions) -> tuple[dict, dict, dict]:
+    """The effect-independent half of (BA2) on one sensor: the base fit's gap ("before") and the null gap
+    (simulation B vs A) per channel, each summed over the test folds weighted by their rows, and those rows."""
+    sf = real.sensors[sensor]
+    chans = [c for c in CHANNELS if sf.residuals[c].shape[1]]
+    lags = {c: lag_grid(interval_rate(sf.time_base(c)), opt) for c in chans}
+    before, null, n_tot = ({c: 0.0 for c in chans} for _ in range(3))
+    for _, test in channel_folds(sf):
+        for c in chans:
+            w = int(test[c].sum())
+            ra, rb = a.sensors[sensor].residuals[c], b.sensors[sensor].residuals[c]
+            before[c] += w * pair_gap(sf.residuals[c], ra, sigma[sensor][c], test[c], lags[c], opt)
+            null[c] += w * pair_gap(rb, ra, sigma[sensor][c], test[c], lags[c], opt)
+            n_tot[c] += w
+    return before, null, n_tot
+
+
+def score_candidate(effect, real, a, b, sigma, sensor: str, opt: GapOptions, theta=None, base=None) -> dict:
     """(BA1)–(BA2) of one effect on one sensor over the folds, and its final fit on all rows. theta: the
     refitted model θ* the effect is fitted against (stage 2, body/refit.py); None: the base fit (stage 1).
-    The "before" is always the base fit's."""
+    The "before" is always the base fit's: `base_gaps` of the sensor (computed here when not given)."""
     sf = real.sensors[sensor]
     src = real if theta is None else theta
     folds = channel_folds(sf)
@@ -113,7 +130,8 @@ def score_candidate(effect, real, a, b, sigma, sensor: str, opt: GapOptions, the
     lags = {c: lag_grid(interval_rate(sf.time_base(c)), opt) for c in chans}
     gains = {c: [0.0, 0] for c in chans}
     fold_g = []
-    before, after, null, n_tot = ({c: 0.0 for c in chans} for _ in range(4))
+    before, null, n_tot = base if base is not None else base_gaps(real, a, b, sigma, sensor, opt)
+    after = {c: 0.0 for c in chans}
     n_params = 0
     for train, test in folds:
         corr = effect.fit(src, sensor, train, sigma[sensor])
@@ -126,11 +144,8 @@ def score_candidate(effect, real, a, b, sigma, sensor: str, opt: GapOptions, the
                 gains[c][1] += n
                 g_fold += g / n if n else 0.0
             w = int(test[c].sum())
-            ra, rb = a.sensors[sensor].residuals[c], b.sensors[sensor].residuals[c]
-            before[c] += w * pair_gap(sf.residuals[c], ra, sigma[sensor][c], test[c], lags[c], opt)
-            after[c] += w * pair_gap(corr.residuals[c], ra, sigma[sensor][c], test[c], lags[c], opt)
-            null[c] += w * pair_gap(rb, ra, sigma[sensor][c], test[c], lags[c], opt)
-            n_tot[c] += w
+            after[c] += w * pair_gap(corr.residuals[c], a.sensors[sensor].residuals[c], sigma[sensor][c], test[c],
+                                     lags[c], opt)
         fold_g.append(g_fold)
     per = {c: (gains[c][0] / gains[c][1] if gains[c][1] else 0.0) for c in chans}
     N = max(v[1] for v in gains.values())
@@ -171,9 +186,10 @@ def diagnose_body(session, options: BodyDiagnoseOptions = BodyDiagnoseOptions(),
     curves, locations = localise(real, a, b, sigma, opt)
     sensors = [n for n in real.sensors if options.sensors is None or n in options.sensors]
     results = []
+    base = {n: base_gaps(real, a, b, sigma, n, opt) for n in sensors}      # the same for every effect
     for eff in body_effects(options.effects):
         for n in sensors:
-            r = score_candidate(eff, real, a, b, sigma, n, opt)
+            r = score_candidate(eff, real, a, b, sigma, n, opt, base=base[n])
             locs = [loc for loc in locations if loc["sensor"] == n]
             if r["t_start"] is None and locs and eff.windowed:
                 r["t_start"], r["t_end"] = min(x["t_start"] for x in locs), max(x["t_end"] for x in locs)
@@ -186,7 +202,7 @@ def diagnose_body(session, options: BodyDiagnoseOptions = BodyDiagnoseOptions(),
         eff = next(e for e in body_effects(options.effects) if e.name == r["name"])
         try:
             theta = refit_effect(eff, real, r["sensor"], sigma[r["sensor"]], options.body_options)
-            r2 = score_candidate(eff, real, a, b, sigma, r["sensor"], opt, theta)
+            r2 = score_candidate(eff, real, a, b, sigma, r["sensor"], opt, theta, base=base[r["sensor"]])
         except (np.linalg.LinAlgError, RuntimeError, ValueError) as exc:   # keep the screened result
             r["refit_error"] = f"{type(exc).__name__}: {str(exc)[:200]}"
             say(f"refit {r['name']} on {r['sensor']} failed ({r['refit_error']}); screened result kept")
