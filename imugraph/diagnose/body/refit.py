@@ -20,7 +20,9 @@ from dataclasses import replace
 
 import numpy as np
 
+from imugraph.diagnose.body.effects.base import with_sensor
 from imugraph.diagnose.body.fit import BodyFit, fit_body, residuals_with
+from imugraph.diagnose.body.simulate import fit_options
 from imugraph.diagnose.effects.base import replace_session
 from imugraph.io.body_session import BodySession
 
@@ -32,10 +34,7 @@ def corrected_session(session, sensor: str, deltas: dict) -> BodySession:
     ses = session.sensors[sensor]
     new = replace_session(ses, gyr=ses.gyr + deltas["gyr"] if "gyr" in deltas else None,
                           acc=ses.acc + deltas["acc"] if "acc" in deltas else None)
-    sensors = dict(session.sensors)
-    sensors[sensor] = new
-    return BodySession(session.t, sensors, session.skeleton, session.truth, session.source, session.name,
-                       dict(session.meta))
+    return with_sensor(session, sensor, new, {}, name=session.name)
 
 
 def against_original(theta: BodyFit, original, sensor: str) -> BodyFit:
@@ -50,11 +49,7 @@ def against_original(theta: BodyFit, original, sensor: str) -> BodyFit:
 
 def refit_effect(effect, real: BodyFit, sensor: str, sigma: dict, opts=None) -> BodyFit:
     """θ* (module doc) for one effect on one sensor."""
-    from imugraph.graphs.body_model import BodyOptions
-
-    opts = BodyOptions() if opts is None else opts
-    if opts.npose is None and real.info.get("npose_window") is not None:
-        opts = replace(opts, npose=tuple(real.info["npose_window"]))
+    opts = fit_options(real, opts)
     theta = real
     sf = real.sensors[sensor]
     everything = {c: np.ones(r.shape[0], bool) for c, r in sf.residuals.items()}

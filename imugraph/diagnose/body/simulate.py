@@ -64,8 +64,9 @@ def simulate_from_fit(bfit: BodyFit, rng: np.random.Generator, name_suffix: str 
     return BodySession(sim.t, sensors, skel, sim.truth, s.source, sim.name, dict(s.meta, simulated_from_fit=True))
 
 
-def fit_simulation(sim: BodySession, real: BodyFit, opts=None) -> BodyFit:
-    """Fit a simulation exactly like the recording (same options; the N-pose window the real fit found)."""
+def fit_options(real: BodyFit, opts=None):
+    """The body options the recording was fitted with (default BodyOptions), with the N-pose window the real
+    fit found: simulations and refits are fitted exactly like the recording."""
     from dataclasses import replace
 
     from imugraph.graphs.body_model import BodyOptions
@@ -73,4 +74,9 @@ def fit_simulation(sim: BodySession, real: BodyFit, opts=None) -> BodyFit:
     opts = BodyOptions() if opts is None else opts
     if opts.npose is None and real.info.get("npose_window") is not None:
         opts = replace(opts, npose=tuple(real.info["npose_window"]))
-    return fit_body(sim, opts)
+    return opts
+
+
+def fit_simulation(sim: BodySession, real: BodyFit, opts=None) -> BodyFit:
+    """Fit a simulation exactly like the recording (`fit_options`)."""
+    return fit_body(sim, fit_options(real, opts))

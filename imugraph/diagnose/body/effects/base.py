@@ -99,16 +99,18 @@ def pick_sensor(session, rng: np.random.Generator, sensor: str | None) -> str:
     return sensor
 
 
-def with_sensor(session, sensor: str, new_session, meta: dict):
-    """A copy of the body session with one sensor's Session replaced (inputs untouched)."""
+def with_sensor(session, sensor: str, new_session, meta: dict, name: str | None = None):
+    """A copy of the body session with one sensor's Session replaced (inputs untouched); name: the copy's
+    name (None: the session's + the injected effects' names)."""
     from imugraph.io.body_session import BodySession
 
     sensors = dict(session.sensors)
     sensors[sensor] = new_session
     m = dict(session.meta)
     m.update(meta)
-    return BodySession(session.t, sensors, session.skeleton, session.truth, session.source,
-                       session.name + "+" + "+".join(meta.get("injected", {}).keys()), m)
+    if name is None:
+        name = session.name + "+" + "+".join(meta.get("injected", {}).keys())
+    return BodySession(session.t, sensors, session.skeleton, session.truth, session.source, name, m)
 
 
 def linear_fit(base: dict, columns: list, sigma: dict, train: np.ndarray) -> tuple[np.ndarray, dict]:
