@@ -208,20 +208,24 @@ def localise(t: np.ndarray, real_curve: dict, null_curve: dict, opt: GapOptions 
     centres = 0.5 * (t[starts] + t[np.maximum(stops - 1, starts)])
     thresholds, locations = {}, []
     for c in CHANNELS:
-        vals = real_curve[c]
-        null = null_curve[c]
-        mad = 1.4826 * np.median(np.abs(vals - np.median(vals))) if len(vals) else 0.0
-        thr = max(opt.null_margin * float(np.quantile(null, opt.null_quantile)) if len(null) else 0.0,
-                  float(np.median(vals)) + opt.spread_k * mad if len(vals) else 0.0)
-        thresholds[c] = thr
-        if not len(vals):
-            continue
+        thresholds[c], flagged = flag_runs(centres, real_curve[c], null_curve[c], opt)
+        locations += [{"channel": c, "t_start": t0, "t_end": t1, "score": score} for t0, t1, score in flagged]
+    locations.sort(key=lambda d: -d["score"])
+    return GapCurve(centres, starts, stops, real_curve, thresholds), locations
+
+
+def flag_runs(centres: np.ndarray, vals: np.ndarray, null: np.ndarray, opt: GapOptions) -> tuple[float, list]:
+    """The threshold of a gap curve — above both the null curve's quantile (× null_margin) and the curve's
+    own median + spread_k robust spreads — and its runs above it lasting ≥ min_duration_s, as
+    [(t_start, t_end, score)] (centres of the first and last window; score = mean real/threshold − 1)."""
+    mad = 1.4826 * np.median(np.abs(vals - np.median(vals))) if len(vals) else 0.0
+    thr = max(opt.null_margin * float(np.quantile(null, opt.null_quantile)) if len(null) else 0.0,
+              float(np.median(vals)) + opt.spread_k * mad if len(vals) else 0.0)
+    flagged = []
+    if len(vals):
         s, e = runs(vals > thr)
         for a, b in zip(s, e):
             t_start, t_end = float(centres[a]), float(centres[b - 1])
-            if t_end - t_start + opt.hop_s < opt.min_duration_s:
-                continue
-            locations.append({"channel": c, "t_start": t_start, "t_end": t_end,
-                              "score": float(np.mean(vals[a:b]) / max(thr, 1e-12) - 1.0)})
-    locations.sort(key=lambda d: -d["score"])
-    return GapCurve(centres, starts, stops, real_curve, thresholds), locations
+            if t_end - t_start + opt.hop_s >= opt.min_duration_s:
+                flagged.append((t_start, t_end, float(np.mean(vals[a:b]) / max(thr, 1e-12) - 1.0)))
+    return thr, flagged

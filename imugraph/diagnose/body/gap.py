@@ -24,8 +24,7 @@ from __future__ import annotations
 import numpy as np
 
 from imugraph.diagnose.body.fit import CHANNELS, BodyFit
-from imugraph.diagnose.gap import GapOptions, channel_gap, lag_grid, windows
-from imugraph.io.validate import runs
+from imugraph.diagnose.gap import GapOptions, channel_gap, flag_runs, lag_grid, windows
 
 
 def model_sigma(sim_a: BodyFit) -> dict:
@@ -93,17 +92,10 @@ def localise(real: BodyFit, a: BodyFit, b: BodyFit, sigma: dict, opt: GapOptions
             _, null = curve(tb, b.sensors[n].residuals[c], a.sensors[n].residuals[c], sigma[n][c], opt)
             if not len(vals):
                 continue
-            mad = 1.4826 * np.median(np.abs(vals - np.median(vals)))
-            thr = max(opt.null_margin * float(np.quantile(null, opt.null_quantile)),
-                      float(np.median(vals)) + opt.spread_k * mad)
+            thr, flagged = flag_runs(tc, vals, null, opt)
             curves[n][c] = {"t": tc, "real": vals, "null": null, "threshold": thr}
-            s_, e_ = runs(vals > thr)
-            for i, j in zip(s_, e_):
-                t0, t1 = float(tc[i]), float(tc[j - 1])
-                if t1 - t0 + opt.hop_s < opt.min_duration_s:
-                    continue
-                locations.append({"sensor": n, "channel": c, "t_start": t0, "t_end": t1,
-                                  "score": float(np.mean(vals[i:j]) / max(thr, 1e-12) - 1.0)})
+            locations += [{"sensor": n, "channel": c, "t_start": t0, "t_end": t1, "score": score}
+                          for t0, t1, score in flagged]
     locations.sort(key=lambda d: -d["score"])
     return curves, locations
 
