@@ -62,6 +62,7 @@ import numpy as np
 
 from imugraph import keys
 from imugraph.calibration.result import Calibration
+from imugraph.factors.magnetometer import magnetometer_rows
 from imugraph.factors.theta import THETA_DIM, pack_theta, unpack_theta
 
 __all__ = ["CAL_KEY", "PIN_REL", "WhitenessSums", "cal_mag_factor", "cal_mag_jacobians", "calibration_of", "data_estimate",
@@ -104,23 +105,16 @@ def data_estimate(theta_hat: np.ndarray, P: np.ndarray, theta0: np.ndarray, pin_
 
 
 def cal_mag_jacobians(R_k: np.ndarray, d: np.ndarray, theta: np.ndarray, M: np.ndarray, y_avg: np.ndarray):
-    """Eq. (2): error e (3,) and Jacobians w.r.t. the pose (3×6), d_k (3×3) and θ (3×13) at (R_k, d, θ)."""
-    D, o, dip = unpack_theta(theta)
-    c, s = np.cos(dip), np.sin(dip)
-    Rt = np.asarray(R_k, float).T
-    u = Rt @ (np.array([c, 0.0, -s]) + d)                 # R_kᵀ (n + d_k)
-    DM = D @ M
-    w = M @ u
-    e = D @ w + o - y_avg
+    """Eq. (2): error e (3,) and Jacobians w.r.t. the pose (3×6), d_k (3×3) and θ (3×13) at (R_k, d, θ): the
+    batch model's rows (`factors.magnetometer.magnetometer_rows`) of one "sample" whose ΔRᵀ is the interval's
+    mean M (the model is linear in ΔRᵀ): e = D M R_kᵀ(n + d) + o − ȳ, ∂e/∂ξ = D M [R_kᵀ(n + d)]×, ∂e/∂d = D M R_kᵀ."""
+    R_k = np.asarray(R_k, float)
+    X, V = magnetometer_rows(np.asarray(M, float).T[None], np.zeros(1, int), R_k[None], theta,
+                             np.asarray(y_avg, float)[None], np.asarray(d, float)[None])
+    DM = X[0, :, :3]                                          # D M
     J_pose = np.zeros((3, 6))
-    J_pose[:, :3] = DM @ np.array([[0.0, -u[2], u[1]], [u[2], 0.0, -u[0]], [-u[1], u[0], 0.0]])   # D M [u]×
-    J_d = DM @ Rt
-    J_th = np.zeros((3, THETA_DIM))
-    for i in range(3):
-        J_th[i, 3 * i:3 * i + 3] = w                          # I₃ ⊗ wᵀ
-    J_th[:, 9:12] = np.eye(3)
-    J_th[:, 12] = J_d @ np.array([-s, 0.0, -c])              # D M R_kᵀ n'(δ)
-    return e, J_pose, J_d, J_th
+    J_pose[:, :3] = DM @ V[0]
+    return X[0, :, -1], J_pose, DM @ R_k.T, X[0, :, 3:3 + THETA_DIM]
 
 
 def cal_mag_factor(pose_k: int, pose: gtsam.Pose3, field_k: int | None, d: np.ndarray, theta: np.ndarray,
