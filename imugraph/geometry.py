@@ -43,6 +43,15 @@ def quat_normalize(q: np.ndarray) -> np.ndarray:
     return np.where(q[..., :1] < 0, -q, q)
 
 
+def quat_continuous(q: np.ndarray) -> np.ndarray:
+    """Quaternions (T, …, 4) with signs flipped along axis 0 so consecutive samples lie in the same
+    hemisphere (q_k · q_{k−1} ≥ 0): sign_k = sign_{k−1} · (−1 where q_k · q_{k−1} < 0), sign_0 = +1."""
+    q = np.array(q, float)
+    flip = np.sum(q[1:] * q[:-1], axis=-1) < 0                          # (T−1, …) sign changes
+    sign = np.concatenate([np.ones((1,) + flip.shape[1:]), np.cumprod(np.where(flip, -1.0, 1.0), axis=0)])
+    return q * sign[..., None]
+
+
 def quat_to_rotmat(q: np.ndarray) -> np.ndarray:
     """(…, 4) w,x,y,z → (…, 3, 3)."""
     q = np.asarray(q, float)

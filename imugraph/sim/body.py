@@ -49,8 +49,8 @@ from imugraph.body.placement import Placement, nominal_placement  # noqa: F401  
 from imugraph.body.repair import MAX_JOINT_RATE, repair_glitches
 from imugraph.body.skeleton import Skeleton, fill_unsensed
 from imugraph.errors import SessionError
-from imugraph.geometry import (expmap, quat_conj, quat_mul, quat_normalize, quat_slerp, quat_to_rotmat,
-                               quat_to_rotvec, rotmat_to_quat)
+from imugraph.geometry import (expmap, quat_conj, quat_continuous, quat_mul, quat_normalize, quat_slerp,
+                               quat_to_rotmat, quat_to_rotvec, rotmat_to_quat)
 from imugraph.io.body_session import BodySession
 from imugraph.sim.sensors import SensorParams, simulate_imu
 
@@ -69,14 +69,6 @@ class BodyMotion:
     info: dict = field(default_factory=dict)
 
 
-def _continuous(q: np.ndarray) -> np.ndarray:
-    """Flip quaternion signs along axis 0 so consecutive samples lie in the same hemisphere."""
-    q = np.array(q, float)
-    for k in range(1, q.shape[0]):
-        q[k] *= np.where(np.sum(q[k] * q[k - 1], -1) < 0, -1.0, 1.0)[..., None]
-    return q
-
-
 def _smoothstep(u: np.ndarray) -> np.ndarray:
     """Quintic 6u⁵ − 15u⁴ + 10u³: 0 → 1 with zero first and second derivatives at both ends."""
     u = np.clip(u, 0.0, 1.0)
@@ -93,7 +85,7 @@ class _Smooth:
     """Cubic-spline motion (module docstring, P3): segment rotations and root position at any t."""
 
     def __init__(self, t: np.ndarray, n_quat: np.ndarray, n_root: np.ndarray):
-        self.q = CubicSpline(t, _continuous(n_quat), axis=0, bc_type="natural")
+        self.q = CubicSpline(t, quat_continuous(n_quat), axis=0, bc_type="natural")
         self.p = CubicSpline(t, n_root, axis=0, bc_type="natural")
 
     def quat(self, t: np.ndarray) -> np.ndarray:
@@ -149,7 +141,7 @@ def motion_from_bvh(path: Union[str, Path], rate_hz: float = 60.0, npose_s: floa
     dt = float(np.median(np.diff(t_b)))
     if lowpass_hz is not None and lowpass_hz < 0.5 / dt and t_b.size > 30:
         b, a = butter(4, lowpass_hz * 2 * dt)
-        q_b = quat_normalize(filtfilt(b, a, _continuous(q_b), axis=0))
+        q_b = quat_normalize(filtfilt(b, a, quat_continuous(q_b), axis=0))
         root = filtfilt(b, a, root, axis=0)
     n_pre = int(round((npose_s + blend_s) / dt))
     if n_pre > 0:

@@ -20,7 +20,7 @@ import numpy as np
 from scipy.signal import butter, filtfilt
 
 from imugraph.diagnose.body.fit import BodyFit, fit_body
-from imugraph.geometry import quat_normalize
+from imugraph.geometry import quat_continuous, quat_normalize
 from imugraph.io.body_session import BodySession
 
 LOWPASS_HZ = 10.0
@@ -32,10 +32,7 @@ def smooth_motion(t: np.ndarray, n_quat: np.ndarray, n_pos: np.ndarray, cutoff_h
     dt = float(np.median(np.diff(t)))
     if cutoff_hz >= 0.5 / dt or t.size < 30:
         return n_quat, n_pos
-    q = np.array(n_quat, float)
-    flip = np.sum(q[1:] * q[:-1], axis=-1) < 0                          # (T−1, S) sign changes
-    sign = np.concatenate([np.ones((1,) + flip.shape[1:]), np.cumprod(np.where(flip, -1.0, 1.0), axis=0)])
-    q = q * sign[..., None]
+    q = quat_continuous(n_quat)
     b, a = butter(4, cutoff_hz * 2 * dt)
     return quat_normalize(filtfilt(b, a, q, axis=0)), filtfilt(b, a, n_pos, axis=0)
 
