@@ -10,6 +10,7 @@ Targets: ≤ 2° per joint, ≤ 2 cm.
 
     .venv/bin/python benchmarks/body_sim_accuracy.py [--motions cmu131_01,cmu131_02,xsens] [--seeds 0]
         [--duration S] [--lower] [--mag both|off|on] [--lag S] [--tie] [--bias-walk SIGMA]
+        [--hinges knees] [--axial shanks|thighs|legs]
 
 --duration limits the BVH time used (after the Xsens export's T-pose frame); --lower simulates the 7-sensor
 lower body only (quick runs); --tie makes the truth's unsensed segments (spine links, neck, toes) follow
@@ -41,19 +42,21 @@ from benchmarks.common import peak_memory_mb, print_table  # noqa: E402
 from benchmarks.output import write_json  # noqa: E402
 
 
-def _solve(session, use_mag: bool, lag: float | None):
+def _solve(session, use_mag: bool, lag: float | None, opts_kw: dict | None = None):
     from imugraph.graphs.body import solve_body_batch
     from imugraph.graphs.body_model import BodyOptions
 
+    opts = BodyOptions(use_mag=use_mag, **(opts_kw or {}))
     if lag is None:
-        return solve_body_batch(session, BodyOptions(use_mag=use_mag))
+        return solve_body_batch(session, opts)
     from imugraph.graphs.body_incremental import solve_body_incremental
-    return solve_body_incremental(session, BodyOptions(use_mag=use_mag), lag_s=lag)
+    return solve_body_incremental(session, opts, lag_s=lag)
 
 
 def run_case(name: str, seed: int, duration: float | None, lower: bool, mags: list[bool],
-             lags: list, tie: bool = False, bias_walk: float = 0.0) -> list[dict]:
-    """Simulate one motion once, solve it with and/or without magnetometers, score; one record per solve."""
+             lags: list, tie: bool = False, bias_walk: float = 0.0, opts_kw: dict | None = None) -> list[dict]:
+    """Simulate one motion once, solve it with and/or without magnetometers, score; one record per solve
+    (opts_kw: extra BodyOptions fields, e.g. hinges and axial_segments)."""
     from imugraph.body.evaluate import score_against_truth
 
     skel, session, mask = simulated_session(name, seed, duration, lower, tie=tie, bias_walk=bias_walk)
@@ -62,7 +65,7 @@ def run_case(name: str, seed: int, duration: float | None, lower: bool, mags: li
         label = f"{name} s{seed} {'mag' if use_mag else 'no-mag'}" + ("" if lag is None else f" lag {lag:g}")
         t0 = time.perf_counter()
         try:
-            result = _solve(session, use_mag, lag)
+            result = _solve(session, use_mag, lag, opts_kw)
         except Exception as exc:              # record a solver failure, go on with the other cases
             print(f"  {label}: failed ({type(exc).__name__}: {str(exc)[:160]})")
             continue
@@ -114,8 +117,15 @@ def main(argv=None) -> int:
     ap.add_argument("--bias-walk", type=float, default=0.0, metavar="SIGMA",
                     help="gyro bias random walk, rad/s/√s (default 0: constant biases)")
     ap.add_argument("--lag", type=float, default=None, help="also run the fixed-lag smoother with this lag, s")
+    ap.add_argument("--hinges", default="", help="'knees' or comma-separated hinge child segments (BodyOptions.hinges)")
+    ap.add_argument("--axial", default="", help="'shanks', 'thighs', 'legs' or segments (BodyOptions.axial_segments)")
     ap.add_argument("--out", default="body_sim_accuracy.json", help="file name in bench_out/")
     a = ap.parse_args(argv)
+    legs = {"thighs": ("RightUpperLeg", "LeftUpperLeg"), "shanks": ("RightLowerLeg", "LeftLowerLeg"),
+            "knees": ("RightLowerLeg", "LeftLowerLeg")}
+    legs["legs"] = legs["thighs"] + legs["shanks"]
+    opts_kw = {k: legs.get(v, tuple(x for x in v.split(",") if x)) for k, v in
+               (("hinges", a.hinges), ("axial_segments", a.axial)) if v}
     mags = {"both": [False, True], "off": [False], "on": [True]}[a.mag]
     records = []
     for name in a.motions.split(","):
@@ -124,7 +134,7 @@ def main(argv=None) -> int:
             continue
         for seed in (int(s) for s in a.seeds.split(",")):
             records += run_case(name, seed, a.duration, a.lower, mags, [None] + ([a.lag] if a.lag else []), a.tie,
-                                a.bias_walk)
+                                a.bias_walk, opts_kw)
     if not records:
         print("no motion data found")
         return 1
@@ -138,7 +148,7 @@ def main(argv=None) -> int:
     print_table([[r["label"]] + [r["scores"]["joints"][j]["all"] if j in r["scores"]["joints"] else "" for j in joints]
                  for r in records], ["joint RMSE (°)"] + joints)
     payload = {"issue": "4a", "noise": NOISE, "rate_hz": 60.0, "lower_body": a.lower, "duration": a.duration,
-               "tie_unsensed": a.tie, "gyro_bias_walk": a.bias_walk,
+               "tie_unsensed": a.tie, "gyro_bias_walk": a.bias_walk, "options": {k: list(v) for k, v in opts_kw.items()},
                "targets": {"joint_rmse_deg": 2.0, "position_cm": 2.0}, "peak_memory_mb": peak_memory_mb(),
                "command": "benchmarks/body_sim_accuracy.py " + " ".join(sys.argv[1:] if argv is None else argv),
                "over_seeds": [dict(zip(SEED_COLUMNS, row)) for row in summary],

@@ -23,6 +23,10 @@ shift, then takes the errors apart (all from the same samples, the 955 Vicon fra
 6. oracle       the best CONSTANT rotation of the pelvis and/or a thigh frame, fitted on Vicon itself (Nelder–
                 Mead on the joint's "offset" RMSE): a lower bound for what any sensor-to-segment calibration
                 change could achieve on that joint (not a method: it uses the reference).
+7. axial        can a joint set a segment's axial rotation? φ*: the turn of the thigh about its long axis that
+                puts its lateral axis on the shank's (what a knee hinge with a soft axial sensor rotation applies,
+                imugraph.factors.body_axial), and of the shank onto the foot's, against the axial errors vs Vicon
+                (section 3), and the gains of φ* and of those errors on the knee flexion.
 
     .venv/bin/python benchmarks/body_walk_diagnosis.py [--joints LeftHip,RightHip] [--out body_walk_diagnosis.json]
 
@@ -45,7 +49,14 @@ Findings (run of the defaults, issue 4b; left hip ours 6.04° vs MVN 5.83°, "of
 - not a calibration error: the functional knee axis agrees with the N-pose thigh y axis to 1.1° (axial), and
   even the best constant left-thigh rotation fitted on Vicon itself only reaches 6.04 → 5.86° (rotation stays
   9.6°); a constant pelvis rotation fitted on Vicon (≈ 20°, the marker pelvis convention) helps both systems
-  alike (ours 5.27°, MVN 5.32°).
+  alike (ours 5.27°, MVN 5.32°);
+- no joint can see it either (section 7): the turn that would put the left thigh's lateral axis on the shank's
+  (a knee hinge with a soft axial sensor rotation, imugraph.factors.body_axial) is 11.2° RMS but correlates
+  −0.15 with the thigh's axial error (right: 9.5°, −0.15); its gain on the knee flexion is −0.15 °/° where the
+  thigh error's is +0.34 °/° (right +0.08 vs −0.14); the ankle-implied turn of the shank is 3.0° RMS. The
+  thigh and shank axial errors against Vicon both grow with knee flexion (left +0.34, +0.29 °/°): the IMU leg
+  and the Vicon leg disagree as a whole about its axial rotation, as a thigh-marker artefact of ≈ 10° (the
+  size reported for thigh clusters against fluoroscopy in gait, PMC8631460) would make them.
 """
 
 from __future__ import annotations
@@ -197,6 +208,41 @@ def oracle(vicon: dict, q: dict, shift: int, segments: tuple, joints: tuple) -> 
             "after": {j: {"cols": v.tolist(), "all": float(_rms(v))} for j, v in after.items()}}
 
 
+def axial_evidence(vicon: dict, q: dict, shift: int, seg_err: dict) -> dict:
+    """Can a joint set the thigh's (or shank's) rotation about its long axis? Per side, on the Vicon frames:
+    φ*_knee, the turn of the thigh about its long axis that puts its lateral axis on the shank's (what a knee
+    hinge with a soft axial sensor rotation would apply, imugraph.factors.body_axial), and φ*_ankle, the
+    same for the shank from the foot; each (mean removed) against the segment's axial error vs Vicon (section
+    3), and the gain (deg/deg) of φ*_knee and of the thigh and shank axial errors on the knee flexion."""
+    from imugraph.body.angles import joint_angles
+    from imugraph.body.skeleton import lower_body
+    from imugraph.geometry import quat_to_rotmat
+
+    idx = np.asarray(vicon["imu_index"]) + shift
+    skel = lower_body()
+    flex = {j: a[:, 0] - a[:, 0].mean() for j, a in joint_angles(skel, np.stack([q[n][idx] for n in skel.names], 1)).items()}
+
+    def turn(P, C):                                  # φ* (deg): about P's z, taking P's y onto C's y
+        v = np.einsum("tji,tj->ti", quat_to_rotmat(q[P][idx]), quat_to_rotmat(q[C][idx])[:, :, 1])
+        a = np.rad2deg(np.arctan2(-v[:, 0], v[:, 1]))
+        return a - a.mean()
+
+    def gain(x, y):
+        return float(np.dot(x, y) / np.dot(x, x))
+
+    out = {}
+    for side in ("Left", "Right"):
+        T, Sh, F = f"{side}UpperLeg", f"{side}LowerLeg", f"{side}Foot"
+        ez = {n: seg_err[n][:, 2] - seg_err[n][:, 2].mean() for n in (T, Sh)}
+        pk, pa, kf = turn(T, Sh), turn(Sh, F), flex[f"{side}Knee"]
+        out[side] = {"knee_turn_rms": float(pk.std()), "corr_knee_turn_thigh_err": float(np.corrcoef(pk, ez[T])[0, 1]),
+                     "ankle_turn_rms": float(pa.std()), "corr_ankle_turn_shank_err": float(np.corrcoef(pa, ez[Sh])[0, 1]),
+                     "gain_knee_turn_on_flexion": gain(kf, pk), "gain_thigh_err_on_flexion": gain(kf, ez[T]),
+                     "gain_shank_err_on_flexion": gain(kf, ez[Sh]),
+                     "corr_thigh_err_flexion": float(np.corrcoef(kf, ez[T])[0, 1])}
+    return out
+
+
 def main(argv=None) -> int:
     from benchmarks.gaittoolbox_walk import walk_data, xsens_mvn
     from imugraph.body.evaluate import compare_with_vicon
@@ -281,6 +327,14 @@ def main(argv=None) -> int:
                 out["oracle"].append(o)
                 print(f"  {n:4s} {j} via {'+'.join(segs):22s} c = {o['c_deg']} deg: {o['before'][j]['all']:.2f} → "
                       f"{o['after'][j]['all']:.2f} (cols {np.round(o['after'][j]['cols'], 2)})")
+    print("7. axial evidence (ours): knee/ankle-implied axial turns vs the axial errors; gains on knee flexion")
+    out["axial"] = axial_evidence(vicon, systems["ours"], shifts["ours"], S["ours"])
+    for side, v in out["axial"].items():
+        print(f"  {side}: knee turn {v['knee_turn_rms']:.2f}° rms, corr with thigh axial error "
+              f"{v['corr_knee_turn_thigh_err']:+.2f}; ankle turn {v['ankle_turn_rms']:.2f}°, corr with shank "
+              f"{v['corr_ankle_turn_shank_err']:+.2f}; gain on knee flexion: knee turn {v['gain_knee_turn_on_flexion']:+.3f}, "
+              f"thigh error {v['gain_thigh_err_on_flexion']:+.3f} (corr {v['corr_thigh_err_flexion']:+.2f}), shank error "
+              f"{v['gain_shank_err_on_flexion']:+.3f}")
     out["command"] = "benchmarks/body_walk_diagnosis.py " + " ".join(sys.argv[1:] if argv is None else argv)
     print(f"\nwrote {write_json(a.out, out)}")
     return 0

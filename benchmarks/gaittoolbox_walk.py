@@ -20,7 +20,8 @@ time shift within ±5 samples; three offset handlings, each stated in the table:
 Per joint: RMSE of flexion/abduction/rotation and "all" (RMS of the three). Target: ours below Xsens MVN on
 knee and hip.
 
-    .venv/bin/python benchmarks/gaittoolbox_walk.py [--mag] [--hinges knees] [--lag S] [--ablation] [--figure]
+    .venv/bin/python benchmarks/gaittoolbox_walk.py [--mag] [--hinges knees] [--axial thighs|shanks|legs|SEGS]
+                                                   [--lag S] [--ablation] [--figure]
 
 --lag S also runs the fixed-lag smoother (imugraph.graphs.body_incremental) and scores it the same way;
 --ablation also runs ours without the joint factors and without the lever-arm priors (issue 4c on real data).
@@ -51,18 +52,21 @@ from imugraph.config import data_dir  # noqa: E402
 
 HANDLINGS = {"offset": dict(method="offset"), "segment": dict(method="segment"),
              "held-out": dict(method="segment", align_s=5.0)}
+AXIAL_SETS = {"thighs": ("RightUpperLeg", "LeftUpperLeg"), "shanks": ("RightLowerLeg", "LeftLowerLeg"),
+              "legs": ("RightUpperLeg", "LeftUpperLeg", "RightLowerLeg", "LeftLowerLeg")}
 JOINTS = ("RightHip", "LeftHip", "RightKnee", "LeftKnee", "RightAnkle", "LeftAnkle")
 
 
-def ours(root: Path, use_mag: bool, hinges: tuple, lag: float | None = None, variant: str = "full"):
+def ours(root: Path, use_mag: bool, hinges: tuple, lag: float | None = None, variant: str = "full", axial: tuple = ()):
     """({segment: (N, 4)}, info) of our batch (or, with lag, fixed-lag) estimate on the rawimu recording;
-    variant: an ablation of benchmarks/body_bench.ablation_options ('full', 'no_joints', 'no_levers')."""
+    variant: an ablation of benchmarks/body_bench.ablation_options ('full', 'no_joints', 'no_levers'); axial:
+    BodyOptions.axial_segments (soft axial sensor-to-segment rotations, seen through the hinges)."""
     from benchmarks.body_bench import ablation_options
     from imugraph.graphs.body import solve_body_batch
     from imugraph.io.gaittoolbox import read_gaittoolbox
 
     session = read_gaittoolbox(root / "rawimu")
-    opts, _ = ablation_options(variant, use_mag=use_mag, hinges=hinges)
+    opts, _ = ablation_options(variant, use_mag=use_mag, hinges=hinges, **({"axial_segments": axial} if axial else {}))
     t0 = time.perf_counter()
     if lag is None:
         res = solve_body_batch(session, opts)
@@ -130,6 +134,8 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--mag", action="store_true", help="our estimator with magnetometers")
     ap.add_argument("--hinges", default="", help="comma-separated hinge child segments, or 'knees'")
+    ap.add_argument("--axial", default="", help="segments with a soft axial sensor rotation (comma-separated, or "
+                    "'thighs', 'shanks', 'legs'); needs --hinges")
     ap.add_argument("--lag", type=float, default=None, help="also score the fixed-lag estimate with this lag, s")
     ap.add_argument("--ablation", action="store_true", help="also our estimate without joints / lever priors")
     ap.add_argument("--figure", action="store_true")
@@ -140,16 +146,17 @@ def main(argv=None) -> int:
         return 1
     root, vicon = data
     hinges = ("RightLowerLeg", "LeftLowerLeg") if a.hinges == "knees" else tuple(h for h in a.hinges.split(",") if h)
-    q_ours, info = ours(root, a.mag, hinges)
+    axial = AXIAL_SETS.get(a.axial, tuple(x for x in a.axial.split(",") if x))
+    q_ours, info = ours(root, a.mag, hinges, axial=axial)
     print(f"ours: {info['samples']} samples solved in {info['seconds']:.1f} s (npose {info['npose']}, "
           f"LM iterations {info['iterations']})")
     systems = {"ours": q_ours, "Xsens MVN": xsens_mvn(root)}
     for variant in (("no_joints", "no_levers") if a.ablation else ()):
-        systems[f"ours {variant}"], info[variant] = ours(root, a.mag, hinges, None, variant)
+        systems[f"ours {variant}"], info[variant] = ours(root, a.mag, hinges, None, variant, axial)
         print(f"ours {variant}: {info[variant]['seconds']:.1f} s")
     if a.lag is not None:
         try:
-            q_lag, info["fixed_lag"] = ours(root, a.mag, hinges, a.lag)
+            q_lag, info["fixed_lag"] = ours(root, a.mag, hinges, a.lag, axial=axial)
             systems[f"ours lag {a.lag:g} s"] = q_lag
             print(f"ours, fixed lag {a.lag:g} s: {info['fixed_lag']['seconds']:.1f} s")
         except Exception as exc:              # report the failure of the incremental solver, score the rest
@@ -183,7 +190,7 @@ def main(argv=None) -> int:
         shown = {n: q for n, q in systems.items() if n in ("ours", "Xsens MVN")}
         shifts = {n: results["offset"][n]["shift_samples"] for n in shown}
         figure(OUT_DIR / "gaittoolbox_walk.png", vicon, shown, shifts)
-    payload = {"issue": "4b", "use_mag": a.mag, "hinges": list(hinges), "ours": info, "handlings": HANDLINGS,
+    payload = {"issue": "4b", "use_mag": a.mag, "hinges": list(hinges), "axial_segments": list(axial), "ours": info, "handlings": HANDLINGS,
                "results": results, "peak_memory_mb": peak_memory_mb(),
                "command": "benchmarks/gaittoolbox_walk.py " + " ".join(sys.argv[1:] if argv is None else argv)}
     print(f"\nwrote {write_json(a.out, payload)}")

@@ -56,3 +56,34 @@ def test_principal_rates_recover_a_hinge_axis():
     assert rms[1] / rms[0] < 0.01                                    # a hinge: no second axis
     expected = np.sqrt(np.mean((np.diff(angle) * 100.0) ** 2))        # |ω| by hand
     assert rms[0] == pytest.approx(expected, rel=1e-3)
+
+
+def test_axial_evidence_knee_turn_known_answer():
+    """Thigh turned about its long axis by φ(t), shank flexed about y by κ(t), all else at rest: the knee-implied
+    turn that puts the thigh's y on the shank's is −φ (v = Rz(−φ) y = (sin φ, cos φ, 0), by hand), so it
+    correlates −1 with a thigh axial error of +φ, and its gain on the knee flexion is that of −φ on κ."""
+    from benchmarks.body_walk_diagnosis import axial_evidence
+    from imugraph.body.skeleton import lower_body
+    from imugraph.geometry import rotmat_to_quat
+
+    T = 400
+    t = np.arange(T) / 100.0
+    phi = np.deg2rad(5.0) * np.sin(2 * np.pi * 0.7 * t)
+    kappa = np.deg2rad(30.0) * (1 + np.sin(2 * np.pi * 0.7 * t + 0.3))
+    q = {n: np.tile([1.0, 0.0, 0.0, 0.0], (T, 1)) for n in lower_body().names}
+    for side in ("Left", "Right"):
+        q[f"{side}UpperLeg"] = rotmat_to_quat(expmap(phi[:, None] * np.array([0.0, 0.0, 1.0])))
+        q[f"{side}LowerLeg"] = rotmat_to_quat(expmap(kappa[:, None] * np.array([0.0, 1.0, 0.0])))
+        q[f"{side}Foot"] = rotmat_to_quat(expmap(np.deg2rad(3.0) * np.sin(2 * np.pi * 1.1 * t)[:, None]
+                                                 * np.array([0.0, 0.0, 1.0])))
+    seg_err = {n: np.zeros((T, 3)) for n in q}
+    for side in ("Left", "Right"):
+        seg_err[f"{side}UpperLeg"][:, 2] = np.rad2deg(phi)
+        seg_err[f"{side}LowerLeg"][:, 2] = np.rad2deg(phi) * 0.5 + np.rad2deg(kappa) * 0.1
+    out = axial_evidence({"imu_index": np.arange(T)}, q, 0, seg_err)
+    v = out["Left"]
+    assert v["knee_turn_rms"] == pytest.approx(np.rad2deg(phi).std(), rel=1e-3)
+    assert v["corr_knee_turn_thigh_err"] == pytest.approx(-1.0, abs=1e-6)
+    assert 0.5 < v["ankle_turn_rms"] < 3.0                # the foot's ±3° turn, seen through the flexed shank
+    # gain of the thigh error (= +φ) on flexion, and of the knee turn (= −φ): opposite, equal size
+    assert v["gain_knee_turn_on_flexion"] == pytest.approx(-v["gain_thigh_err_on_flexion"], rel=1e-3)

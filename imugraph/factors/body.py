@@ -56,8 +56,8 @@ def lever_key(i: int) -> int:
 
 
 def key_dim(key: int) -> int:
-    """Tangent dimension of a body-graph key (from its character)."""
-    return {"x": 6, "v": 3, "b": 6, "j": 3, "l": 3}[chr(gtsam.Symbol(key).chr())]
+    """Tangent dimension of a body-graph key (from its character; a, o: imugraph.factors.body_axial)."""
+    return {"x": 6, "v": 3, "b": 6, "j": 3, "l": 3, "a": 1, "o": 1}[chr(gtsam.Symbol(key).chr())]
 
 
 def joint_factors(j_key: int, pose_P: int, lever_P: int, pose_C: int, lever_C: int,

@@ -63,6 +63,7 @@ import numpy as np
 
 from imugraph.errors import SessionError
 from imugraph.factors import body as bf
+from imugraph.graphs import body_axial
 from imugraph.graphs.body_init import initial_orientations, initial_values, nominal_levers
 from imugraph.graphs.body_model import (BodyJoint, BodyOptions, bias_segments, body_joints,  # noqa: F401
                                         check_session, keyframes, npose_samples, sample_turn, sensor_setup)
@@ -200,8 +201,9 @@ def factors_at(pb: BodyProblem, k: int) -> gtsam.NonlinearFactorGraph:
                 g.add(bf.mag_factor(bf.pose_key(s, k), m / np.linalg.norm(m), 1.0, pb.mag_dirs[name], model))
     if pb.bRs_fixed is not None:
         hm = gtsam.noiseModel.Isotropic.Sigma(2, o.hinge_sigma_rad)
+        g.push_back(body_axial.axial_factors_at(pb, k))       # soft axial rotations (S2), their hinges (S3)
         for jt in pb.joints:
-            if jt.child in o.hinges:
+            if jt.child in o.hinges and not body_axial.axial_joint(pb, jt):
                 P, C = pb.names.index(jt.parent), pb.names.index(jt.child)
                 g.add(bf.hinge_factor(hm, bf.pose_key(P, k), bf.pose_key(C, k),
                                       pb.bRs_fixed[jt.parent].T, pb.bRs_fixed[jt.child].T))
@@ -296,7 +298,7 @@ def solve_body_batch(session, opts: BodyOptions = BodyOptions()) -> BodyResult:
     if opts.hinges:
         pb.bRs_fixed = {n: p[0] for n, p in estimate_placements(pb, x)[0].items()}
         graph = full_graph(pb)
-        x, info2 = optimize(pb, graph, x)
+        x, info2 = optimize(pb, graph, body_axial.insert_initial(pb, x))
         passes.append(info2)
     info = {"build_s": t_build, "passes": passes, "keyframes": pb.K, "npose": pb.npose_method,
             "factors": int(graph.size()), "solve_s": sum(p["seconds"] for p in passes)}

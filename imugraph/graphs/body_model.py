@@ -63,6 +63,19 @@ class BodyOptions:
         max_keyframe_turn_rad: extra keyframes so that no sensor turns more than this between two
             (Σ|ω|dt; None: regular keyframes only). 2.5 rad < π, the limit of gtsam's preintegrated
             rotation; at 60 Hz and keyframes every 6 samples it acts above ≈ 25 rad/s only (fast hands).
+        axial_segments: segments whose sensor may turn about the segment's long axis over time (soft-tissue
+            artefact; imugraph.factors.body_axial (S1)–(S3)); only seen through `hinges` touching them. () =
+            rigid sensors (today's behaviour).
+        axial_sigma_rad: σ of that turn (S2); None: `STA_AXIAL_SIGMA_RAD` by segment kind (literature).
+        axial_tau_s: correlation time τ of (S2), s. 0.1 s: the artefact has the frequency content of the
+            movement itself (Leardini et al., Gait Posture 21 (2005) 212, review), here a stride of 1.4 s
+            with harmonics to ≈ 2.5 Hz; a first-order process with τ = 0.1 s is flat to 1/(2πτ) ≈ 1.6 Hz.
+        axial_offset_sigma_rad: weak prior σ of the constant axial offset c (S1): the N-pose says nothing
+            about each leg's axial rotation in the stance (e.g. toes turned out), 0.17 rad ≈ 10°.
+        axial_hinge_sigmas_rad: σ of the two components (x̂, ẑ of the parent segment) of the hinge (S3):
+            at small flexion the internal/external rotation and the ab/adduction of the joint. Knee in
+            walking, biplane radiography of 39 knees on a treadmill (PMC7477710): range of motion IE 11.5°,
+            AbAd 3.7°; a sinusoid of peak-to-peak r has σ = r/(2√2): 4.1° → 0.07 rad, 1.3° → 0.023 rad.
     """
 
     keyframe_every: int = 6
@@ -95,6 +108,26 @@ class BodyOptions:
     relative_tol: float = 1e-3
     ordering: str = "colamd"
     max_keyframe_turn_rad: float | None = 2.5
+    axial_segments: tuple = ()
+    axial_sigma_rad: float | None = None
+    axial_tau_s: float = 0.1
+    axial_offset_sigma_rad: float = 0.17
+    axial_hinge_sigmas_rad: tuple = (0.07, 0.023)
+
+
+# σ of the sensor's turn about the segment's long axis (soft-tissue artefact, rigid part), by segment-name
+# suffix: fluoroscopy vs marker clusters in gait (6 TKA subjects, PMC8631460): largest rigid STA of the thigh
+# cluster ≈ 10°, of the shank cluster ≈ 7° (in swing); read as the amplitude of a gait-locked oscillation,
+# σ = amplitude/√2: 7.1° and 4.9°. Other segments (not measured there): the shank's value.
+STA_AXIAL_SIGMA_RAD = {"UpperLeg": np.deg2rad(10.0) / np.sqrt(2.0), "LowerLeg": np.deg2rad(7.0) / np.sqrt(2.0)}
+
+
+def axial_sigma(opts: BodyOptions, name: str) -> float:
+    """σ of (S2) for segment `name`: opts.axial_sigma_rad, else `STA_AXIAL_SIGMA_RAD` by suffix."""
+    if opts.axial_sigma_rad is not None:
+        return float(opts.axial_sigma_rad)
+    key = next((k for k in STA_AXIAL_SIGMA_RAD if name.endswith(k)), "LowerLeg")
+    return float(STA_AXIAL_SIGMA_RAD[key])
 
 
 @dataclass(frozen=True)

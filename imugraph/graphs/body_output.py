@@ -25,6 +25,8 @@ import numpy as np
 
 from imugraph.factors import body as bf
 from imugraph.geometry import quat_conj, quat_mul, quat_slerp, quat_to_rotmat, rotmat_to_quat, rotvec_to_quat
+from imugraph.factors.body_axial import long_axis
+from imugraph.graphs.body_axial import axial_angles
 from imugraph.graphs.body_init import rz
 
 
@@ -151,7 +153,7 @@ def make_result(pb, x: gtsam.Values, info: dict) -> BodyResult:
     """BodyResult at every input sample (module docstring, steps 1–4)."""
     place, psi = estimate_placements(pb, x)
     t = np.asarray(pb.session.t, float)
-    q_seg, biases = {}, {}
+    q_seg, biases, axial = {}, {}, {}
     owner = np.clip(np.searchsorted(pb.kf, np.arange(t.size), side="right") - 1, 0, pb.K - 1)   # sample → keyframe
     for s, name in enumerate(pb.names):
         b_kf = [x.atConstantBias(pb.bkey(s, k)) for k in range(pb.K)]
@@ -160,6 +162,10 @@ def make_result(pb, x: gtsam.Values, info: dict) -> BodyResult:
         biases[name] = {"acc": acc_kf.mean(axis=0), "gyr": gyr_kf.mean(axis=0), "acc_kf": acc_kf, "gyr_kf": gyr_kf}
         q_s = sample_orientations(pb, x, s, name, gyr_kf[owner])        # (N, 3): each sample its segment's bias
         q_seg[name] = quat_mul(q_s, quat_conj(rotmat_to_quat(place[name][0])))     # nRb = nRs bRsᵀ
+        theta = axial_angles(pb, x, name)                   # soft axial rotation: nRb = nRs bRsᵀ Exp(−θ â) (S1)
+        if theta is not None:
+            q_seg[name] = quat_mul(q_seg[name], rotvec_to_quat(-theta[:, None] * long_axis(pb.skel, name)))
+            axial[name] = theta
         if s == 0:
             root_q = q_s
     n_quat = fill_segments(pb.skel, q_seg)
@@ -177,7 +183,7 @@ def make_result(pb, x: gtsam.Values, info: dict) -> BodyResult:
         if pb.joints else np.zeros((pb.K, 0, 3))
     J = J @ nRg.T
     info = dict(info, graph_npose_heading_deg=float(np.rad2deg(psi)), graph_to_output=nRg, kf_t=kf_t, biases=biases,
-                joint_names=[jt.name for jt in pb.joints], joint_centres=J,
+                joint_names=[jt.name for jt in pb.joints], joint_centres=J, axial_theta=axial,
                 levers={f"{seg}@{pb.joints[j].name}": x.atPoint3(bf.lever_key(i))
                         for i, (seg, j, _) in enumerate(pb.levers)})
     placements = {n: {"bRs": place[n][0], "b_pos": place[n][1]} for n in pb.names}
