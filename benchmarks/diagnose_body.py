@@ -16,6 +16,8 @@ entries (issue 4 found its axial rotation disagreeing with Vicon).
 
     .venv/bin/python benchmarks/diagnose_body.py [--hosts cmu_lower,xsens_lower,xsens_full,real_walk]
                                                  [--duration 20] [--seed 0] [--out diagnose_body.json]
+    .venv/bin/python benchmarks/diagnose_body.py --absorption LeftLowerLeg --hosts xsens_lower --out absorption.json
+        (how much of an injected drift / acc bias the base fit's own bias estimates take, docs §3)
 Writes bench_out/<out>.
 """
 
@@ -109,6 +111,41 @@ def summary(records: list) -> dict:
             "seconds": [r["seconds"] for r in records]}
 
 
+def absorption(host: str, sensor: str, duration: float, seed: int) -> list:
+    """How much of an injected drift / accelerometer bias the BASE fit's own bias estimates take (docs §3):
+    per case the fraction absorbed (1 − RMS(injected − change of the fitted bias path)/RMS(injected), a drift
+    about its mean), the residual change per channel / the clean residual RMS, and the graph cost."""
+    from imugraph.diagnose.body.effects.accelerometer_bias import EFFECT as ACC
+    from imugraph.diagnose.body.effects.gyro_bias_drift import EFFECT as GYR
+    from imugraph.diagnose.body.fit import fit_body
+
+    def rms(x):
+        return float(np.sqrt(np.mean(np.sum(np.asarray(x) ** 2, axis=-1))))
+
+    s0 = host_session(host, duration, seed)
+    f0 = fit_body(s0)
+    sf0 = f0.sensors[sensor]
+    out = []
+    for kind, eff, strength, case_seed in (("gyr", GYR, 0.5, 1), ("gyr", GYR, 2.0, 2), ("gyr", GYR, 2.0, 5),
+                                           ("acc", ACC, 0.3, 3), ("acc", ACC, 1.0, 4)):
+        s1, truth = eff.inject(s0, np.random.default_rng(case_seed), sensor=sensor, strength=strength)
+        f1 = fit_body(s1)
+        sf1 = f1.sensors[sensor]
+        inj = getattr(s1.sensors[sensor], kind) - getattr(s0.sensors[sensor], kind)
+        left = inj - ((sf1.b_gyr - sf0.b_gyr) if kind == "gyr" else (sf1.b_acc - sf0.b_acc))
+        ab = 1 - (rms(left - left.mean(0)) / rms(inj - inj.mean(0)) if kind == "gyr" else rms(left) / rms(inj))
+        ch = {c: rms(sf1.residuals[c] - sf0.residuals[c]) / max(rms(sf0.residuals[c]), 1e-12)
+              for c in sf0.residuals if sf0.residuals[c].shape[1]}
+        rec = {"host": host, "sensor": sensor, "kind": kind, "strength": strength,
+               "shape": truth["params"].get("shape"), "absorbed": ab, "residual_change_rel": ch,
+               "cost": [f0.info["cost_final"], f1.info["cost_final"]]}
+        print(f"  {kind} {strength} {rec['shape']}: absorbed {ab:.3f}; residual change / clean RMS "
+              f"{ {c: round(v, 3) for c, v in ch.items()} }; cost {rec['cost'][0]:.1f} → {rec['cost'][1]:.1f}",
+              flush=True)
+        out.append(rec)
+    return out
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--hosts", default=",".join(HOSTS))
@@ -116,7 +153,17 @@ def main(argv=None) -> int:
     p.add_argument("--duration", type=float, default=20.0)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", default="diagnose_body.json")
+    p.add_argument("--absorption", default=None, metavar="SENSOR",
+                   help="instead of the harness: how much of an injected drift / acc bias on SENSOR the base "
+                        "fit absorbs, per host (docs/diagnose_body.md §3)")
     a = p.parse_args(argv)
+    if a.absorption:
+        recs = []
+        for host in [h for h in a.hosts.split(",") if h]:
+            print(f"{host}, {a.absorption}:", flush=True)
+            recs += absorption(host, a.absorption, a.duration, a.seed)
+        print(f"wrote {write_json(a.out, {'issue': '5 (body) absorption', 'args': vars(a), 'records': recs})}")
+        return 0
     rng = np.random.default_rng(a.seed)
     records = []
     for host in [h for h in a.hosts.split(",") if h]:

@@ -103,6 +103,8 @@ class BodyFit:
     sensors: dict                       # name → SensorFit
     g: float
     info: dict = field(default_factory=dict)
+    problem: object = field(default=None, repr=False)    # the body problem (graphs.body.BodyProblem) solved
+    values: object = field(default=None, repr=False)     # its solution (gtsam.Values): warm starts (refit)
 
     @property
     def names(self) -> list:
@@ -182,10 +184,8 @@ def long_axis_in_sensor(skel, name: str, bRs: np.ndarray) -> np.ndarray:
 
 def fit_body(session, opts=None) -> BodyFit:
     """The base fit (module doc): the body graph's batch LM with `opts` (default: BodyOptions())."""
-    from imugraph.factors import body as bf
     from imugraph.graphs.body import build_problem, full_graph, optimize
     from imugraph.graphs.body_model import BodyOptions
-    from imugraph.graphs.body_output import make_result
 
     opts = BodyOptions() if opts is None else opts
     if getattr(session, "skeleton", None) is None or not getattr(session, "sensors", None):
@@ -194,6 +194,49 @@ def fit_body(session, opts=None) -> BodyFit:
     t0 = time.perf_counter()
     pb = build_problem(session, opts)
     x, info = optimize(pb, full_graph(pb), pb.init)
+    return _extract(session, pb, x, info, t0)
+
+
+def refit_body_warm(base: BodyFit, session, sensor: str, max_iterations: int | None = None) -> BodyFit:
+    """The body graph of `base` re-solved for a session in which ONLY `sensor`'s measurements changed (a
+    removed effect, body/refit.py): same keyframes, N-pose window, priors and gauge (built from the base
+    problem's initial values, as the base graph's were), the sensor's setup (N-pose noise, gyro bias) and
+    preintegration recomputed, every other sensor's preintegration reused, and LM started from the base
+    fit's solution (warm start) instead of the gyro-integrated initial orientations. The optimum sought is the
+    cold fit's (same graph); measured on the real walk: docs/diagnose_body.md §4."""
+    from dataclasses import replace as dc_replace
+
+    from imugraph.factors import body as bf
+    from imugraph.graphs.body import full_graph, optimize
+    from imugraph.graphs.body_model import sensor_setup
+
+    pb0 = base.problem
+    if pb0 is None or base.values is None:
+        raise ValueError("refit_body_warm: the base fit keeps no problem/values")
+    t0 = time.perf_counter()
+    opts = pb0.opts if max_iterations is None else dc_replace(pb0.opts, max_iterations=int(max_iterations))
+    setups = dict(pb0.setups)
+    setups[sensor] = sensor_setup(session, pb0.skel, opts, pb0.npose_idx)[sensor]
+    ses, st = session.sensors[sensor], setups[sensor]
+    prm = bf.imu_params(opts.g, st.sigma_gyr, st.sigma_acc, float(np.median(ses.dt)), opts.integration_sigma)
+    pims = dict(pb0.pims)
+    pims[sensor] = bf.preintegrate(ses.gyr, ses.acc, ses.dt, pb0.kf, prm,
+                                   gtsam_bias(np.zeros(3), st.gyro_bias0))
+    pb = dc_replace(pb0, session=session, opts=opts, setups=setups, pims=pims, mag_dirs=None)
+    x, info = optimize(pb, full_graph(pb), base.values)
+    return _extract(session, pb, x, dict(info, warm_start=True), t0)
+
+
+def gtsam_bias(b_acc: np.ndarray, b_gyr: np.ndarray):
+    import gtsam
+    return gtsam.imuBias.ConstantBias(np.asarray(b_acc, float), np.asarray(b_gyr, float))
+
+
+def _extract(session, pb, x, info: dict, t0: float) -> BodyFit:
+    """BodyFit (residuals (BR1)–(BR4) per sensor) of the solution x of problem pb."""
+    from imugraph.factors import body as bf
+    from imugraph.graphs.body_output import make_result
+
     result = make_result(pb, x, info)
     t = np.asarray(session.t, float)
     owner = np.clip(np.searchsorted(pb.kf, np.arange(t.size), side="right") - 1, 0, pb.K - 1)
@@ -223,7 +266,7 @@ def fit_body(session, opts=None) -> BodyFit:
     _add_joint_accelerations(session, result, pb, sensors, x)
     info = dict(info, seconds=time.perf_counter() - t0, keyframes=int(pb.K), npose=pb.npose_method,
                 npose_window=(float(t[pb.npose_idx[0]]), float(t[pb.npose_idx[-1]])))
-    return BodyFit(session, result, pb.kf, sensors, float(pb.opts.g), info)
+    return BodyFit(session, result, pb.kf, sensors, float(pb.opts.g), info, problem=pb, values=x)
 
 
 def _add_joint_accelerations(session, result, pb, sensors: dict, x) -> None:

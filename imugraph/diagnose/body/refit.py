@@ -21,7 +21,7 @@ from dataclasses import replace
 import numpy as np
 
 from imugraph.diagnose.body.effects.base import with_sensor
-from imugraph.diagnose.body.fit import BodyFit, fit_body, residuals_with
+from imugraph.diagnose.body.fit import BodyFit, fit_body, refit_body_warm, residuals_with
 from imugraph.diagnose.body.simulate import fit_options
 from imugraph.diagnose.effects.base import replace_session
 from imugraph.io.body_session import BodySession
@@ -47,14 +47,25 @@ def against_original(theta: BodyFit, original, sensor: str) -> BodyFit:
     return BodyFit(original, theta.result, theta.kf, sensors, theta.g, dict(theta.info, refit_of=sensor))
 
 
-def refit_effect(effect, real: BodyFit, sensor: str, sigma: dict, opts=None) -> BodyFit:
-    """θ* (module doc) for one effect on one sensor."""
+def refit_effect(effect, real: BodyFit, sensor: str, sigma: dict, opts=None, warm: bool = True) -> BodyFit:
+    """θ* (module doc) for one effect on one sensor. warm: each round's body solve reuses the previous
+    solution's problem and starts from its values (fit.refit_body_warm: same graph, only the sensor's
+    preintegration rebuilt); False: a cold fit from scratch (fit_body), as the recording's."""
     opts = fit_options(real, opts)
     theta = real
+    prev = real
     sf = real.sensors[sensor]
     everything = {c: np.ones(r.shape[0], bool) for c, r in sf.residuals.items()}
+    iterations = []
     for _ in range(ROUNDS):
         corr = effect.fit(theta, sensor, everything, sigma)
-        fitted = fit_body(corrected_session(real.session, sensor, corr.deltas), opts)
+        session = corrected_session(real.session, sensor, corr.deltas)
+        if warm and prev.problem is not None:
+            fitted = refit_body_warm(prev, session, sensor)
+        else:
+            fitted = fit_body(session, opts)
+        prev = fitted
+        iterations.append(int(fitted.info.get("iterations", -1)))
         theta = against_original(fitted, real.session, sensor)
+    theta.info["rounds_iterations"] = iterations
     return theta

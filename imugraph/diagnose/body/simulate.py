@@ -16,6 +16,8 @@ simulator's ideal one (the base model uses it for the initial headings only).
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 from scipy.signal import butter, filtfilt
 
@@ -74,6 +76,52 @@ def fit_options(real: BodyFit, opts=None):
     return opts
 
 
-def fit_simulation(sim: BodySession, real: BodyFit, opts=None) -> BodyFit:
-    """Fit a simulation exactly like the recording (`fit_options`)."""
-    return fit_body(sim, fit_options(real, opts))
+def fit_simulation(sim: BodySession, real: BodyFit, opts=None, warm: bool = True) -> BodyFit:
+    """Fit a simulation exactly like the recording (`fit_options`): the same graph and LM; warm: LM starts from
+    the recording's solution turned into the simulation's own gauge (`warm_values`) instead of the
+    gyro-integrated initial orientations (the simulation's truth IS that solution, low-passed), when both
+    problems have the same keyframes; the gauge priors are the simulation's own, as in a cold fit."""
+    from imugraph.diagnose.body.fit import _extract
+    from imugraph.graphs.body import build_problem, full_graph, optimize
+
+    opts = fit_options(real, opts)
+    if not warm or real.problem is None or real.values is None:
+        return fit_body(sim, opts)
+    t0 = time.perf_counter()
+    pb = build_problem(sim, opts)
+    if pb.kf.shape != real.problem.kf.shape or np.any(pb.kf != real.problem.kf):
+        x, info = optimize(pb, full_graph(pb), pb.init)
+        return _extract(sim, pb, x, dict(info, warm_start=False), t0)
+    x, info = optimize(pb, full_graph(pb), warm_values(real, pb))
+    return _extract(sim, pb, x, dict(info, warm_start=True), t0)
+
+
+def warm_values(real: BodyFit, pb) -> "gtsam.Values":
+    """The recording's solution in the gauge of problem pb: every pose, velocity and joint centre turned about
+    the vertical by the heading difference of the root sensor at k = 0 (pb's initial value vs the solution:
+    R_Δ = Rz(ψ_init − ψ_fit), the graph frame's only free rotation), levers and biases unchanged."""
+    import gtsam
+
+    from imugraph.factors import body as bf
+
+    x = real.values
+    k0 = bf.pose_key(0, 0)
+
+    R_rel = pb.init.atPose3(k0).rotation().matrix() @ x.atPose3(k0).rotation().matrix().T
+    psi = np.arctan2(R_rel[1, 0] - R_rel[0, 1], R_rel[0, 0] + R_rel[1, 1])      # yaw of R_rel (tilts agree)
+    c, s_ = np.cos(psi), np.sin(psi)
+    Rd = np.array([[c, -s_, 0.0], [s_, c, 0.0], [0.0, 0.0, 1.0]])
+    out = gtsam.Values()
+    for key in x.keys():
+        ch = chr(gtsam.Symbol(key).chr())
+        if ch == "x":
+            T = x.atPose3(key)
+            out.insert(key, gtsam.Pose3(gtsam.Rot3(Rd @ T.rotation().matrix()), Rd @ np.asarray(T.translation())))
+        elif ch in ("v", "j"):
+            v = Rd @ np.asarray(x.atVector(key) if ch == "v" else x.atPoint3(key), float)
+            out.insert(key, v)
+        elif ch == "l":
+            out.insert(key, np.asarray(x.atPoint3(key), float))
+        elif ch == "b":
+            out.insert(key, x.atConstantBias(key))
+    return out
