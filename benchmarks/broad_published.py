@@ -45,12 +45,16 @@ def main(argv: list[str]) -> int:
                      "ratio": round(score["imugraph"] / score["offline_vqf"], 2),
                      "identifiable": bool(est.calibration.coverage.get("identifiable", True)),
                      "t_imugraph_s": round(t_ig, 2), "t_offline_vqf_s": round(t_off, 3)})
+        if "gyro_map_select" in est.info:        # Options.gyro_map_select: the held-out test's decision
+            rep = est.info["gyro_map_select"]
+            rows[-1]["map_kept"] = rep.get("keep")
+            rows[-1]["map_z"] = round(float(rep["z"]), 2) if "z" in rep else None
         print(rows[-1], flush=True)
     if not rows:
         print(f"broad_published: no BROAD trial matches {argv[0]!r} (expected trial numbers like 01,04; options "
               "as --opt FIELD=VALUE, --keyframe-hz HZ)", file=sys.stderr)
         return 2
-    print_table(rows, list(rows[0].keys()))
+    print_table(rows, list(dict.fromkeys(k for r in rows for k in r)))
     means = {k: float(np.mean([r[k] for r in rows])) for k in ("imugraph", "offline_vqf", "vqf")}
     worse = [r["trial"] for r in rows if r["imugraph"] > r["offline_vqf"]]
     print(f"mean RMS: imugraph {means['imugraph']:.2f}°, offline VQF {means['offline_vqf']:.2f}°, "

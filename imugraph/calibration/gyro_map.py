@@ -145,12 +145,28 @@ def coverage_gate(session, g: float, sample_kf: np.ndarray, n_intervals: int, op
     """The coverage gate of calibration.ml: ({"estimated", "clean_turns", "clean_fraction"}, clean mask).
 
     E is estimated only when the intervals where the accelerometer sees gravity alone (clean_intervals,
-    all intervals when opt.gyro_map_acc_tol is None) hold at least opt.gyro_map_min_turns turns."""
+    all intervals when opt.gyro_map_acc_tol is None) hold at least opt.gyro_map_min_turns turns.
+    session.meta["gyro_map_exclude"] ((N,) bool, optional): intervals holding such a sample never inform E (the
+    held-out blocks of calibration/gyro_map_select.py; GyroMapState also drops their gyro from the E rounds)."""
     clean = (np.ones(n_intervals, bool) if opt.gyro_map_acc_tol is None else
              clean_intervals(session.acc, g, sample_kf, n_intervals, opt.gyro_map_acc_tol))
+    held = excluded_intervals(session.meta.get("gyro_map_exclude"), sample_kf, n_intervals)
+    if held is not None:
+        clean = clean & ~held
     turns = clean_turns(session.gyr, session.dt, sample_kf, clean)
     return ({"estimated": turns >= opt.gyro_map_min_turns, "clean_turns": turns,
              "clean_fraction": float(clean.mean()) if len(clean) else 0.0}, clean)
+
+
+HELD_COV_SCALE = 1e10    # gyro covariance factor of a held-out interval in the E rounds: its gyro carries no weight
+
+
+def excluded_intervals(exclude: np.ndarray | None, sample_kf: np.ndarray, n_intervals: int) -> np.ndarray | None:
+    """(K−1,) bool: keyframe intervals holding an excluded sample (None when exclude is None)."""
+    if exclude is None:
+        return None
+    hit = np.bincount(sample_kf, weights=np.asarray(exclude, float), minlength=n_intervals + 1)
+    return hit[:n_intervals] > 0
 
 
 class GyroMapState:
@@ -158,17 +174,25 @@ class GyroMapState:
 
     clean: (K−1,) intervals allowed to inform E (clean_intervals); the others keep C_k = 0, i.e. their
     gyro factors see Ê (applied to every sample by the preintegration) but do not pull on it.
+    exclude: (N,) samples held out (gyro_map_select; None: none). In the E rounds their intervals' gyro factors
+    get HELD_COV_SCALE × their covariance and their samples are not corrected by Ê: E is then fitted from the
+    other intervals' gyro alone. (Keeping those gyro factors, with Ê applied but C_k = 0, made the rounds
+    diverge when half the intervals were held out — BROAD 01, 2 folds of 4 s: step ratio 1.46 — and with them
+    raw, E took up their rate error too: Ê ≈ 2 × the whole recording's.) The final solve uses every gyro factor.
     """
 
-    def __init__(self, sigma_e: float, clean: np.ndarray | None = None):
+    def __init__(self, sigma_e: float, clean: np.ndarray | None = None, exclude: np.ndarray | None = None):
         self.E = np.zeros((3, 3))
         self.step = 0.0
         self.sigma_e = sigma_e
         self.clean = clean
+        self.exclude = None if exclude is None else np.asarray(exclude, bool)
 
     def corrected(self, b_gyr: np.ndarray) -> np.ndarray:
-        """(I + Ê) b_gyr."""
-        return corrected_rate(b_gyr, self.E)
+        """(I + Ê) b_gyr (b_gyr itself on the excluded samples)."""
+        if self.exclude is None:
+            return corrected_rate(b_gyr, self.E)
+        return np.where(self.exclude[:, None], b_gyr, corrected_rate(b_gyr, self.E))
 
     def model(self, g_c: np.ndarray, dt: np.ndarray, pre: Preintegration, bias_rows: np.ndarray):
         """The graph's GyroMapModel at this preintegration (g_c: the corrected gyro it integrated)."""
@@ -177,6 +201,9 @@ class GyroMapState:
         C = equivalent_bias_map(pre, map_jacobian(g_c, dt, pre, bias_rows))
         if self.clean is not None:
             C = np.where(self.clean[:, None, None], C, 0.0)
+        held = excluded_intervals(self.exclude, pre.sample_kf, len(pre.delta_R))
+        if held is not None:              # this round's gyro factors of the held-out intervals: no weight
+            pre.cov[held] *= HELD_COV_SCALE
         return GyroMapModel(C, self.E.ravel(), self.sigma_e)
 
     def fold(self, values) -> None:

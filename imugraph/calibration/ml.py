@@ -23,7 +23,7 @@ from imugraph.calibration.noise import field_dof, reestimate
 from imugraph.calibration.options import Options  # noqa: F401  (public here: ml.Options)
 from imugraph.calibration.acc_timing import session_lead, with_lead
 from imugraph.calibration.gyro_rate import update_rate_error
-from imugraph.calibration.field_select import calibrate_selected
+from imugraph.calibration.gyro_map_select import calibrate_chosen
 from imugraph.calibration.result import Calibration
 from imugraph.factors.gyro import keyframe_layout, preintegrate
 from imugraph.calibration.disturbance import apply_windows, detect_windows, fit_offsets
@@ -81,8 +81,8 @@ def calibrate(session: Session, options: Options | None = None, initial=None,
     from imugraph.errors import CalibrationError
 
     opt = options or Options()
-    if opt.field_select:     # the field process chosen per recording by held-out prediction (field_select.py)
-        return calibrate_selected(session, opt, initial, allow_weak)
+    if opt.field_select or opt.gyro_map_select:   # chosen per recording by held-out prediction (field_select.py,
+        return calibrate_chosen(session, opt, initial, allow_weak)   # gyro_map_select.py)
     weak_reason = None
     if initial is None:
         from imugraph.calibration.initial import initial_calibration
@@ -131,7 +131,7 @@ def calibrate(session: Session, options: Options | None = None, initial=None,
     if opt.gyro_map_fallback not in ("warm", "restart"):
         raise ValueError(f"Options.gyro_map_fallback: found {opt.gyro_map_fallback!r}, expected 'warm' or 'restart'")
     gate, clean = coverage_gate(session, g, skf, len(kf) - 1, opt) if opt.gyro_map else ({"estimated": False}, None)
-    gyro = GyroMapState(opt.gyro_map_sigma, clean if gate["estimated"] else None)
+    gyro = GyroMapState(opt.gyro_map_sigma, clean if gate["estimated"] else None, session.meta.get("gyro_map_exclude"))
     rate = {"kappa": opt.gyro_rate_error}      # κ, re-estimated with estimate_gyro_rate_error
 
     def solve_round(bias, noise, nRk, theta, every=1, final=False, values0=None):

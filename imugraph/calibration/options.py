@@ -61,7 +61,16 @@ class Options:
     #   0.712° → "free_ar2" 0.667° (32 −0.41°, 36 −0.11°, 01/02/04 −0.08°; 07 +0.09°; 15/16 +0.01°), "bounded_ar2"
     #   0.683° (32 −0.36°, 36 −0.11°; 07 +0.02°; the default: 36 ahead of offline VQF, no trial worse by more
     #   than 0.03°): benchmarks/broad_published.py --opt, benchmarks/v2_velocity_ar2.py
+    #   H4, current model, per trial (benchmarks/h4_decompose.py TRIALS --tag free --opt
+    #   estimate_velocity_process="'free_ar2'"): 17-trial mean 0.666° → 0.650°; 02 0.473 → 0.391° (its slow tilt
+    #   0.200 → 0.136°, offline VQF 0.138°: the floor binds there, σ_v 0.50 m/s and τ_v 2 s against the ML 0.043 m/s
+    #   and 0.40 s, smoothed |v| 0.18 m/s RMS on y; and its Ê, which absorbed that freedom, no longer settles:
+    #   the settling gate drops it), 01 0.767 → 0.679°, 04 0.563 → 0.487° (Ê diagonals of 01/04 closer: 0.17/0.13/
+    #   0.40 and 0.19/0.33/0.31 %), 32 0.476 → 0.420°; worse: 07 0.506 → 0.574°; the other 11 within 0.02°
     acc_rate_error: float = 0.01      # κ_a: accelerometer error growing with the specific force
+    #   (H4, evidence only: 0.03 removes the slow-tilt excess over offline VQF where the motion is vigorous —
+    #   06 slow tilt 0.220 → 0.107° (VQF 0.104°), 16 0.091 → 0.081° — but 06's heading pays: 0.557 → 0.587° total;
+    #   16 0.401 → 0.359°, 15 0.879 → 0.869°, 02/07 within 0.003°; benchmarks/h4_error_split.py)
     zero_velocity_at_rest: bool = False  # v = 0 ± 0.02 m/s at detected rest: BROAD 04 1.79 → 0.92°,
     #                                      but 01 1.59 → 1.99°, 30 1.11 → 2.01° (acc errors then tilt)
     acc_bias: bool = False            # a slowly varying accelerometer bias in the velocity state: off,
@@ -91,6 +100,18 @@ class Options:
     #   the rounds' β_k/e keys, met an indeterminate system at every λ and returned the last round's
     #   thinned-field solution) these were 0.793° / 0.524° / 0.443°, mean also 0.77°.
     #   On by default (its cost: one more ML round where the gates pass, β_k/e keys in the rounds)
+    gyro_map_select: bool = False     # where E passes its gates, keep it only if, estimated without a block's
+    #   intervals, it carries the accelerometer's gravity direction across that block (gyro strapdown from the
+    #   block's first to its last window) significantly better than E = 0 (calibration/gyro_map_select.py:
+    #   K-fold over time blocks, paired z over the blocks ≥ gyro_map_select_z); else E = 0.
+    #   Cost where E passes its gates: folds + 1 more calibrations; elsewhere none. Off (H4): it keeps a
+    #   simulated 2 % E and drops a spurious one, but on BROAD drops E on 01, 02 and 04 alike (z −2.42, −2.26,
+    #   −1.88): 02 0.473 → 0.423°, 01 0.77 → 1.232°, 04 0.56 → 1.173° — at 0.2–0.3 % the accelerometer
+    #   cannot see E (01: +0.5 % on every axis moves its statistic by z −0.1) and E's gain there is heading
+    gyro_map_select_block_s: float = 4.0   # held-out block length, s
+    gyro_map_select_folds: int = 2
+    gyro_map_select_window_s: float = 0.5  # gravity averaged over the first and last window_s of each block
+    gyro_map_select_z: float = 2.0
     gyro_map_sigma: float = 0.02      # prior std of the entries of E
     gyro_map_acc_tol: float | None = 2.0   # m/s²: only keyframe intervals with | |b_acc| − g | below this
     #   inform E (calibration/gyro_map.clean_intervals; None: all intervals)
