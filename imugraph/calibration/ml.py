@@ -24,10 +24,10 @@ from imugraph.calibration.options import Options  # noqa: F401  (public here: ml
 from imugraph.calibration.acc_timing import session_lead, with_lead
 from imugraph.calibration.gyro_rate import update_rate_error
 from imugraph.calibration.gyro_map_select import calibrate_chosen
-from imugraph.calibration.result import Calibration
+from imugraph.calibration.result import Calibration, n_mag_from_dip
 from imugraph.factors.gyro import keyframe_layout, preintegrate
 from imugraph.calibration.disturbance import apply_windows, detect_windows, fit_offsets
-from imugraph.calibration.result import n_mag_from_dip
+from imugraph.calibration.acc_rate import update_acc_rate_error
 from imugraph.calibration.solution import marginal_covariances, per_sample_residuals  # noqa: F401 (public here)
 from imugraph.factors.velocity import gravity_from_velocity
 from imugraph.calibration.velocity_process import update_velocity_process
@@ -37,8 +37,7 @@ from imugraph.graphs.orientation_init import complementary_keyframes, sample_ori
 from imugraph.calibration.gyro_map import GyroMapState, coverage_gate
 from imugraph.calibration.initial import weak_initial  # noqa: F401  (re-exported: diagnose.fit uses it)
 from imugraph.factors.field import field_key
-from imugraph.graphs.single_imu import (FieldModel, Noise, VelocityModel, build_problem,
-                                        keyframe_rotations)
+from imugraph.graphs.single_imu import FieldModel, Noise, VelocityModel, build_problem, keyframe_rotations
 from imugraph.graphs.gyro_map_block import without_map_keys
 from imugraph.graphs.solver import keyframe_vectors, optimize
 from imugraph.io.session import Session
@@ -121,7 +120,7 @@ def calibrate(session: Session, options: Options | None = None, initial=None,
     rest_mask = getattr(init, "rest", None) if opt.zero_velocity_at_rest else None
 
     vel_state = {"v": None, "s": None, "sigma": opt.velocity_sigma, "tau": opt.velocity_tau, "g": None,
-                 "rest": rest_mask, "ar2": None}
+                 "rest": rest_mask, "ar2": None, "kappa_a": opt.acc_rate_error}
     windows = detect_windows(session.t, m_cal0) if opt.disturbance_windows else []
     mag_state = {"y": session.mag, "w": apply_windows(windows, session.mag)[1] if windows else None}
 
@@ -205,6 +204,7 @@ def calibrate(session: Session, options: Options | None = None, initial=None,
             change = max(float(np.max(np.abs(np.log(new[c] / getattr(noise, c))))) for c in new)
             if opt.estimate_gyro_rate_error:  # κ by an ML step (calibration/gyro_rate.py)
                 change = max(change, update_rate_error(rate, prob, values, pre, history[-1]))
+            change = max(change, update_acc_rate_error(opt, vel_state, prob.velocity, nRk, pre, session, history[-1]))
             if vel_state["v"] is not None and opt.estimate_velocity_process != "off":   # EM step of σ_v, τ_v
                 change = max(change, update_velocity_process(vel_state, prob.velocity, nRk, history[-1],
                                                              opt.estimate_velocity_process, opt.velocity_sigma,
@@ -328,7 +328,7 @@ def _velocity_model(opt: Options, vel: dict) -> VelocityModel | None:
     """The velocity chain's settings for the next solve (None: linear acceleration treated as noise)."""
     if opt.linear_acceleration != "velocity":
         return None
-    return VelocityModel(vel["sigma"], vel["tau"], opt.acc_rate_error, opt.acc_kernel, vel["s"],
+    return VelocityModel(vel["sigma"], vel["tau"], vel.get("kappa_a", opt.acc_rate_error), opt.acc_kernel, vel["s"],
                          opt.acc_bias, rest=vel["rest"], ar2=vel.get("ar2"))
 
 

@@ -71,6 +71,13 @@ class Options:
     #   (H4, evidence only: 0.03 removes the slow-tilt excess over offline VQF where the motion is vigorous —
     #   06 slow tilt 0.220 → 0.107° (VQF 0.104°), 16 0.091 → 0.081° — but 06's heading pays: 0.557 → 0.587° total;
     #   16 0.401 → 0.359°, 15 0.879 → 0.869°, 02/07 within 0.003°; benchmarks/h4_error_split.py)
+    estimate_acc_rate_error: bool = False  # κ_a re-estimated per ML round by maximising the marginal likelihood of
+    #   the velocity increments (Kalman filter over the velocity chain, calibration/acc_rate.py), held in
+    #   [acc_rate_error, 0.1]: the setting is a floor. Off (H6, benchmarks/h6_acc_rate.py, broad_published.py --opt):
+    #   ML κ_a 0.082 on 01 (0.767 → 0.780°), 0.039 on 06 (0.557 → 0.583°: tilt 0.345 → 0.284°, heading 0.437 →
+    #   0.509°), 0.016–0.020 on 04/07/32 (±0.003°), at the floor on 02/15/16 (ML 0.000/0.007/0.000: 16's slow
+    #   tilt is not a κ_a|f| error by this likelihood; the AR(2) process takes the vigorous motion). Cost ≈ 0.3 s
+    #   CPU per round on a BROAD trial
     zero_velocity_at_rest: bool = False  # v = 0 ± 0.02 m/s at detected rest: BROAD 04 1.79 → 0.92°,
     #                                      but 01 1.59 → 1.99°, 30 1.11 → 2.01° (acc errors then tilt)
     acc_bias: bool = False            # a slowly varying accelerometer bias in the velocity state: off,
