@@ -20,6 +20,7 @@ calibration (see docs/stream.md). Wall times; the machine may be shared: compare
 
     .venv/bin/python benchmarks/stream_speed.py [TRIALS] [--lag 2 | --no-lag] [--no-batch] [--bootstrap-s 30]
         [--calibration online|fixed|both] [--lag-solver chain|incremental|batch] [--lag-only] [--no-cal-compare] [--calib-states]
+        [--disturb] [--weak-prior] [--cache DIR]
 
 TRIALS: comma-separated BROAD trial numbers, or "all" (the 17 trials; default 01). --no-lag / --no-batch skip
 the fixed-lag run / the batch smoother (time). Prints the per-trial table, then the means of the filtered
@@ -48,7 +49,8 @@ def _err(q, s):
 
 
 def run_trial(path: Path, lag: float | None, bootstrap_s: float, batch: bool = True, online=(True,),
-              compare_cal: bool = True, lag_solver: str = "chain", lag_only: bool = False, calib_states: bool = False) -> list[dict]:
+              compare_cal: bool = True, lag_solver: str = "chain", lag_only: bool = False, calib_states: bool = False,
+              disturb: bool = False, weak_prior: bool = False, cache: str | None = None) -> list[dict]:
     from imugraph.evaluate import orientation_error
     from imugraph.graphs.cpp_smoother import smooth_fixed
     from imugraph.graphs.stream import StreamOptions
@@ -56,15 +58,21 @@ def run_trial(path: Path, lag: float | None, bootstrap_s: float, batch: bool = T
 
     s = load_broad_trial(path)
     name = f"{trial_number(path):02d}"
-    start = time.perf_counter()
-    cal, n_boot = bootstrap_calibration(s, bootstrap_s)
-    boot = time.perf_counter() - start
+    solvers = ([] if lag_only else [("stream iSAM2", None)]) + ([(f"stream lag {lag:g} s", lag)] if lag is not None else [])
+    runs = [(f"{label} {'online' if on else 'fixed'} cal", lag_s, on) for label, lag_s in solvers for on in online]
+    want_full = compare_cal and any(on for *_, on in runs)
+    cached = _cache_load(cache, name)
+    if cached is not None:
+        cal, n_boot, boot = cached["boot"], cached["n_boot"], cached.get("boot_seconds", float("nan"))
+    else:
+        start = time.perf_counter()
+        cal, n_boot = bootstrap_calibration(s, bootstrap_s)
+        boot = time.perf_counter() - start
+        cached = {"boot": cal, "n_boot": n_boot, "boot_seconds": boot, "new": True}
     q_batch, t_batch = timed(smooth_fixed, s, cal) if batch else (None, None)
     rows = []
-    runs = ([] if lag_only else [("stream iSAM2", None)]) + ([(f"stream lag {lag:g} s", lag)] if lag is not None else [])
-    runs = [(f"{label} {'online' if on else 'fixed'} cal", lag_s, on) for label, lag_s in runs for on in online]
-    cal_full = None
-    if compare_cal and any(on for *_, on in runs):
+    cal_full, f_batch = cached.get("full"), cached.get("f_batch")
+    if want_full and cal_full is None:
         from imugraph.calibration.ml import Options, calibrate
         from imugraph.errors import CalibrationError
         same_model = Options()          # the batch default (gyro map E on), as the bootstrap; the stream applies
@@ -75,9 +83,15 @@ def run_trial(path: Path, lag: float | None, bootstrap_s: float, batch: bool = T
             est_full = calibrate(s, same_model, allow_weak=True)
         cal_full = est_full.calibration
         f_batch = _whiteness(est_full.residuals.get("mag"), s.t)
+        cached.update(full=cal_full, f_batch=f_batch, new=True)
+    if cached.pop("new", False):
+        _cache_save(cache, name, cached)
     for label, lag_s, on in runs:
-        r = stream_session(s, cal, StreamOptions(lag_s=lag_s, online_calibration=on, fixed_lag_solver=lag_solver,
-                                                 calib_states=calib_states))
+        opts = StreamOptions(lag_s=lag_s, online_calibration=on, fixed_lag_solver=lag_solver, calib_states=calib_states,
+                             disturb_detect=disturb, calib_weak_prior=weak_prior)
+        # the bootstrap computed above (not timed again); stream_session then learns the detector's σ_f over its
+        # window and takes the weak prior's s from it, as when it bootstraps itself
+        r = stream_session(s, None, opts, bootstrap_s, bootstrap=(cal, n_boot))
         tm = r.timing
         rows.append({"trial": name, "method": label, "rt_factor": tm["realtime_factor"], "p50_ms": tm["p50_ms"],
                      "p99_ms": tm["p99_ms"], "cpu_rt": tm.get("cpu_realtime_factor"), "p99_cpu_ms": tm.get("p99_cpu_ms"),
@@ -87,6 +101,7 @@ def run_trial(path: Path, lag: float | None, bootstrap_s: float, batch: bool = T
                      "vs_batch_deg": orientation_error(r.smoothed, q_batch, None, s.rate, heading=False,
                                                        max_shift=0.0).rms_deg if batch else None,
                      "seconds": tm["seconds"], "bootstrap_s": boot, "failed": r.counts["failed_updates"],
+                     "dist": r.counts.get("disturbances"), "dist_kf": r.counts.get("disturbed_keyframes"),
                      **(_cal_agreement(r.calibration, cal_full) if on and cal_full is not None else {}),
                      **(_last_refit(r.calibration_history, r.calibration, cal_full, f_batch) if on and cal_full is not None else {}),
                      **(_white_z(r.calibration_history, r.calibration, cal_full) if on and cal_full is not None else {})})
@@ -99,6 +114,25 @@ def run_trial(path: Path, lag: float | None, bootstrap_s: float, batch: bool = T
     for r in rows:
         r.update(samples=s.n, rate_hz=round(s.rate, 1), bootstrap_samples=n_boot)
     return rows
+
+
+def _cache_load(cache: str | None, name: str) -> dict | None:
+    """--cache DIR: the trial's bootstrap (and whole-trial batch calibration) from an earlier run, cal_NN.pkl."""
+    if not cache:
+        return None
+    import pickle
+    p = Path(cache) / f"cal_{name}.pkl"
+    return pickle.loads(p.read_bytes()) if p.exists() else None
+
+
+def _cache_save(cache: str | None, name: str, data: dict) -> None:
+    if cache:
+        import pickle
+        import os
+        Path(cache).mkdir(parents=True, exist_ok=True)
+        tmp = Path(cache) / f".cal_{name}.pkl.{os.getpid()}"
+        tmp.write_bytes(pickle.dumps(data))
+        os.replace(tmp, Path(cache) / f"cal_{name}.pkl")       # atomic: a concurrent run never reads half a file
 
 
 def _cal_agreement(cal, ref) -> dict:
@@ -202,6 +236,12 @@ def main(argv=None) -> int:
     ap.add_argument("--no-cal-compare", action="store_true", help="skip the whole-trial batch calibration")
     ap.add_argument("--calib-states", action="store_true", help="online calibration with θ as a graph state "
                     "(StreamOptions(calib_states=True)) instead of the closed-form refit on fixed orientations")
+    ap.add_argument("--disturb", action="store_true", help="causal disturbance windows left out of the online "
+                    "calibration (StreamOptions(disturb_detect=True), imugraph.graphs.stream_disturb)")
+    ap.add_argument("--weak-prior", action="store_true", help="the batch's weak prior for the online calibration "
+                    "when the bootstrap says D, o are not identifiable (StreamOptions(calib_weak_prior=True))")
+    ap.add_argument("--cache", default=None, help="DIR: reuse / store each trial's bootstrap and whole-trial batch "
+                    "calibration (cal_NN.pkl; the calibration code may have changed since they were computed)")
     a = ap.parse_args(argv)
     every = a.trials == "all"
     wanted = set() if every else {int(x) for x in a.trials.split(",")}
@@ -214,11 +254,11 @@ def main(argv=None) -> int:
     for p in paths:
         online = {"online": (True,), "fixed": (False,), "both": (True, False)}[a.calibration]
         rows += run_trial(p, lag, a.bootstrap_s, not a.no_batch, online, not a.no_cal_compare, a.lag_solver, a.lag_only,
-                          a.calib_states)
+                          a.calib_states, a.disturb, a.weak_prior, a.cache)
         print(f"trial {trial_number(p):02d} done", file=sys.stderr, flush=True)
     cols = ["trial", "method", "rt_factor", "p50_ms", "p99_ms", "cpu_rt", "p99_cpu_ms", "max_cpu_ms", "p99_btw_cpu_ms",
             "max_btw_cpu_ms", "filtered_deg", "smoothed_deg", "vs_batch_deg", "E_max",
-            "seconds", "bootstrap_s", "failed", "cal_z", "cal_z_white", "whiteness", "cal_dD_rel", "refit_z", "refit_z_bF",
+            "seconds", "bootstrap_s", "failed", "dist", "dist_kf", "cal_z", "cal_z_white", "whiteness", "cal_dD_rel", "refit_z", "refit_z_bF",
             "refit_z_white", "refit_z_white_bF", "V_max", "F_batch_max", "refit_dD_rel",
             "applied", "refits"]
     print_table(rows, cols)

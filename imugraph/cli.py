@@ -133,6 +133,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--lag-solver", choices=("chain", "incremental", "batch"), default="chain",
                    help="fixed-lag solver: iSAM2 with a once-a-second window re-elimination (chain, default; "
                    "docs/stream.md), gtsam's incremental fixed-lag smoother, or its batch one")
+    p.add_argument("--calib-states", action=argparse.BooleanOptionalAction, default=None,
+                   help="D, o and the dip as states of the incremental graph instead of the periodic refit")
+    p.add_argument("--disturb", action=argparse.BooleanOptionalAction, default=None,
+                   help="detect magnetic disturbance windows causally and keep them out of the calibration")
+    p.add_argument("--weak-prior", action=argparse.BooleanOptionalAction, default=None,
+                   help="when D, o are not identifiable, hold them with the batch's weak prior")
     _common(p, default_out, data_dir=True)
     _keyframes(p)
 

@@ -73,9 +73,14 @@ class StreamSmoother(OnlineCalibrationMixin, KeyframeStartMixin, ArrivalMixin, S
         cal: the calibration (held fixed); rate: nominal sampling rate, Hz; options: `StreamOptions`;
         g0: start value of gravity when options.g is None (default 9.81; `stream_session` passes the
         bootstrap's median |acc|, as the batch path uses the session's).
+        weak_scale: s of the batch's weak prior D = s·I (options.calib_weak_prior; `stream_session` passes the
+        median |y| of the bootstrap window, as `weak_initial`); None: |det D|^(1/3) of `cal`.
+        start_window_s: the stream's first seconds that `cal` was fitted on (the bootstrap window; options.disturb_detect
+        learns the field's own variation there, stream_disturb).
     """
 
-    def __init__(self, cal: Calibration, rate: float, options: StreamOptions = StreamOptions(), g0: float = 9.81):
+    def __init__(self, cal: Calibration, rate: float, options: StreamOptions = StreamOptions(), g0: float = 9.81,
+                 weak_scale: float | None = None, start_window_s: float = 0.0):
         if not (np.isfinite(rate) and rate > 0):
             raise SessionError("stream", "rate", repr(rate), "a positive sampling rate in Hz")
         if options.fixed_lag_solver not in ("batch", "incremental", "chain"):
@@ -99,6 +104,7 @@ class StreamSmoother(OnlineCalibrationMixin, KeyframeStartMixin, ArrivalMixin, S
         self._online = OnlineMagCalibration(cal, options.calib_prior_rel, estimate_dip=options.calib_dip,
                                             use_start_std=options.calib_prior_from_start) if options.online_calibration and not self._calstate else None
         self._init_calstate(cal)
+        self._init_disturb(cal, weak_scale, start_window_s)   # causal disturbance windows, the batch's weak prior (stream_online)
         self._pending: deque = deque()       # intervals not yet folded: (k, t_k, kRb (n,3,3), y (n,3))
         self._next_refit, self._refit_due = options.calib_every_s, False   # due: runs between keyframes
         self._hist_y, self._mag_index = [], {}   # iSAM2: per-interval y (keep_history), keyframe → index of its
@@ -241,6 +247,7 @@ class StreamSmoother(OnlineCalibrationMixin, KeyframeStartMixin, ArrivalMixin, S
         hit = any(ts <= t[-2] and te >= t[0] for ts, te in self._windows)
         y = self._cal0.corrected(t[:-1], m_raw) if hit else m_raw
         ok = ~np.isnan(y[:, 0])
+        flagged = self._detector is not None and self._disturb_step(k, t[0], t_next, y, ok, hit)   # stream_disturb
         graph, values, stamps = gtsam.NonlinearFactorGraph(), gtsam.Values(), {}
         if k == 0:
             m_cal = (y - self.cal.o) @ self._D_inv.T
@@ -261,10 +268,10 @@ class StreamSmoother(OnlineCalibrationMixin, KeyframeStartMixin, ArrivalMixin, S
             graph.add(field_step_factor(field_key(k), field_key(k + 1), dt_k, self.opt.field_sigma, self.opt.field_tau))
             values.insert(field_key(k + 1), np.exp(-dt_k / self.opt.field_tau) * self._d)
             stamps[field_key(k + 1)] = t_next - self._t0
-        if ok.any():
+        if ok.any() and not (flagged and self.opt.disturb_orient):
             if self.opt.lag_s is None:               # for the final re-issue (iSAM2 keeps every factor)
                 self._mag_index[k] = self._n_factors + graph.size()
-            graph.add(self._mag_factor(k, kRb, y))
+            graph.add(self._mag_factor(k, kRb, y, no_theta=flagged))
         # prediction of keyframe k+1 from the latest estimate of keyframe k
         nRk = self._nRk.matrix()
         c = np.array([0.0, 0.0, -self._g]) * dt_k + nRk @ dv

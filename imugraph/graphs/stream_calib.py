@@ -88,6 +88,12 @@ class OnlineMagCalibration:
         self.last_whiteness = None       # its factor per axis (eq. 3; None before 5 blocks)
         self.history: list = []
 
+    def set_prior(self, centre: np.ndarray, sigma: np.ndarray) -> None:
+        """Replace the prior of (2): centre and σ as θ vectors (13,: vec D row-major, o, δ — factors.theta; δ unused)."""
+        c, s = np.asarray(centre, float), np.asarray(sigma, float)
+        self.theta0 = np.hstack([c[:9].reshape(3, 3), c[9:12, None]]).T            # (4, 3): column j = θ⁰_j
+        self.prior_info = 1.0 / np.hstack([s[:9].reshape(3, 3), s[9:12, None]]) ** 2
+
     # ------------------------------------------------------------------ data
     def forget(self, factor: float) -> None:
         """Down-weight everything folded so far by `factor` (0..1): exponential forgetting of samples whose

@@ -94,14 +94,20 @@ def weak_sigmas(cal: Calibration, rel: float) -> np.ndarray:
 
 
 def data_estimate(theta_hat: np.ndarray, P: np.ndarray, theta0: np.ndarray, pin_sig: np.ndarray,
-                  weak_sig: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Eq. (3)–(4): the streamed θ and its covariance from the pinned solver's θ̂ and marginal covariance P."""
+                  weak_sig: np.ndarray, prior_mean: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Eq. (3)–(4): the streamed θ and its covariance from the pinned solver's θ̂ and marginal covariance P.
+    prior_mean: the centre c of the weak prior Λ_w (None: θ₀); then (4) reads
+    θ = θ₀ + (S + Λ_w)⁻¹ (P⁻¹(θ̂ − θ₀) + Λ_w (c − θ₀))  (the minimum of the data's quadratic about θ₀ plus the prior)."""
     info = np.linalg.inv(P)
     info = 0.5 * (info + info.T)
+    lam_w = 1.0 / np.asarray(weak_sig, float) ** 2
     S = info - np.diag(1.0 / np.asarray(pin_sig, float) ** 2)          # the data's Schur complement
-    A = S + np.diag(1.0 / np.asarray(weak_sig, float) ** 2)
+    A = S + np.diag(lam_w)
     cov = np.linalg.inv(A)
-    return theta0 + cov @ (info @ (np.asarray(theta_hat, float) - theta0)), 0.5 * (cov + cov.T)
+    g = info @ (np.asarray(theta_hat, float) - theta0)
+    if prior_mean is not None:
+        g = g + lam_w * (np.asarray(prior_mean, float) - theta0)
+    return theta0 + cov @ g, 0.5 * (cov + cov.T)
 
 
 def cal_mag_jacobians(R_k: np.ndarray, d: np.ndarray, theta: np.ndarray, M: np.ndarray, y_avg: np.ndarray):

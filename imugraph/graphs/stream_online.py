@@ -20,7 +20,14 @@ early ones included, made D drift 20 std off the truth even from the true start 
 orientations); the dip is held at the start's by default (calib_dip=False): estimated online it drifted
 0.2–0.5° off the truth with a 0.03° std (its error is absorbed by the orientations' tilt). Under iSAM2, `finish`
 re-issues every magnetometer factor with the final calibration before its Levenberg–Marquardt. Noise levels,
-the magnetometer lag and disturbance windows stay those of the start calibration."""
+the magnetometer lag and the start calibration's disturbance windows are kept.
+
+Options (off by default): `disturb_detect` — causal disturbance windows (`imugraph.graphs.stream_disturb`; with the
+start calibration's own windows) left out of the online calibration: not folded into the refit (an onset also flags
+the pending intervals back to it), or, with θ as a state, the keyframe's factor without θ (`_init_disturb`,
+`_disturb_step`); `calib_weak_prior` — when the start says D, o are not identifiable, the batch's weak prior
+(`weak_prior`: D = s·I, o = 0, calibration.ml's σ) for the refit's (2) or θ's Λ_w with its centre.
+Measured on BROAD: docs/stream.md, "Disturbances and the weak prior online"."""
 
 from __future__ import annotations
 
@@ -35,6 +42,21 @@ from imugraph.graphs.cpp_velocity import pose_key, robust
 from imugraph.graphs.stream_calstate import (CAL_KEY, PIN_REL, WhitenessSums, cal_mag_factor, calibration_of,
                                              data_estimate, theta_of, weak_sigmas)
 from imugraph.graphs.stream_field import field_key, field_mag_factor, linearized_once
+
+
+def weak_prior(cal: Calibration, scale: float | None) -> tuple[np.ndarray, np.ndarray] | None:
+    """The batch's prior on θ when D, o are not identifiable (`cal.coverage["identifiable"]` False): centre D = s·I,
+    o = 0 (`calibration.initial.weak_initial`; the dip: the start's), σ from `calibration.ml`'s `_theta_prior_sigma`
+    with `Options().weak_theta_fraction` (D ± f·s, o ± 2f·s, δ ± 90°); None for an identifiable start."""
+    if not (isinstance(cal.coverage, dict) and cal.coverage.get("identifiable") is False):
+        return None
+    from imugraph.calibration.ml import _theta_prior_sigma
+    from imugraph.calibration.options import Options
+    from imugraph.factors.theta import pack_theta
+
+    s = float(scale) if scale else float(np.cbrt(abs(np.linalg.det(cal.D))))
+    centre = pack_theta(s * np.eye(3), np.zeros(3), cal.dip_rad)
+    return centre, _theta_prior_sigma(centre, True, Options().weak_theta_fraction)
 
 
 class OnlineCalibrationMixin:
@@ -69,6 +91,55 @@ class OnlineCalibrationMixin:
         self._streamed_cal = None            # latest streamed calibration (eq. 4)
         self._white = WhitenessSums()        # eq. (6)
         self._gated = 0                      # keyframes without information on θ (calib_gate)
+        self._prior_mean = None              # of Λ_w: θ₀ (None), or the batch's weak prior centre (_init_disturb)
+
+    # ------------------------------------------------------------------ disturbances, the weak prior
+    def _init_disturb(self, cal: Calibration, weak_scale: float | None, learn_s: float = 0.0) -> None:
+        """The causal disturbance detector (options.disturb_detect, stream_disturb) and, with calib_weak_prior on a
+        start that says D, o are not identifiable, the batch's weak prior for the online calibration."""
+        opt = self.opt
+        self._disturbed: set = set()         # pending keyframes flagged (refit: not folded in)
+        self._detector = None
+        if opt.disturb_detect and opt.online_calibration:
+            from imugraph.graphs.stream_disturb import DisturbanceDetector, field_norm_sigma
+
+            scale = float(np.cbrt(abs(np.linalg.det(cal.D))))
+            self._detector = DisturbanceDetector(
+                cal.D, cal.o, field_norm_sigma(opt.field_sigma, cal.dip_rad), float(np.mean(self._sig_y)) / scale,
+                opt.disturb_p_alarm, opt.disturb_p_drift, opt.disturb_pad_s,
+                max(opt.lag_s or 0.0, opt.calib_delay_s), max(learn_s, opt.disturb_learn_s))
+        weak = weak_prior(cal, weak_scale) if opt.calib_weak_prior and opt.online_calibration else None
+        if weak is None:
+            return
+        centre, sig = weak
+        if self._calstate:                   # Λ_w of stream_calstate eq. (4) about the weak centre (the pin stays)
+            self._weak_sig, self._prior_mean = sig, centre
+        else:
+            self._online.set_prior(centre, sig)
+
+    def _disturb_step(self, k: int, t_start: float, t_end: float, y: np.ndarray, ok: np.ndarray, known: bool) -> bool:
+        """Interval k through the detector; flags it (and, at an onset, the pending intervals back to it) for the
+        refit's fold-in; counts. known: it overlaps one of the start calibration's own disturbance windows (its field
+        is already corrected there; flagged too: the offsets were fitted with the start's D, o). Returns whether
+        interval k is in a disturbance window."""
+        flag, onset = self._detector.step(t_start, t_end, y)
+        flag = flag or known
+        st = self.stats
+        st.disturbances = self._detector.windows
+        if onset is not None:
+            if self._online is not None:     # not yet folded in: flag them too (at most max_lag_s back)
+                t_on, span = onset - self._t0, self.stride / self.rate
+                for kp, tk, _, yp in self._pending:
+                    if tk + span > t_on and kp not in self._disturbed:
+                        self._disturbed.add(kp)
+                        st.disturbed_keyframes += 1
+                        st.disturbed_samples += int(np.isfinite(yp[:, 0]).sum())
+        if flag:
+            st.disturbed_keyframes += 1
+            st.disturbed_samples += int(ok.sum())
+            if self._online is not None:
+                self._disturbed.add(k)
+        return flag
 
     def _add_cal_state(self, graph, values, stamps) -> None:
         """θ's value and pin at keyframe 0."""
@@ -82,7 +153,7 @@ class OnlineCalibrationMixin:
         isam = self._solver.isam if self._chain else self._solver
         try:
             theta, cov = data_estimate(isam.calculateEstimateVector(CAL_KEY), isam.marginalCovariance(CAL_KEY),
-                                       self._theta0, self._pin_sig, self._weak_sig)
+                                       self._theta0, self._pin_sig, self._weak_sig, self._prior_mean)
         except (RuntimeError, np.linalg.LinAlgError):       # counted as a failed update; no row
             self.stats.failed_updates += 1
             return
@@ -121,7 +192,9 @@ class OnlineCalibrationMixin:
             nRk = self._keyframe_R(k)
             if self.opt.calib_memory_s:      # w = exp(−Δt/T) per interval
                 self._online.forget(float(np.exp(-self.stride / self.rate / self.opt.calib_memory_s)))
-            if nRk is not None:
+            if k in self._disturbed:         # a disturbance window (stream_disturb): not used
+                self._disturbed.discard(k)
+            elif nRk is not None:
                 # without d_k: folding the graph's d_k in kept the start calibration's error (d absorbs it, ~1 %
                 # of the field, within σ_d) — simulation, tests/test_stream_calib.py: D 16 std off the truth
                 self._online.add(y, nRk @ kRb)       # nRb_i = nRk · kRb_i
@@ -181,15 +254,16 @@ class OnlineCalibrationMixin:
             graph.add(self._mag_factor(k, quat_to_rotmat(self._hist_kRb[k]), self._hist_y[k], exact=True))
         return graph
 
-    def _mag_factor(self, k: int, kRb: np.ndarray, y: np.ndarray, exact: bool = False):
+    def _mag_factor(self, k: int, kRb: np.ndarray, y: np.ndarray, exact: bool = False, no_theta: bool = False):
         """Huber MagPoseFactorPose3 on keyframe k: the interval's calibrated field D⁻¹(y − o) rotated into
         keyframe k and averaged (full covariance), against the current n_mag. With the field perturbation:
         stream_field's factor against n + d_k, linearised once at keyframe k's latest estimate (exact=False,
-        for the incremental solvers; see stream_field.linearized_once) or the exact CustomFactor."""
+        for the incremental solvers; see stream_field.linearized_once) or the exact CustomFactor. no_theta: with θ as a
+        graph state, the factor carries no information on θ (a disturbance window: gated as by calib_gate)."""
         if self._calstate:       # on (pose_k, d_k, θ), linearised once (stream_calstate eq. 1–2)
+            gate = -1.0 if no_theta else None if self.opt.calib_gate is None else self.opt.calib_gate * self._online_scale
             f, rows = cal_mag_factor(pose_key(k), gtsam.Pose3(self._nRk, self._p), field_key(k) if self._field else None,
-                                     self._d, self._theta_lin, kRb, y, self._sig_y, self.opt.huber_k, self._theta0,
-                                     None if self.opt.calib_gate is None else self.opt.calib_gate * self._online_scale)
+                                     self._d, self._theta_lin, kRb, y, self._sig_y, self.opt.huber_k, self._theta0, gate)
             if rows is not None:
                 self._white.add(*rows)
             else:

@@ -71,6 +71,19 @@ class StreamOptions:
         acc_lead_samples: δ ≥ 0, accelerometer row j paired with the strapdown orientation of row j + δ
             (calibration/acc_timing.py eq. 3, applied causally per interval: StreamSmoother._lead); None: the
             calibration's `acc_lead_samples` (0.5 from `calibrate`), as `smooth_fixed` chooses it.
+        disturb_detect: detect lasting magnetometer disturbances causally (`imugraph.graphs.stream_disturb`: a CUSUM
+            on the whitened norm deviation of the field calibrated with the start calibration, thresholds from χ²₁
+            quantiles disturb_p_alarm / disturb_p_drift, windows widened by disturb_pad_s; the field's own variation
+            learned over the bootstrap window, at least disturb_learn_s) and leave their intervals
+            out of the online calibration (the refit's fold-in; with calib_states their factors carry no θ);
+            counted in `StreamStats` (disturbances, disturbed_keyframes, disturbed_samples). disturb_orient: also
+            leave the magnetometer factor of a flagged keyframe out of the orientations (decided when its interval
+            closes). Off by default (docs/stream.md, "Disturbances and the weak prior online").
+        calib_weak_prior: when the start calibration says D, o are not identifiable (`coverage["identifiable"]`
+            False: the regularised fallback of `calibrate`), the online calibration's prior is the batch's weak
+            prior — D = s·I, o = 0 with σ = weak_theta_fraction × s (o: twice), `calibration.ml`'s — instead of the
+            start ± calib_prior_rel (or the start's own std); s is `StreamSmoother`'s weak_scale (stream_session:
+            median |y| over the bootstrap window, as `calibration.initial.weak_initial`).
         Other fields: as `smooth_fixed`.
     """
 
@@ -110,6 +123,13 @@ class StreamOptions:
     field_sigma: float | tuple | None = (0.015, 0.003, 0.015)
     field_tau: float = 1.0
     lag_hold_s: float = 0.5
+    disturb_detect: bool = False
+    disturb_p_alarm: float = 1e-4
+    disturb_p_drift: float = 0.01
+    disturb_pad_s: float = 0.5
+    disturb_learn_s: float = 10.0
+    disturb_orient: bool = False
+    calib_weak_prior: bool = False
 
 
 @dataclass
@@ -129,6 +149,9 @@ class StreamStats:
     failed_updates: int = 0
     marginal_steps: int = 0
     calib_refits: int = 0
+    disturbances: int = 0
+    disturbed_keyframes: int = 0
+    disturbed_samples: int = 0
     update_s: array = field(default_factory=lambda: array("d"))
     update_cpu_s: array = field(default_factory=lambda: array("d"))
     between_s: array = field(default_factory=lambda: array("d"))

@@ -112,6 +112,16 @@ def rest_gyro_bias(session: Session, rest_s: float = 2.0, min_fraction: float = 
     return part.gyr[rest].mean(axis=0)
 
 
+def weak_scale(session: Session, n: int) -> float | None:
+    """s of the batch's weak prior D = s·I over the first n samples (the bootstrap window): the median |y| of its
+    field samples, as `calibration.initial.weak_initial` computes it; None without one (n = 0 or no field)."""
+    if n <= 0:
+        return None
+    y = np.asarray(session.mag[:n], float)
+    y = y[np.all(np.isfinite(y), axis=1)]
+    return float(np.median(np.linalg.norm(y, axis=1))) if len(y) else None
+
+
 def timing_summary(update_s, seconds: float, n_samples: int, rate: float, update_cpu_s=None,
                    cpu_seconds: float | None = None, between_s=None, between_cpu_s=None) -> dict:
     """timing.json: `updates`, `seconds` (streaming wall time), `p50_ms`, `p99_ms`, `max_ms` per keyframe update,
@@ -143,25 +153,30 @@ def timing_summary(update_s, seconds: float, n_samples: int, rate: float, update
 
 def stream_session(session: Session, cal: Optional[Calibration] = None, options: StreamOptions = StreamOptions(),
                    bootstrap_s: float = 30.0, allow_weak: bool = True,
-                   say: Callable[[str], None] = lambda m: None) -> StreamResult:
+                   say: Callable[[str], None] = lambda m: None, bootstrap: tuple | None = None) -> StreamResult:
     """Stream every sample of `session` in time order through a `StreamSmoother`.
 
     Args:
         session: the recording; cal: calibration to hold fixed (None: bootstrap on the first bootstrap_s s);
         options: `StreamOptions`; allow_weak: see `calibrate`; say: progress callback.
+        bootstrap: (calibration, samples) of a bootstrap already computed on this session (`bootstrap_calibration`;
+        with cal None): used as if computed here (g0, the detector's learning window, the weak prior's scale).
 
     Returns:
         StreamResult (timing also holds `bootstrap_seconds`, the wall time of the bootstrap calibration).
     """
     n_boot, boot_s = 0, 0.0
-    if cal is None:
+    if cal is None and bootstrap is not None:
+        cal, n_boot = bootstrap
+    elif cal is None:
         say(f"bootstrap calibration on the first {bootstrap_s:g} s")
         start = time.perf_counter()
         cal, n_boot = bootstrap_calibration(session, bootstrap_s, options.keyframe_hz, allow_weak)
         boot_s = time.perf_counter() - start
     n_g = n_boot or session.n
     g0 = float(np.median(np.linalg.norm(session.acc[:n_g], axis=1)))
-    smoother = StreamSmoother(cal, session.rate, options, g0=g0)
+    smoother = StreamSmoother(cal, session.rate, options, g0=g0, weak_scale=weak_scale(session, n_boot),
+                              start_window_s=float(session.t[n_boot - 1] - session.t[0]) if n_boot else 0.0)
     filtered = np.empty((session.n, 4))
     say(f"streaming {session.n} samples ({'iSAM2' if options.lag_s is None else f'lag {options.lag_s:g} s'})")
     start, start_cpu = time.perf_counter(), time.process_time()
