@@ -30,6 +30,7 @@ error of every streamed method beside online VQF's over the same trials. Writes 
 from __future__ import annotations
 
 import argparse
+import pickle
 import sys
 import time
 from pathlib import Path
@@ -41,6 +42,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 from benchmarks.common import broad_trials, load_broad_trial, peak_memory_mb, print_table, trial_number  # noqa: E402
 from benchmarks.output import write_json  # noqa: E402
 from benchmarks.peers import timed, vqf_online  # noqa: E402
+from imugraph.io.writers import atomic_write_bytes  # noqa: E402
 
 
 def _err(q, s):
@@ -63,12 +65,13 @@ def run_trial(path: Path, lag: float | None, bootstrap_s: float, batch: bool = T
     want_full = compare_cal and any(on for *_, on in runs)
     cached = _cache_load(cache, name)
     if cached is not None:
-        cal, n_boot, boot = cached["boot"], cached["n_boot"], cached.get("boot_seconds", float("nan"))
+        cal, n_boot, boot = cached["boot"], cached["n_boot"], cached["boot_seconds"]
+        dirty = False
     else:
         start = time.perf_counter()
         cal, n_boot = bootstrap_calibration(s, bootstrap_s)
         boot = time.perf_counter() - start
-        cached = {"boot": cal, "n_boot": n_boot, "boot_seconds": boot, "new": True}
+        cached, dirty = {"boot": cal, "n_boot": n_boot, "boot_seconds": boot}, True
     q_batch, t_batch = timed(smooth_fixed, s, cal) if batch else (None, None)
     rows = []
     cal_full, f_batch = cached.get("full"), cached.get("f_batch")
@@ -83,9 +86,10 @@ def run_trial(path: Path, lag: float | None, bootstrap_s: float, batch: bool = T
             est_full = calibrate(s, same_model, allow_weak=True)
         cal_full = est_full.calibration
         f_batch = _whiteness(est_full.residuals.get("mag"), s.t)
-        cached.update(full=cal_full, f_batch=f_batch, new=True)
-    if cached.pop("new", False):
-        _cache_save(cache, name, cached)
+        cached.update(full=cal_full, f_batch=f_batch)
+        dirty = True
+    if dirty and cache:
+        atomic_write_bytes(Path(cache) / f"cal_{name}.pkl", pickle.dumps(cached))
     for label, lag_s, on in runs:
         opts = StreamOptions(lag_s=lag_s, online_calibration=on, fixed_lag_solver=lag_solver, calib_states=calib_states,
                              disturb_detect=disturb, calib_weak_prior=weak_prior)
@@ -120,19 +124,8 @@ def _cache_load(cache: str | None, name: str) -> dict | None:
     """--cache DIR: the trial's bootstrap (and whole-trial batch calibration) from an earlier run, cal_NN.pkl."""
     if not cache:
         return None
-    import pickle
     p = Path(cache) / f"cal_{name}.pkl"
     return pickle.loads(p.read_bytes()) if p.exists() else None
-
-
-def _cache_save(cache: str | None, name: str, data: dict) -> None:
-    if cache:
-        import pickle
-        import os
-        Path(cache).mkdir(parents=True, exist_ok=True)
-        tmp = Path(cache) / f".cal_{name}.pkl.{os.getpid()}"
-        tmp.write_bytes(pickle.dumps(data))
-        os.replace(tmp, Path(cache) / f"cal_{name}.pkl")       # atomic: a concurrent run never reads half a file
 
 
 def _cal_agreement(cal, ref) -> dict:

@@ -42,6 +42,7 @@ import numpy as np
 from scipy.optimize import minimize_scalar
 
 from imugraph.calibration.result import Calibration
+from imugraph.factors.theta import unpack_theta
 
 __all__ = ["OnlineMagCalibration"]
 
@@ -90,9 +91,10 @@ class OnlineMagCalibration:
 
     def set_prior(self, centre: np.ndarray, sigma: np.ndarray) -> None:
         """Replace the prior of (2): centre and σ as θ vectors (13,: vec D row-major, o, δ — factors.theta; δ unused)."""
-        c, s = np.asarray(centre, float), np.asarray(sigma, float)
-        self.theta0 = np.hstack([c[:9].reshape(3, 3), c[9:12, None]]).T            # (4, 3): column j = θ⁰_j
-        self.prior_info = 1.0 / np.hstack([s[:9].reshape(3, 3), s[9:12, None]]) ** 2
+        D, o, _ = unpack_theta(centre)
+        D_sig, o_sig, _ = unpack_theta(sigma)
+        self.theta0 = np.hstack([D, o[:, None]]).T                                 # (4, 3): column j = θ⁰_j
+        self.prior_info = 1.0 / np.hstack([D_sig, o_sig[:, None]]) ** 2
 
     # ------------------------------------------------------------------ data
     def forget(self, factor: float) -> None:

@@ -50,7 +50,7 @@ from array import array
 import numpy as np
 from scipy.stats import chi2
 
-from imugraph.calibration.disturbance import MIN_THRESHOLD
+from imugraph.calibration.disturbance import MERGE_S, MIN_THRESHOLD
 
 __all__ = ["DisturbanceDetector", "field_norm_sigma"]
 
@@ -83,7 +83,7 @@ class DisturbanceDetector:
 
     def __init__(self, D0: np.ndarray, o0: np.ndarray, sigma_f: float, sigma_n: float, p_alarm: float = 1e-4,
                  p_drift: float = 0.01, pad_s: float = 0.5, max_lag_s: float = 2.0, learn_s: float = 0.0,
-                 merge_s: float = 1.0, min_deviation: float = MIN_THRESHOLD):
+                 merge_s: float = MERGE_S, min_deviation: float = MIN_THRESHOLD):
         self.D_inv = np.linalg.inv(np.asarray(D0, float))
         self.o = np.asarray(o0, float)
         self.kappa = float(chi2.ppf(1.0 - p_drift, 1))
@@ -95,10 +95,7 @@ class DisturbanceDetector:
         self.g = 0.0
         self.alarm = False
         self.t_rise = None          # start time of the current excursion of g above 0 (the change-point estimate)
-        self.t_hot = -math.inf      # end of the last interval with z² > κ during an alarm (flagged to + pad_s)
-        self.windows = 0            # alarms raised (windows opened)
         self.spans: list = []       # [onset, end] per window (s; end = last hot interval's end + pad_s, updated)
-        self.last_z2 = 0.0
         self.learn_s, self.t0 = float(learn_s), None
         self._learn = array("d")    # ē_k² over the learning window (8 bytes per keyframe; freed after it)
 
@@ -110,6 +107,11 @@ class DisturbanceDetector:
         if n == 0:
             return float("nan"), 0
         return float(np.mean(np.sqrt(np.einsum("ij,ij->i", m[ok], m[ok]))) - 1.0), n
+
+    @property
+    def windows(self) -> int:
+        """Alarms raised that opened a window (a rise within merge_s of the last window continues it)."""
+        return len(self.spans)
 
     @property
     def sigma_f(self) -> float:
@@ -132,7 +134,6 @@ class DisturbanceDetector:
         z2 = e * e / (self.var_f + self.var_n / n) if n else None
         onset = None
         if z2 is not None:
-            self.last_z2 = z2
             if self.g <= 0.0 and z2 > self.kappa:
                 self.t_rise = t_start
             self.g = min(self.g_max, max(0.0, self.g + z2 - self.kappa))
@@ -143,11 +144,9 @@ class DisturbanceDetector:
                 if self.spans and onset <= self.spans[-1][1] + self.merge_s:     # the previous window continues
                     onset = max(onset, self.spans[-1][1])
                 else:
-                    self.windows += 1
                     self.spans.append([onset, t_end + self.pad_s])
-            if self.alarm and z2 > self.kappa:
-                self.t_hot = t_end          # the window lasts at least to here
-                self.spans[-1][1] = t_end + self.pad_s
+            if self.alarm and z2 > self.kappa:     # the window lasts at least to here (+ pad_s); a rising
+                self.spans[-1][1] = t_end + self.pad_s   # alarm always has z² > κ (g went from ≤ h to > h)
             if self.alarm and self.g <= 0.0:
                 self.alarm = False
-        return bool(self.alarm or t_start <= self.t_hot + self.pad_s), onset
+        return bool(self.alarm or (self.spans and t_start <= self.spans[-1][1])), onset

@@ -103,9 +103,9 @@ class OnlineCalibrationMixin:
         if opt.disturb_detect and opt.online_calibration:
             from imugraph.graphs.stream_disturb import DisturbanceDetector, field_norm_sigma
 
-            scale = float(np.cbrt(abs(np.linalg.det(cal.D))))
-            self._detector = DisturbanceDetector(
-                cal.D, cal.o, field_norm_sigma(opt.field_sigma, cal.dip_rad), float(np.mean(self._sig_y)) / scale,
+            self._detector = DisturbanceDetector(     # _online_scale: set by _init_calstate, called first
+                cal.D, cal.o, field_norm_sigma(opt.field_sigma, cal.dip_rad),
+                float(np.mean(self._sig_y)) / self._online_scale,
                 opt.disturb_p_alarm, opt.disturb_p_drift, opt.disturb_pad_s,
                 max(opt.lag_s or 0.0, opt.calib_delay_s), max(learn_s, opt.disturb_learn_s))
         weak = weak_prior(cal, weak_scale) if opt.calib_weak_prior and opt.online_calibration else None

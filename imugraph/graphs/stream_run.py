@@ -117,8 +117,8 @@ def weak_scale(session: Session, n: int) -> float | None:
     field samples, as `calibration.initial.weak_initial` computes it; None without one (n = 0 or no field)."""
     if n <= 0:
         return None
-    y = np.asarray(session.mag[:n], float)
-    y = y[np.all(np.isfinite(y), axis=1)]
+    part = session.slice(0, n)
+    y = part.mag[part.mag_valid]
     return float(np.median(np.linalg.norm(y, axis=1))) if len(y) else None
 
 
