@@ -13,6 +13,7 @@ import argparse
 import json
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 DEFAULT = "32,34,36,15,16,01,04,10"
@@ -28,6 +29,10 @@ def main(argv=None) -> int:
     p.add_argument("--trials", default=DEFAULT, help=f"BROAD trial numbers, comma separated (default {DEFAULT})")
     p.add_argument("--keyframe-hz", type=float, default=5.0)
     p.add_argument("--out", default="bench_out/diagnose_broad", help="folder for broad_diagnosis.json")
+    p.add_argument("--joint-gyro", action="store_true", help="DiagnoseOptions.joint_gyro (gyro effects jointly)")
+    p.add_argument("--subsample-lag", action="store_true", help="DiagnoseOptions.subsample_lag (B3')")
+    p.add_argument("--no-joint-refit", action="store_true",
+                   help="AttributionOptions.joint_refit=False (a jointly fitted gyro effect's screening stands)")
     args = p.parse_args(argv)
     root = broad_dir()
     rows = []
@@ -38,7 +43,10 @@ def main(argv=None) -> int:
             continue
         s = load_session(hits[0])
         t0 = time.perf_counter()
-        d = diagnose(s, DiagnoseOptions(keyframe_hz=args.keyframe_hz))
+        opt = DiagnoseOptions(keyframe_hz=args.keyframe_hz, joint_gyro=args.joint_gyro,
+                              subsample_lag=args.subsample_lag)
+        opt = replace(opt, attribution=replace(opt.attribution, joint_refit=not args.no_joint_refit))
+        d = diagnose(s, opt)
         sec = time.perf_counter() - t0
         win = best_result(d)
         size = (win.size or {}) if win else {}

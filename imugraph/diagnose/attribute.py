@@ -44,6 +44,11 @@ the held-out log score prefers the extended model on that support, net of a BIC 
 every fold (A4''). The log score (imugraph.diagnose.score, (A4)) is a proper scoring rule: removing a real
 effect cannot make it worse in expectation, which (G1) after the noise re-estimation can (BROAD 01 +
 vibration, docs/diagnose.md §3, §5). Every EffectResult carries it (`loglik_gain`, per channel, per fold).
+
+A gyro effect fitted jointly with the trajectory (DiagnoseOptions.joint_gyro, effects/joint.py) is judged
+by its own held-out criterion (`AttributionOptions.own_score`, issue 5 G7): the sign test (A4'') on the
+held-out cost of its objective (J5), AND the share (J6) of the base model's held-out excess cost it
+removes ≥ `margin` (what (A2) asks, in the estimator's own units); its reported shrink is then (J6).
 """
 
 from __future__ import annotations
@@ -55,7 +60,7 @@ import numpy as np
 
 from imugraph.diagnose.gap import CHANNELS, GapOptions, gap
 from imugraph.diagnose.result import EffectResult  # noqa: F401  (re-exported: its home before)
-from imugraph.diagnose.score import GainAccumulator, clearly_better
+from imugraph.diagnose.score import GainAccumulator, OwnCostAccumulator, clearly_better
 
 NONE = "none"
 
@@ -72,6 +77,12 @@ class AttributionOptions:
         min_gap_ratio: the winning channel's gap must exceed this multiple of its null gap.
         refit_top: number of best screened effects given the full refit (0: screening only).
         refit_rounds: rounds of the alternation (imugraph.diagnose.refit).
+        own_score: an effect whose fit reports its own held-out scores (the joint gyro estimator) is
+            significant by the sign test (A4'') of "cost" ((J5): its objective (J1) on held-out rows, AND
+            the share (J6) of the base model's excess cost it removes ≥ `margin`, as (A2)) or
+            "logscore" ((J5'): (A4) of the two (J1) solutions) instead of (A2)/(A4); "": as before G7.
+        joint_refit: give a jointly fitted gyro effect the stage-2 alternation (False: its screening,
+            already a joint fit of the effect and the trajectory, stands — about half its CPU).
     """
 
     n_folds: int = 5
@@ -81,6 +92,8 @@ class AttributionOptions:
     min_gap_ratio: float = 2.0
     refit_top: int = 3
     refit_rounds: int = 2
+    own_score: str = "cost"
+    joint_refit: bool = True
 
 
 def fold_masks(t: np.ndarray, opt: AttributionOptions) -> list:
@@ -168,12 +181,16 @@ def evaluate_effect(effect, real, sim, null_gap: dict, folds: list, opt: Attribu
     after = {c: [] for c in CHANNELS}
     weights = []
     ll = GainAccumulator()                                                                       # (A4)
+    own, own_ll = OwnCostAccumulator(), OwnCostAccumulator()      # (J5), (J5'): the joint fit's own scores
     for fold, test, b in zip(folds, scored, base):
         if b is None:
             continue
         corr = effect.fit(fitted, ~fold, window=window)
         raw = corr.raw_residuals(real if ext is None else ext)
         ll.add(real.residuals, raw, ~fold if support is None or rest is None else ~fold & support, test)
+        if (getattr(corr, "deltas", None) or {}).get("heldout") is not None:
+            own.add_costs(corr.deltas["heldout"])
+            own_ll.add_costs(corr.deltas["heldout"]["ll"])
         r_after = corr.residuals(real) if ext is None else rescale(raw, real, ~fold)
         a = gap({c: r_after.get(c, real.residuals[c]) for c in CHANNELS}, sim.residuals, real.sigma, rate,
                 test, gap_opt)
@@ -196,12 +213,21 @@ def evaluate_effect(effect, real, sim, null_gap: dict, folds: list, opt: Attribu
     size = effect.size(full, fitted) if hasattr(effect, "size") else {"value": np.inf, "threshold": 0.0}
     gain, gain_per, n_scored = ll.result(n_params)                                             # (A4')
     ll_base, ll_ext = ll.levels()
+    own_gain, own_per, _ = own.result(n_params) if own.folds else (float("nan"), None, 0)
+    own_ll_gain = own_ll.result(n_params)[0] if own_ll.folds else float("nan")
+    gap_shrink = float(shrink)
+    if opt.own_score == "cost" and own.folds:   # judged by (J5)/(J6): its shrink is (J6), like with like
+        shrink = own.shrink(n_params)
     return EffectResult(effect.name, ch, g0, g1, float(shrink), float(penalised), n_params,
                         full.t_start, full.t_end, dict(full.params), aft, bef[ch], size=size,
                         stage="screen" if ext is None else "refit", floor=noise[ch], support_fraction=frac,
                         decisive=bool((getattr(full, "deltas", None) or {}).get("decisive", False)),
                         loglik_gain=gain, loglik_per_channel=gain_per, n_scored=n_scored,
-                        loglik_folds=ll.fold_gains(n_params), loglik_base=ll_base, loglik_ext=ll_ext)
+                        loglik_folds=ll.fold_gains(n_params), loglik_base=ll_base, loglik_ext=ll_ext,
+                        own_gain=own_gain, own_per_channel=own_per,
+                        own_folds=own.fold_gains(n_params) if own.folds else None, own_ll_gain=own_ll_gain,
+                        own_ll_folds=own_ll.fold_gains(n_params) if own_ll.folds else None,
+                        own_shrink=own.shrink(n_params), gap_shrink=gap_shrink)
 
 
 def _failed(name, effect, exc) -> EffectResult:
@@ -285,6 +311,9 @@ def attribute(real, sim, null_gap: dict, effects: dict, opt: AttributionOptions 
             if not may_be_localised(effect, results[name]) and verdict_is_local(refitted, null_gap, opt):
                 say(f"effect {name}: refit skipped (a localised effect is the verdict, (V))")
                 continue
+            if not opt.joint_refit and results[name].own_folds:
+                say(f"effect {name}: refit skipped (fitted jointly with the trajectory: its screening stands)")
+                continue
             window = (windows or {}).get(effect.channel) if getattr(effect, "windowed", False) else None
             try:
                 refit = getattr(effect, "refit", None) or (lambda *a: refit_effect(effect, *a))
@@ -325,6 +354,10 @@ def significant(res: EffectResult, null_gap: dict, opt: AttributionOptions = Att
     floor = res.floor if np.isfinite(res.floor) else null_gap.get(res.channel, 0.0)
     if not res.raw_before >= opt.min_gap_ratio * floor:
         return False
+    if opt.own_score and res.own_folds:        # (J5)/(J5'): judged by the joint estimator's own scores
+        if opt.own_score == "logscore":
+            return clearly_better(res.own_ll_gain, res.own_ll_folds)
+        return clearly_better(res.own_gain, res.own_folds) and bool(res.own_shrink >= opt.margin)   # (J6)
     if res.support_fraction < 1.0 and clearly_better(res.loglik_gain, res.loglik_folds):
         return True          # (A4''): a localised effect preferred by the held-out log score on its support
     return bool(res.penalised >= opt.margin)

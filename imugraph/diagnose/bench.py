@@ -87,6 +87,30 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", default="bench_out/diagnose", help="folder for harness.json / harness.md")
     p.add_argument("--data-dir", default=None, help="data folder (default $IMUGRAPH_DATA, else ../shared/data)")
     p.add_argument("--quiet", action="store_true", help="no per-case lines on stderr")
+    p.add_argument("--joint-gyro", action="store_true",
+                   help="gyro effects fitted jointly with the trajectory (DiagnoseOptions.joint_gyro)")
+    p.add_argument("--subsample-lag", action="store_true",
+                   help="the magnetometer's sub-sample lag in the base model (DiagnoseOptions.subsample_lag)")
+    p.add_argument("--score", choices=("cost", "logscore", "gap"), default="cost",
+                   help="significance of a jointly fitted gyro effect: its own objective on held-out rows "
+                        "(cost, default), the held-out log score of the two joint solutions (logscore), or "
+                        "the held-out gap (A2) as before (gap)")
+    p.add_argument("--no-joint-refit", action="store_true",
+                   help="no stage-2 alternation for a jointly fitted gyro effect (AttributionOptions.joint_refit)")
+
+
+def diagnose_function(args: argparse.Namespace):
+    """session → Diagnosis with the model switches of `add_arguments` (DiagnoseOptions)."""
+    from dataclasses import replace
+
+    from imugraph.diagnose.run import DiagnoseOptions, diagnose
+
+    o = DiagnoseOptions(joint_gyro=bool(getattr(args, "joint_gyro", False)),
+                        subsample_lag=bool(getattr(args, "subsample_lag", False)))
+    score = getattr(args, "score", "cost") or "cost"
+    o = replace(o, attribution=replace(o.attribution, own_score="" if score == "gap" else score,
+                                       joint_refit=not getattr(args, "no_joint_refit", False)))
+    return lambda session: diagnose(session, o)
 
 
 def run_bench_diagnose(args: argparse.Namespace) -> int:
@@ -119,6 +143,7 @@ def run_bench_diagnose(args: argparse.Namespace) -> int:
         f"{len(names)} effects × {args.n}")
     report = run_harness(sessions, names, int(args.n), np.random.default_rng(seed),
                          clean=not getattr(args, "no_clean", False), progress=say,
+                         diagnose_fn=diagnose_function(args),
                          only=[c.strip() for c in args.cases.split(",") if c.strip()]
                          if getattr(args, "cases", None) else None,
                          hosts=getattr(args, "hosts", "random") or "random")

@@ -41,6 +41,13 @@ class EffectResult:
     loglik_folds: list | None = None      # (A4'') per fold, nats per sample, BIC cost charged
     loglik_base: dict | None = None       # (A4) ℓ of the base model per channel, nats per sample (held-out)
     loglik_ext: dict | None = None        # (A4) ℓ of the extended model per channel, nats per sample
+    own_gain: float = float("nan")        # (J5): the joint estimator's own held-out cost gain, BIC charged
+    own_per_channel: dict | None = None   # (J5) per channel, per sample (no cost)
+    own_folds: list | None = None         # (J5) per fold, BIC cost charged (None: the fit reports none)
+    own_ll_gain: float = float("nan")     # (J5'): (A4) of the two joint solutions, BIC cost charged
+    own_ll_folds: list | None = None      # (J5') per fold
+    own_shrink: float = float("nan")      # (J6): share of the base model's held-out excess cost removed
+    gap_shrink: float = float("nan")      # (A1) always (`shrink` is (J6) for an effect judged by (J5)/(J6))
 
     @property
     def relevant(self) -> bool:
@@ -58,5 +65,10 @@ class EffectResult:
                 "loglik_gain": self.loglik_gain, "loglik_gain_per_channel": self.loglik_per_channel or {},
                 "loglik_gain_per_fold": self.loglik_folds or [],
                 "loglik_base_per_channel": self.loglik_base or {}, "loglik_ext_per_channel": self.loglik_ext or {},
+                **({"own_cost_gain": self.own_gain, "own_cost_gain_per_channel": self.own_per_channel or {},
+                    "own_cost_gain_per_fold": self.own_folds, "own_cost_shrink": self.own_shrink,
+                    "gap_shrink": self.gap_shrink,
+                    "own_loglik_gain": self.own_ll_gain,
+                    "own_loglik_gain_per_fold": self.own_ll_folds or []} if self.own_folds else {}),
                 **({"screen": self.screen} if self.screen else {}),
                 **({"error": self.error} if self.error else {})}

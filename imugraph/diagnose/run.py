@@ -13,6 +13,7 @@
 from __future__ import annotations
 
 import time
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -34,12 +35,19 @@ class DiagnoseOptions:
         effects: names of the effects to try (None: the whole library).
         window_hints: hand the located window of a channel to that channel's windowed effects.
         gap / attribution: the statistic's and the attribution's settings.
+        joint_gyro: gyro_scale and gyro_bias_drift fitted jointly with the trajectory (effects/joint.py
+            (J1)) instead of the keyframes-fixed first-order fit; None: the module flag `joint.ENABLED`
+            (default False). Scored by their own held-out cost (J5) when `attribution.own_score`.
+        subsample_lag: the magnetometer's sub-sample lag in the base model's prediction (fit.py (B3'));
+            None: the module flag `fit.SUBSAMPLE_LAG` (default False).
     """
 
     keyframe_hz: float = 5.0
     seed: int = 0
     effects: tuple | None = None
     window_hints: bool = False
+    joint_gyro: bool | None = None
+    subsample_lag: bool | None = None
     gap: GapOptions = field(default_factory=GapOptions)
     attribution: AttributionOptions = field(default_factory=AttributionOptions)
 
@@ -108,6 +116,24 @@ def null_fold_gap(null: Fit, sim: Fit, sigma: dict, folds: list, gap_opt: GapOpt
     return out
 
 
+@contextmanager
+def model_switches(options: DiagnoseOptions):
+    """The options' model switches (joint_gyro, subsample_lag) set on their modules for the duration of a
+    diagnosis, restored afterwards (None: left as the module has them)."""
+    from imugraph.diagnose import fit as fitmod
+    from imugraph.diagnose.effects import joint
+
+    old = (joint.ENABLED, fitmod.SUBSAMPLE_LAG)
+    try:
+        if options.joint_gyro is not None:
+            joint.ENABLED = bool(options.joint_gyro)
+        if options.subsample_lag is not None:
+            fitmod.SUBSAMPLE_LAG = bool(options.subsample_lag)
+        yield
+    finally:
+        joint.ENABLED, fitmod.SUBSAMPLE_LAG = old
+
+
 def diagnose(session: Session, options: DiagnoseOptions = DiagnoseOptions(), effects: dict | None = None,
              progress=None) -> Diagnosis:
     """Diagnose one single-IMU session (module doc).
@@ -121,6 +147,11 @@ def diagnose(session: Session, options: DiagnoseOptions = DiagnoseOptions(), eff
     Raises:
         SessionError / CalibrationError: the session cannot be fitted.
     """
+    with model_switches(options):
+        return _diagnose(session, options, effects, progress)
+
+
+def _diagnose(session: Session, options: DiagnoseOptions, effects: dict | None, progress) -> Diagnosis:
     say = progress or (lambda _m: None)
     timing = {}
     t0 = time.perf_counter()

@@ -113,3 +113,45 @@ def clearly_better(gain: float, folds) -> bool:
     BIC cost (independent samples) does not."""
     folds = list(folds or [])
     return bool(np.isfinite(gain) and gain > 0.0 and len(folds) >= 2 and all(f > 0.0 for f in folds))
+
+
+class OwnCostAccumulator(GainAccumulator):
+    """Sums an estimator's OWN held-out cost over the folds (effects/joint.py (J5): the Huber cost (J1)
+    of the held-out rows under the base and the extended model, both solved the same way). Its gain per
+    channel is (C_base − C_ext) / rows, nats per sample when the cost is a negative log-likelihood (J1:
+    ½‖z‖² inside the Huber kernel); `result`, `fold_gains`, `levels` as GainAccumulator's, so the sign
+    test (A4'') applies unchanged."""
+
+    def __init__(self):
+        super().__init__()
+        self.e0 = {}                        # channel → the model noise's own cost per row (joint.heldout_cost)
+
+    def add_costs(self, held: dict) -> None:
+        """Add one fold: held = {"base": {c: C}, "ext": {c: C}, "n": {c: rows}} (joint.heldout_cost)."""
+        fold = 0.0
+        for c, e in (held.get("e0") or {}).items():
+            self.e0[c] = float(e)
+        for c in CHANNELS:
+            n = int(held["n"].get(c, 0))
+            if not n:
+                continue
+            lb, le = float(held["base"][c]), float(held["ext"][c])
+            self.sum[c] += lb - le
+            self.base[c] += lb
+            self.ext[c] += le
+            self.n[c] += n
+            fold += (lb - le) / n
+        self.folds.append(fold)
+
+    def shrink(self, n_params: int) -> float:
+        """The fraction of the base model's held-out EXCESS cost that the effect removes, net of the BIC
+        cost (J6) — (A2)'s "share of the channel's gap" in the estimator's own objective:
+
+            S = (Σ_c ΔC_c − k ln N / (2N)) / Σ_c max(0, C_base,c − E0_c)       (per row; E0: `e0`)
+
+        NaN when no fold was added or the base model has no excess."""
+        if not self.folds:
+            return float("nan")
+        gain, per, n = self.result(n_params)
+        excess = sum(max(0.0, self.base[c] / self.n[c] - self.e0.get(c, 0.0)) for c in CHANNELS if self.n[c])
+        return float(gain / excess) if excess > 0 else float("nan")

@@ -93,7 +93,7 @@ class GyroBiasDrift(Effect):
                                            "peak_to_peak_deg_s": float(np.rad2deg(np.max(np.ptp(beta, axis=0))))},
                                n_params=C.size, channel=self.channel,
                                deltas={"d_omega": out["d_omega"], "d_effect": out["d_effect"],
-                                           "residuals": out["residuals"], "of": fit})
+                                           "residuals": out["residuals"], "of": fit, "heldout": out["heldout"]})
         corr.deltas["noise_scale"] = noise_scale(fit, out["residuals"], train, ["gyr", "acc", "mag"])
         return corr
 

@@ -116,7 +116,7 @@ class GyroScale(Effect):
         corr = GyroScaleCorrection(self.name, {"M": M.tolist(), "scale_percent": (100 * np.diag(M)).tolist()},
                                    n_params=6, channel=self.channel,
                                    deltas={"d_omega": out["d_omega"], "d_effect": out["d_effect"],
-                                           "residuals": out["residuals"], "of": fit})
+                                           "residuals": out["residuals"], "of": fit, "heldout": out["heldout"]})
         corr.deltas["noise_scale"] = noise_scale(fit, out["residuals"], train, ["gyr", "acc", "mag"])
         return corr
 

@@ -28,6 +28,9 @@ evaluates the residuals EXACTLY (`evaluate`: keyframes Exp(w_k)R_k, samples re-i
 y + Δω(p) − δb, as the fit integrates them); the keyframes are eliminated by a sparse Schur complement.
 σ_w = 0.1 rad only fixes keyframes that no training row sees (held-out blocks). `fit_gyro_effect` then
 re-solves w, δb, q on all samples with p fixed and returns the residuals (J4) (`null_residuals`).
+Scoring (G7): per fold, (J1)'s own cost on the held-out rows for p = p̂ and for p = 0, both with the
+trajectory re-solved the same way (`heldout_cost` (J5)): (J4) against `calibrate`'s residuals compared
+two different trajectory estimators, and lost more the larger the injected effect (docs/diagnose.md §4 G7).
 """
 
 from __future__ import annotations
@@ -185,6 +188,40 @@ def _cost(z: np.ndarray) -> float:
     return float(np.sum(np.where(a <= HUBER_K, 1.5 * a**2, 3 * (HUBER_K * a - 0.5 * HUBER_K**2))))
 
 
+def _sigmas(fit) -> dict:
+    """Per-axis σ of (J1)'s rows: the base fit's, the gyro's per sample (module doc)."""
+    return {"gyr": np.asarray(fit.sigma["gyr"], float) * np.sqrt(float(fit.info.get("stride", 1))),
+            "acc": np.asarray(fit.sigma["acc"], float), "mag": np.asarray(fit.sigma["mag"], float)}
+
+
+def heldout_cost(fit, r_base: dict, r_ext: dict, test: np.ndarray) -> dict:
+    """(J1)'s own cost on held-out rows, for two models solved the same way (J5):
+
+        C_m,c = Σ_{j ∈ test, r_base and r_ext finite} ρ(‖r_m,c,j / σ_c‖)      (m = base: p = 0; ext: p̂)
+
+    both with the trajectory, δb and q re-solved on all samples (`null_residuals`, `fit_gyro_effect`), at
+    the base fit's σ and Huber k as in (J1): the estimator's objective scored out of sample, so the
+    verdict judges the joint fit by the criterion it minimises (the per-channel σ of (A4) weight the
+    gyro's keyframe mismatch differently from (J1)). Also the held-out log score (A4) of the same two
+    models, each channel's σ from the training rows (score.channel_scores) (J5'). Returns {"base": {c: C},
+    "ext": {c: C}, "n": {c: rows}, "e0": {c: the model noise's cost per row}, "ll": the same for (A4)}."""
+    from imugraph.diagnose.score import channel_scores
+
+    sig = _sigmas(fit)
+    out = {"base": {}, "ext": {}, "n": {}, "e0": {}, "ll": {"base": {}, "ext": {}, "n": {}}}
+    for c in ("gyr", "acc", "mag"):
+        # the cost per row that the model's own noise would give: ½ Σ_axis (σ_c / σ_row)² (acc, mag: 3/2;
+        # gyr: 3/(2M), the interval's mismatch repeated on its M rows) — Huber's reduction (< 1 %) ignored
+        out["e0"][c] = 0.5 * float(np.sum((np.asarray(fit.sigma[c], float) / sig[c]) ** 2))
+        ok = test & np.all(np.isfinite(r_base[c]), axis=1) & np.all(np.isfinite(r_ext[c]), axis=1)
+        out["base"][c] = _cost(r_base[c][ok] / sig[c])
+        out["ext"][c] = _cost(r_ext[c][ok] / sig[c])
+        out["n"][c] = int(ok.sum())
+        lb, le, n = channel_scores(r_base[c], r_ext[c], ~test, test)                              # (J5')
+        out["ll"]["base"][c], out["ll"]["ext"][c], out["ll"]["n"][c] = lb, le, n
+    return out
+
+
 def joint_fit(fit, train: np.ndarray, exact, n_params: int, steps: int = STEPS,
               prior_info: np.ndarray | None = None, start: dict | None = None) -> dict:
     """Gauss–Newton on (J1): the effect's parameters p (Δω = exact(p), the gyro change that removes the
@@ -199,8 +236,7 @@ def joint_fit(fit, train: np.ndarray, exact, n_params: int, steps: int = STEPS,
     if start:
         st.update({k: np.array(v, float) for k, v in start.items() if k in st})
     P = n_params
-    sig = {"gyr": np.asarray(fit.sigma["gyr"], float) * np.sqrt(float(fit.info.get("stride", 1))),
-           "acc": np.asarray(fit.sigma["acc"], float), "mag": np.asarray(fit.sigma["mag"], float)}
+    sig = _sigmas(fit)
     costs, by_channel = [], {}
     for _ in range(max(1, steps)):
         cur = evaluate(fit, st, exact)
@@ -314,5 +350,6 @@ def fit_gyro_effect(fit, train: np.ndarray, exact, n_params: int, prior_info=Non
     cur = evaluate(fit, st, exact)
     null = null_residuals(fit, exact(np.zeros_like(st["p"])))
     res = {c: fit.residuals[c] + (cur.residuals[c] - null[c]) for c in fit.residuals}          # (J4)
+    held = None if everything else heldout_cost(fit, null, cur.residuals, ~np.asarray(train, bool))  # (J5)
     return {"p": st["p"], "d_omega": cur.info["d_omega"], "d_effect": exact(st["p"]), "residuals": res,
-            "state": st, "fit": cur}
+            "state": st, "fit": cur, "heldout": held}
