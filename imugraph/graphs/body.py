@@ -125,14 +125,15 @@ def build_problem(session, opts: BodyOptions = BodyOptions()) -> BodyProblem:
     bias_seg = bias_segments(t[kf], opts.bias_segment_s if opts.bias_rw is not None else None)
     init = initial_values(names, joints, levers, {n: nRs[n][kf] for n in names}, t[kf], setups,
                           int(bias_seg.max()) + 1)
-    pims = {}
-    for name in names:
-        s, st = session.sensors[name], setups[name]
-        prm = bf.imu_params(opts.g, st.sigma_gyr, st.sigma_acc, float(np.median(s.dt)), opts.integration_sigma)
-        bias = gtsam.imuBias.ConstantBias(np.zeros(3), st.gyro_bias0)
-        pims[name] = bf.preintegrate(s.gyr, s.acc, s.dt, kf, prm, bias)
+    pims = {name: sensor_pims(session.sensors[name], setups[name], kf, opts) for name in names}
     return BodyProblem(session, skel, opts, names, joints, setups, levers, kf, npose_idx, method, pims, init,
                        bias_seg=bias_seg)
+
+
+def sensor_pims(s, st, kf: np.ndarray, opts: BodyOptions):
+    """One sensor's gyro/acc preintegrated between keyframes kf, from its setup's noise and start gyro bias."""
+    prm = bf.imu_params(opts.g, st.sigma_gyr, st.sigma_acc, float(np.median(s.dt)), opts.integration_sigma)
+    return bf.preintegrate(s.gyr, s.acc, s.dt, kf, prm, gtsam.imuBias.ConstantBias(np.zeros(3), st.gyro_bias0))
 
 
 def _joint_model(pb: BodyProblem, jt: BodyJoint):

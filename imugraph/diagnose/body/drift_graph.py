@@ -57,22 +57,22 @@ def segment_basis(pb) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     seg = np.asarray(pb.bias_seg, int)
     M = int(seg.max()) + 1
     first = np.array([int(np.flatnonzero(seg == m)[0]) for m in range(M)])
-    kf_t = t[pb.kf]
-    dt = np.diff(kf_t[first])
+    dt = np.diff(np.asarray(pb.kf_t, float)[first])
     sample_seg = seg[np.clip(np.searchsorted(pb.kf, np.arange(t.size), side="right") - 1, 0, pb.K - 1)]
     Bbar = np.stack([B[sample_seg == m].mean(axis=0) if np.any(sample_seg == m) else B[0] for m in range(M)])
     return first, dt, Bbar
 
 
-def increment_design(pb, s: int, x) -> tuple[np.ndarray, np.ndarray]:
-    """Whitened gyro increments z (M−1, 3) of sensor s's fitted bias path and the design D (M−1, 3, 9)/σ of (BD1)."""
+def increment_design(pb, s: int, x) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Whitened gyro increments z (M−1, 3) of sensor s's fitted bias path, the design D (M−1, 3, 9)/σ of (BD1),
+    and the segments' mean basis rows Bbar (M, 3) (`segment_basis`)."""
     first, dt, Bbar = segment_basis(pb)
     b = np.stack([np.asarray(x.atConstantBias(pb.bkey(s, int(k))).gyroscope(), float) for k in first])
     sig = pb.opts.bias_rw * np.sqrt(dt)[:, None]
     z = np.diff(b, axis=0) / sig
     dB = np.diff(Bbar, axis=0)                                                       # (M−1, 3) per basis p
     D = np.einsum("mp,ab->mapb", dB, np.eye(3)).reshape(len(dB), 3, 9) / sig[:, :, None]   # c = (p, axis) flat
-    return z, D
+    return z, D, Bbar
 
 
 def prescreen(real, sensor: str) -> dict:
@@ -82,11 +82,10 @@ def prescreen(real, sensor: str) -> dict:
     if pb is None or pb.opts.bias_rw is None or pb.bias_seg is None or int(np.max(pb.bias_seg)) < 4:
         return {"gain": 0.0, "n_increments": 0, "ptp_deg_s": 0.0}
     s = pb.names.index(sensor)
-    z, D = increment_design(pb, s, x)
+    z, D, Bbar = increment_design(pb, s, x)
     A, y = D.reshape(-1, 9), z.reshape(-1)
     c = np.linalg.lstsq(A, y, rcond=None)[0]
     gain = 0.5 * float(y @ y - np.sum((y - A @ c) ** 2))
-    _, _, Bbar = segment_basis(pb)
     beta = Bbar @ c.reshape(3, 3)
     return {"gain": gain, "n_increments": int(z.shape[0]),
             "ptp_deg_s": float(np.rad2deg(np.max(np.ptp(beta, axis=0))))}
@@ -144,7 +143,6 @@ def refit_drift(real, sensor: str, max_iterations: int | None = MAX_ITERATIONS):
     x0.insert(dkey, np.zeros(9))
     x, info = optimize(pb, g, x0)
     c = np.asarray(x.atVector(dkey), float)
-    _, _, Bbar = segment_basis(pb)
     t = np.asarray(pb.session.t, float)
     beta = legendre_basis(t, float(t[0]), float(t[-1])) @ c.reshape(3, 3)
     theta = _extract(pb.session, pb, x, dict(info, warm_start=True, drift_of=sensor), t0)

@@ -206,8 +206,7 @@ def refit_body_warm(base: BodyFit, session, sensor: str, max_iterations: int | N
     cold fit's (same graph); measured on the real walk: docs/diagnose_body.md §4."""
     from dataclasses import replace as dc_replace
 
-    from imugraph.factors import body as bf
-    from imugraph.graphs.body import full_graph, optimize
+    from imugraph.graphs.body import full_graph, optimize, sensor_pims
     from imugraph.graphs.body_model import sensor_setup
 
     pb0 = base.problem
@@ -217,19 +216,11 @@ def refit_body_warm(base: BodyFit, session, sensor: str, max_iterations: int | N
     opts = pb0.opts if max_iterations is None else dc_replace(pb0.opts, max_iterations=int(max_iterations))
     setups = dict(pb0.setups)
     setups[sensor] = sensor_setup(session, pb0.skel, opts, pb0.npose_idx)[sensor]
-    ses, st = session.sensors[sensor], setups[sensor]
-    prm = bf.imu_params(opts.g, st.sigma_gyr, st.sigma_acc, float(np.median(ses.dt)), opts.integration_sigma)
     pims = dict(pb0.pims)
-    pims[sensor] = bf.preintegrate(ses.gyr, ses.acc, ses.dt, pb0.kf, prm,
-                                   gtsam_bias(np.zeros(3), st.gyro_bias0))
+    pims[sensor] = sensor_pims(session.sensors[sensor], setups[sensor], pb0.kf, opts)
     pb = dc_replace(pb0, session=session, opts=opts, setups=setups, pims=pims, mag_dirs=None)
     x, info = optimize(pb, full_graph(pb), base.values)
     return _extract(session, pb, x, dict(info, warm_start=True), t0)
-
-
-def gtsam_bias(b_acc: np.ndarray, b_gyr: np.ndarray):
-    import gtsam
-    return gtsam.imuBias.ConstantBias(np.asarray(b_acc, float), np.asarray(b_gyr, float))
 
 
 def _extract(session, pb, x, info: dict, t0: float) -> BodyFit:

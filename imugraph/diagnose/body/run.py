@@ -167,8 +167,8 @@ def score_candidate(effect, real, a, b, sigma, sensor: str, opt: GapOptions, the
     ex_a = {c: max(0.0, (after[c] - null[c]) / max(n_tot[c], 1)) for c in chans}
     changed = [c for c in chans if abs(before[c] - after[c]) > 1e-12] or [effect.channel]
     ch = max(changed, key=lambda c: ex_b.get(c, 0.0))
-    shrink = 1.0 - ex_a[ch] / ex_b[ch] if ex_b.get(ch, 0.0) > 0 else 0.0
     shrink_per = {c: (1.0 - ex_a[c] / ex_b[c] if ex_b[c] > 0 else 0.0) for c in chans}
+    shrink = shrink_per.get(ch, 0.0)
     final = effect.fit(src, sensor, {c: np.ones(sf.residuals[c].shape[0], bool) for c in CHANNELS}, sigma[sensor])
     significant = clearly_better(G, folds_net)
     relevant = final.size.get("value", 0.0) >= final.size.get("threshold", 0.0)

@@ -89,11 +89,9 @@ def fit_simulation(sim: BodySession, real: BodyFit, opts=None, warm: bool = True
         return fit_body(sim, opts)
     t0 = time.perf_counter()
     pb = build_problem(sim, opts)
-    if pb.kf.shape != real.problem.kf.shape or np.any(pb.kf != real.problem.kf):
-        x, info = optimize(pb, full_graph(pb), pb.init)
-        return _extract(sim, pb, x, dict(info, warm_start=False), t0)
-    x, info = optimize(pb, full_graph(pb), warm_values(real, pb))
-    return _extract(sim, pb, x, dict(info, warm_start=True), t0)
+    same = np.array_equal(pb.kf, real.problem.kf)        # same keyframes: the recording's solution fits pb's keys
+    x, info = optimize(pb, full_graph(pb), warm_values(real, pb) if same else pb.init)
+    return _extract(sim, pb, x, dict(info, warm_start=same), t0)
 
 
 def warm_values(real: BodyFit, pb) -> "gtsam.Values":
@@ -103,14 +101,14 @@ def warm_values(real: BodyFit, pb) -> "gtsam.Values":
     import gtsam
 
     from imugraph.factors import body as bf
+    from imugraph.graphs.body_init import rz
 
     x = real.values
     k0 = bf.pose_key(0, 0)
 
     R_rel = pb.init.atPose3(k0).rotation().matrix() @ x.atPose3(k0).rotation().matrix().T
     psi = np.arctan2(R_rel[1, 0] - R_rel[0, 1], R_rel[0, 0] + R_rel[1, 1])      # yaw of R_rel (tilts agree)
-    c, s_ = np.cos(psi), np.sin(psi)
-    Rd = np.array([[c, -s_, 0.0], [s_, c, 0.0], [0.0, 0.0, 1.0]])
+    Rd = rz(psi)
     out = gtsam.Values()
     for key in x.keys():
         ch = chr(gtsam.Symbol(key).chr())
