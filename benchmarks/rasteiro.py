@@ -85,7 +85,8 @@ def best_affine_norm_error(y: np.ndarray, C0: np.ndarray, o0: np.ndarray) -> flo
 
     Args:
         y: (N, 3) raw magnetometer samples (finite rows).
-        C0, o0: starting map and offset (the algebraic ellipsoid fit: calibrated = C0 (y − o0)).
+        C0, o0: starting map and offset (imugraph's ellipsoid fit, calibration.ellipsoid.fit_ellipsoid, whose
+            inlier selection differs from the plain algebraic fit of the norm_ell column: C0 = D0⁻¹).
 
     Returns:
         The minimal √mean((|C(y − o)| − 1)²) (dimensionless), or NaN for a degenerate optimum.
@@ -141,11 +142,11 @@ def oracle_best_shift(s, max_shift: int) -> tuple[int, float, float]:
     nRb_all = quat_to_rotmat(np.where(np.isfinite(s.quat), s.quat, [1.0, 0.0, 0.0, 0.0]))
     have = np.all(np.isfinite(s.quat), axis=1)
     best = (0, np.inf, np.nan)
+    k_all = np.flatnonzero(s.mag_valid)
     for shift in range(-max_shift, max_shift + 1):
-        k = np.flatnonzero(s.mag_valid)
-        j = k + shift
+        j = k_all + shift
         ok = (j >= 0) & (j < s.n)
-        k, j = k[ok], j[ok]
+        k, j = k_all[ok], j[ok]
         ok = have[j]
         vec, norm = oracle_affine_fit(s.mag[k[ok]], nRb_all[j[ok]])
         if vec < best[1]:

@@ -28,6 +28,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from imugraph.calibration.result import n_mag_from_dip
+from imugraph.folds import held_out_masks, time_blocks
 from imugraph.geometry import quat_to_rotmat
 from imugraph.io.session import Session
 
@@ -65,8 +66,7 @@ def fold_masks(t: np.ndarray, block_s: float, folds: int) -> list[np.ndarray]:
     block b in fold b mod folds)."""
     if folds < 2 or block_s <= 0:
         raise ValueError(f"field_select: found folds={folds}, block_s={block_s}; expected folds ≥ 2, block_s > 0")
-    block = np.floor((np.asarray(t, float) - t[0]) / block_s).astype(int)
-    return [(block % folds) == f for f in range(folds)]
+    return held_out_masks(t, block_s, folds)
 
 
 def held_out_errors(session: Session, est, held: np.ndarray, return_index: bool = False):
@@ -126,7 +126,7 @@ def select(session: Session, options, candidates=DEFAULT_CANDIDATES, block_s: fl
                 raise
             initial = None       # weak path: each run takes it itself (calibrate then sets the tight θ prior)
     masks = fold_masks(session.t, block_s, folds)
-    block = np.floor((session.t - session.t[0]) / block_s).astype(int)
+    block = time_blocks(session.t, block_s)
     table = []
     for cand in candidates:
         opt_c = cand.apply(options)

@@ -59,6 +59,7 @@ from dataclasses import replace
 import numpy as np
 
 from imugraph.calibration.field_select import _paired_z, calibrate_selected, fold_masks
+from imugraph.folds import time_blocks
 from imugraph.geometry import integrate_gyro, quat_to_rotmat
 from imugraph.io.session import Session
 
@@ -95,18 +96,16 @@ def gravity_carry(session: Session, E: np.ndarray, bias_rows: np.ndarray, lead: 
     return out
 
 
-def choose_gyro_map(session: Session, options, full, plain=None, allow_weak: bool = False):
+def choose_gyro_map(session: Session, options, full, allow_weak: bool = False):
     """(keep E: bool, report dict, the E = 0 estimate) by the held-out accelerometer test (module docstring).
 
-    full: the estimate of the whole recording with E (its Ê passed the gates; its bias carries the Ê_h);
-    plain: the E = 0 estimate of the whole recording when already computed (else it is computed here)."""
+    full: the estimate of the whole recording with E (its Ê passed the gates; its bias carries the Ê_h)."""
     from imugraph.calibration import ml
 
     block_s = options.gyro_map_select_block_s
     base = replace(options, field_select=False, gyro_map_select=False, gyro_map_min_turns=0.0,
                    gyro_map_max_contraction=1.0)       # the gates are the whole recording's (passed)
-    if plain is None:
-        plain = ml.calibrate(session, replace(base, gyro_map=False), allow_weak=allow_weak)
+    plain = ml.calibrate(session, replace(base, gyro_map=False), allow_weak=allow_weak)
     tol = options.gyro_map_acc_tol if options.gyro_map_acc_tol is not None else np.inf
 
     def carry(est, E, starts, stops):
@@ -116,7 +115,7 @@ def choose_gyro_map(session: Session, options, full, plain=None, allow_weak: boo
 
     folds = options.gyro_map_select_folds
     masks = fold_masks(session.t, block_s, folds)
-    block = np.floor((session.t - session.t[0]) / block_s).astype(int)
+    block = time_blocks(session.t, block_s)
     n_b = int(block.max()) + 1
     starts = np.searchsorted(block, np.arange(n_b))
     stops = np.searchsorted(block, np.arange(n_b), side="right")
@@ -157,7 +156,7 @@ def calibrate_chosen(session: Session, options, initial=None, allow_weak: bool =
     if not full.info.get("gyro_map_gate", {}).get("estimated"):
         full.info["gyro_map_select"] = {"keep": False, "reason": "E not estimated (gates): nothing to test"}
         return full
-    keep, report, plain = choose_gyro_map(session, opt, full, None, allow_weak)
+    keep, report, plain = choose_gyro_map(session, opt, full, allow_weak)
     est = full if keep else (plain if not opt.field_select else run(replace(opt, gyro_map=False)))
     est.info["gyro_map_select"] = report
     return est

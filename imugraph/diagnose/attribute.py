@@ -61,6 +61,7 @@ import numpy as np
 from imugraph.diagnose.gap import CHANNELS, GapOptions, gap
 from imugraph.diagnose.result import EffectResult  # noqa: F401  (re-exported: its home before)
 from imugraph.diagnose.score import GainAccumulator, OwnCostAccumulator, clearly_better
+from imugraph.folds import held_out_masks
 
 NONE = "none"
 
@@ -98,8 +99,7 @@ class AttributionOptions:
 
 def fold_masks(t: np.ndarray, opt: AttributionOptions) -> list:
     """K boolean (N,) masks of held-out samples: block b = floor((t − t0)/block_s) is in fold b mod K."""
-    block = np.floor((t - t[0]) / max(opt.block_s, 1e-9)).astype(int)
-    return [(block % opt.n_folds) == k for k in range(opt.n_folds)]
+    return held_out_masks(t, max(opt.block_s, 1e-9), opt.n_folds)
 
 
 def _weighted(values: list, weights: list) -> float:

@@ -25,6 +25,7 @@ import numpy as np
 
 from imugraph.diagnose.body.fit import CHANNELS, BodyFit
 from imugraph.diagnose.gap import GapOptions, channel_gap, flag_runs, lag_grid, windows
+from imugraph.folds import held_out_masks
 
 
 def model_sigma(sim_a: BodyFit) -> dict:
@@ -110,5 +111,4 @@ def channel_folds(sf, block_s: float = 2.0, n_folds: int = 5) -> list:
 def fold_masks(t: np.ndarray, block_s: float = 2.0, n_folds: int = 5, t0: float | None = None) -> list:
     """Interleaved CV blocks (as the single-IMU attribution): block b of `block_s` belongs to fold b mod K;
     returns K (train, test) boolean row masks."""
-    block = np.floor((t - (t[0] if t0 is None else t0)) / block_s).astype(int) % n_folds
-    return [(block != k, block == k) for k in range(n_folds)]
+    return [(~held, held) for held in held_out_masks(t, block_s, n_folds, t0)]
