@@ -13,7 +13,6 @@ import argparse
 import json
 import sys
 import time
-from dataclasses import replace
 from pathlib import Path
 
 DEFAULT = "32,34,36,15,16,01,04,10"
@@ -21,7 +20,8 @@ DEFAULT = "32,34,36,15,16,01,04,10"
 
 def main(argv=None) -> int:
     from imugraph.config import broad_dir
-    from imugraph.diagnose.run import DiagnoseOptions, best_result, diagnose
+    from imugraph.diagnose.bench import diagnose_options, model_arguments
+    from imugraph.diagnose.run import best_result, diagnose
     from imugraph.io.readers import load_session
     from imugraph.io.writers import atomic_write_text, json_ready
 
@@ -29,11 +29,9 @@ def main(argv=None) -> int:
     p.add_argument("--trials", default=DEFAULT, help=f"BROAD trial numbers, comma separated (default {DEFAULT})")
     p.add_argument("--keyframe-hz", type=float, default=5.0)
     p.add_argument("--out", default="bench_out/diagnose_broad", help="folder for broad_diagnosis.json")
-    p.add_argument("--joint-gyro", action="store_true", help="DiagnoseOptions.joint_gyro (gyro effects jointly)")
-    p.add_argument("--subsample-lag", action="store_true", help="DiagnoseOptions.subsample_lag (B3')")
-    p.add_argument("--no-joint-refit", action="store_true",
-                   help="AttributionOptions.joint_refit=False (a jointly fitted gyro effect's screening stands)")
+    model_arguments(p)
     args = p.parse_args(argv)
+    opt = diagnose_options(args, keyframe_hz=args.keyframe_hz)
     root = broad_dir()
     rows = []
     for tr in [t.strip() for t in args.trials.split(",") if t.strip()]:
@@ -43,9 +41,6 @@ def main(argv=None) -> int:
             continue
         s = load_session(hits[0])
         t0 = time.perf_counter()
-        opt = DiagnoseOptions(keyframe_hz=args.keyframe_hz, joint_gyro=args.joint_gyro,
-                              subsample_lag=args.subsample_lag)
-        opt = replace(opt, attribution=replace(opt.attribution, joint_refit=not args.no_joint_refit))
         d = diagnose(s, opt)
         sec = time.perf_counter() - t0
         win = best_result(d)

@@ -125,18 +125,13 @@ def host():
 
 
 def _own(fit, name="gyro_scale"):
-    from imugraph.diagnose.effects import joint
-
-    old, joint.ENABLED = joint.ENABLED, True
-    try:
+    with model_switches(DiagnoseOptions(joint_gyro=True)):
         acc = OwnCostAccumulator()
         for fold in fold_masks(fit.session.t, AttributionOptions()):
             corr = EFFECTS[name].fit(fit, ~fold)
             acc.add_costs(corr.deltas["heldout"])
         n_params = corr.n_params
         return acc.result(n_params)[0], acc.fold_gains(n_params), acc.shrink(n_params)
-    finally:
-        joint.ENABLED = old
 
 
 def test_own_cost_sees_an_injected_scale_and_not_a_clean_host(host):

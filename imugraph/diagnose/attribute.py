@@ -215,9 +215,9 @@ def evaluate_effect(effect, real, sim, null_gap: dict, folds: list, opt: Attribu
     ll_base, ll_ext = ll.levels()
     own_gain, own_per, _ = own.result(n_params) if own.folds else (float("nan"), None, 0)
     own_ll_gain = own_ll.result(n_params)[0] if own_ll.folds else float("nan")
-    gap_shrink = float(shrink)
+    gap_shrink, own_shrink = float(shrink), own.shrink(n_params)
     if opt.own_score == "cost" and own.folds:   # judged by (J5)/(J6): its shrink is (J6), like with like
-        shrink = own.shrink(n_params)
+        shrink = own_shrink
     return EffectResult(effect.name, ch, g0, g1, float(shrink), float(penalised), n_params,
                         full.t_start, full.t_end, dict(full.params), aft, bef[ch], size=size,
                         stage="screen" if ext is None else "refit", floor=noise[ch], support_fraction=frac,
@@ -225,9 +225,9 @@ def evaluate_effect(effect, real, sim, null_gap: dict, folds: list, opt: Attribu
                         loglik_gain=gain, loglik_per_channel=gain_per, n_scored=n_scored,
                         loglik_folds=ll.fold_gains(n_params), loglik_base=ll_base, loglik_ext=ll_ext,
                         own_gain=own_gain, own_per_channel=own_per,
-                        own_folds=own.fold_gains(n_params) if own.folds else None, own_ll_gain=own_ll_gain,
-                        own_ll_folds=own_ll.fold_gains(n_params) if own_ll.folds else None,
-                        own_shrink=own.shrink(n_params), gap_shrink=gap_shrink)
+                        own_folds=own.fold_gains(n_params) or None, own_ll_gain=own_ll_gain,
+                        own_ll_folds=own_ll.fold_gains(n_params) or None,
+                        own_shrink=own_shrink, gap_shrink=gap_shrink)
 
 
 def _failed(name, effect, exc) -> EffectResult:

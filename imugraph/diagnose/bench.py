@@ -87,6 +87,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", default="bench_out/diagnose", help="folder for harness.json / harness.md")
     p.add_argument("--data-dir", default=None, help="data folder (default $IMUGRAPH_DATA, else ../shared/data)")
     p.add_argument("--quiet", action="store_true", help="no per-case lines on stderr")
+    model_arguments(p)
+
+
+def model_arguments(p: argparse.ArgumentParser) -> None:
+    """The diagnosis' model switches (read back by `diagnose_options`)."""
     p.add_argument("--joint-gyro", action="store_true",
                    help="gyro effects fitted jointly with the trajectory (DiagnoseOptions.joint_gyro)")
     p.add_argument("--subsample-lag", action="store_true",
@@ -99,17 +104,24 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="no stage-2 alternation for a jointly fitted gyro effect (AttributionOptions.joint_refit)")
 
 
-def diagnose_function(args: argparse.Namespace):
-    """session → Diagnosis with the model switches of `add_arguments` (DiagnoseOptions)."""
+def diagnose_options(args: argparse.Namespace, **fields):
+    """DiagnoseOptions(**fields) with the model switches of `model_arguments`."""
     from dataclasses import replace
 
-    from imugraph.diagnose.run import DiagnoseOptions, diagnose
+    from imugraph.diagnose.run import DiagnoseOptions
 
     o = DiagnoseOptions(joint_gyro=bool(getattr(args, "joint_gyro", False)),
-                        subsample_lag=bool(getattr(args, "subsample_lag", False)))
+                        subsample_lag=bool(getattr(args, "subsample_lag", False)), **fields)
     score = getattr(args, "score", "cost") or "cost"
-    o = replace(o, attribution=replace(o.attribution, own_score="" if score == "gap" else score,
-                                       joint_refit=not getattr(args, "no_joint_refit", False)))
+    return replace(o, attribution=replace(o.attribution, own_score="" if score == "gap" else score,
+                                          joint_refit=not getattr(args, "no_joint_refit", False)))
+
+
+def diagnose_function(args: argparse.Namespace):
+    """session → Diagnosis with the model switches of `add_arguments` (DiagnoseOptions)."""
+    from imugraph.diagnose.run import diagnose
+
+    o = diagnose_options(args)
     return lambda session: diagnose(session, o)
 
 
