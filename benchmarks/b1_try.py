@@ -44,12 +44,13 @@ def compare_line(label: str, q, q_vqf, s, mask) -> str:
             f"(incl {v[1]:.2f} head {v[2]:.2f})")
 
 
-def vqf_cached(num, s):
-    f = CACHE / f"vqf_{num}.npy"
+def vqf_cached(num, s, cache: Path = CACHE):
+    """Offline VQF's orientation of trial `num` (computed once, then read from cache/vqf_<num>.npy)."""
+    f = cache / f"vqf_{num}.npy"
     if f.is_file():
         return np.load(f)
     q = vqf_offline(s)
-    CACHE.mkdir(parents=True, exist_ok=True)
+    cache.mkdir(parents=True, exist_ok=True)
     np.save(f, q)
     return q
 

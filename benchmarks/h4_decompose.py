@@ -18,22 +18,11 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks.common import error_parts, iter_broad, parse_options, pop_opts  # noqa: E402
 from benchmarks.output import OUT_DIR  # noqa: E402
-from benchmarks.peers import vqf_offline  # noqa: E402
+from benchmarks.b1_try import vqf_cached  # noqa: E402
 from imugraph.calibration.ml import calibrate  # noqa: E402
 from imugraph.evaluate import orientation_error  # noqa: E402
 
 CACHE = OUT_DIR / "h4"
-
-
-def vqf_cached(num: str, s) -> np.ndarray:
-    """Offline VQF's orientation of trial `num` (computed once, then read from CACHE)."""
-    f = CACHE / f"vqf_{num}.npy"
-    if f.is_file():
-        return np.load(f)
-    q = vqf_offline(s)
-    CACHE.mkdir(parents=True, exist_ok=True)
-    np.save(f, q)
-    return q
 
 
 def windows(q, s, mask, win_s: float = 20.0) -> list[tuple[float, float, float]]:
@@ -64,7 +53,7 @@ def main(argv: list[str]) -> int:
         t0 = time.process_time()
         est = calibrate(s, options, allow_weak=True)
         cpu = time.process_time() - t0
-        qv = vqf_cached(num, s)
+        qv = vqf_cached(num, s, CACHE)
         a, b = error_parts(est.quat, s, mask), error_parts(qv, s, mask)
         sa, sb = (orientation_error(q, s.quat, mask, s.rate).shift_samples for q in (est.quat, qv))
         gate = est.info.get("gyro_map_gate", {})
