@@ -31,6 +31,10 @@ re-solves w, δb, q on all samples with p fixed and returns the residuals (J4) (
 Scoring (G7): per fold, (J1)'s own cost on the held-out rows for p = p̂ and for p = 0, both with the
 trajectory re-solved the same way (`heldout_cost` (J5)): (J4) against `calibrate`'s residuals compared
 two different trajectory estimators, and lost more the larger the injected effect (docs/diagnose.md §4 G7).
+CPU (H7): the normal equations are summed per sample and keyframe interval (effects/joint_normal.py (N1))
+instead of stacking Jw and Gd, the (J3) columns are computed at once, the samples are re-integrated as
+rotation matrices (trajectory.reintegrate_matrices) and a fold's first step reuses the all-sample
+solution's linearisation (`_linearise`): the same estimator, equal to ~1e-11 (docs/diagnose.md §4 H7).
 """
 
 from __future__ import annotations
@@ -42,7 +46,8 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from imugraph.diagnose.effects.base import huber_weights, replace_session
-from imugraph.diagnose.effects.trajectory import interval_index, reintegrate
+from imugraph.diagnose.effects.joint_normal import gyro_changes, normal_equations, nuisance_columns
+from imugraph.diagnose.effects.trajectory import interval_index, reintegrate_matrices
 from imugraph.calibration.result import n_mag_from_dip
 from imugraph.geometry import expmap, skew
 
@@ -63,11 +68,8 @@ def moved(fit, w: np.ndarray, d_omega: np.ndarray):
     from imugraph.diagnose.fit import _raw_residuals, body_rate
 
     kf = np.asarray(fit.keyframe_samples, int)
-    nRb = fit.nRb.copy()
-    nRb[kf] = expmap(w) @ fit.nRb[kf]
     gyr = fit.session.gyr + np.nan_to_num(d_omega)
-    base = dc_replace(fit, nRb=nRb)
-    nRb = reintegrate(base, gyr)
+    nRb = reintegrate_matrices(fit, gyr, expmap(w) @ fit.nRb[kf])
     out = dc_replace(fit, session=replace_session(fit.session, gyr=gyr), nRb=nRb,
                      b_omega=body_rate(nRb, fit.session.dt), residuals={})
     out.residuals = _raw_residuals(out)
@@ -106,43 +108,24 @@ def _gyro_change(fit, d_omega: np.ndarray) -> dict:
     """First-order change of the residuals when the gyro changes by Δω (N, 3), keyframes fixed, with the
     rotation inside each keyframe interval carried (nav frame; base (E1)–(E3) take the body frames of an
     interval as one, which at 1 rad per interval (BROAD 06) left the Gauss–Newton of (J1) creeping):
-
-        φ_j = Σ_{i=s_k}^{j−1} R_i Δω_i Δt_i,   v_j = φ_j − u_j φ_{s_{k+1}}          (nav frame)        (J3)
-        acc_j += (R_jᵀ v_j) × (R_jᵀ g_n),  mag_j += D ((R_jᵀ v_j) × (R_jᵀ n)),  gyr_j += R_jᵀ φ_{s_{k+1}} / T_k"""
-    d = np.nan_to_num(np.asarray(d_omega, float))
-    dt = fit.session.dt
-    kf = np.asarray(fit.keyframe_samples, int)
-    inc = np.einsum("nij,nj->ni", fit.nRb, d) * dt[:, None]
-    C = np.concatenate([np.zeros((1, 3)), np.cumsum(inc, axis=0)])
-    k, s_k = interval_index(fit)
-    s_next = kf[np.minimum(k + 1, len(kf) - 1)]
-    has_next = k < len(kf) - 1
-    phi = C[np.arange(fit.n)] - C[s_k]
-    Phi = np.where(has_next[:, None], C[s_next] - C[s_k], 0.0)
-    u = np.where(has_next, (np.arange(fit.n) - s_k) / np.maximum(s_next - s_k, 1), 0.0)
-    T = np.where(has_next, fit.session.t[s_next] - fit.session.t[s_k], 1.0)
-    bRn = np.transpose(fit.nRb, (0, 2, 1))
-    dth = np.einsum("nij,nj->ni", bRn, phi - u[:, None] * Phi)
-    return {"gyr": np.einsum("nij,nj->ni", bRn, Phi) / T[:, None],
-            "acc": np.cross(dth, bRn @ np.array([0.0, 0.0, fit.g])),
-            "mag": np.cross(dth, bRn @ np.asarray(fit.calibration.n_mag, float)) @ np.asarray(fit.calibration.D).T}
+    (J3), computed by `joint_normal.gyro_changes` (one change here). Returns channel → (N, 3)."""
+    return {c: v[:, :, 0] for c, v in gyro_changes(fit, np.asarray(d_omega, float)[None]).items()}
 
 
-def _gyro_columns(cur, exact, p: np.ndarray) -> list:
-    """Residual columns (keyframes of `cur` fixed, first order (J3)) of the effect's parameters: the
-    change of the exact Δω(p) per unit step, by forward differences (exact for a linear effect)."""
+def _columns(cur, exact, p: np.ndarray) -> dict:
+    """channel → (N, 3, P + 3 [+ 13 on mag]) residual columns, keyframes of `cur` fixed (first order (J3)):
+    the effect's parameters (the change of the exact Δω(p) per unit step, by forward differences: exact
+    for a linear effect), the constant gyro bias change δb (Δω = −δb), and on the magnetometer's rows its
+    calibration q (`joint_normal.nuisance_columns`)."""
     h = 1e-4
-    e0 = exact(p)
-    return [_gyro_change(cur, (exact(p + h * np.eye(len(p))[i]) - e0) / h) for i in range(len(p))]
-
-
-def _bias_columns(cur) -> list:
-    """Residual columns of the constant gyro bias change δb (Δω = −δb), keyframes fixed (J3)."""
-    out = []
+    e0 = exact(p) if len(p) else None
+    d = [(exact(p + h * np.eye(len(p))[i]) - e0) / h for i in range(len(p))]
     for a in range(3):
         e = np.zeros((cur.n, 3))
         e[:, a] = -1.0                                                       # δb: y − (b + δb)
-        out.append(_gyro_change(cur, e))
+        d.append(e)
+    out = gyro_changes(cur, np.stack(d))
+    out["mag"] = np.concatenate([out["mag"], nuisance_columns(cur)], axis=2)
     return out
 
 
@@ -162,24 +145,6 @@ def evaluate(fit, state: dict, exact) -> object:
     cur.info = dict(cur.info, mag_calibration={"D": D, "o": o, "dip_rad": dip, "n_nav": n_nav},
                     d_omega=d_omega)
     return cur
-
-
-def _nuisance_columns(cur) -> list:
-    """Residual columns of the magnetometer's calibration (ΔD row-major, Δo, Δdip): only mag rows."""
-    m = cur.info["mag_calibration"]
-    D, dip = m["D"], m["dip_rad"]
-    bRn = np.transpose(cur.nRb, (0, 2, 1))
-    n_b = bRn @ m["n_nav"]
-    zero = np.zeros((cur.n, 3))
-    out = []
-    for a in range(3):
-        for b in range(3):
-            col = np.zeros((cur.n, 3))
-            col[:, a] = -n_b[:, b]                                           # ∂r_mag/∂D_ab
-            out.append(col)
-    out += [np.broadcast_to(-np.eye(3)[a], (cur.n, 3)) for a in range(3)]   # ∂r_mag/∂o_a
-    out.append(-(bRn @ np.array([-np.sin(dip), 0.0, -np.cos(dip)])) @ D.T)  # ∂r_mag/∂dip
-    return [{"gyr": zero, "acc": zero, "mag": c} for c in out]
 
 
 def _cost(z: np.ndarray) -> float:
@@ -222,14 +187,25 @@ def heldout_cost(fit, r_base: dict, r_ext: dict, test: np.ndarray) -> dict:
     return out
 
 
+def _linearise(fit, st: dict, exact, n_params: int) -> tuple:
+    """The extended model at `st` (`evaluate`) and its linearisation: keyframe blocks (J2) and the dense
+    columns (J3) (`_columns`; no effect columns when n_params = 0). Returns (cur, J, k, cols)."""
+    cur = evaluate(fit, st, exact)
+    m = cur.info["mag_calibration"]
+    J, k, _ = _keyframe_jacobian(cur, m["D"], m["n_nav"])
+    return cur, J, k, _columns(cur, exact, st["p"] if n_params else np.zeros(0))
+
+
 def joint_fit(fit, train: np.ndarray, exact, n_params: int, steps: int = STEPS,
-              prior_info: np.ndarray | None = None, start: dict | None = None) -> dict:
+              prior_info: np.ndarray | None = None, start: dict | None = None,
+              linearised: tuple | None = None) -> dict:
     """Gauss–Newton on (J1): the effect's parameters p (Δω = exact(p), the gyro change that removes the
     effect), the keyframe rotations w, the constant bias change δb and the magnetometer's calibration q,
     on the rows of the `train` samples (all channels; σ of the base fit). n_params = 0: p fixed at
     start["p"] (the trajectory re-solved for a given effect). prior_info: (P, P) information Λ of a
     zero-mean prior on p (adds pᵀΛp). Returns the state {"p", "bias", "w", "q", "cost": [(J1) per
-    step], "cost_by_channel"} (the last step's start)."""
+    step], "cost_by_channel"} (the last step's start). linearised: `_linearise` at `start` (same numbers,
+    not recomputed: the folds' fits start from the all-sample solution, whose linearisation is kept)."""
     chans = ("gyr", "acc", "mag")
     K = len(fit.keyframe_samples)
     st = {"p": np.zeros(n_params), "bias": np.zeros(3), "w": np.zeros((K, 3)), "q": np.zeros(13)}
@@ -238,18 +214,12 @@ def joint_fit(fit, train: np.ndarray, exact, n_params: int, steps: int = STEPS,
     P = n_params
     sig = _sigmas(fit)
     costs, by_channel = [], {}
-    for _ in range(max(1, steps)):
-        cur = evaluate(fit, st, exact)
-        J, k, k1 = _keyframe_jacobian(cur, cur.info["mag_calibration"]["D"], cur.info["mag_calibration"]["n_nav"])
-        cols, bias_cols = (_gyro_columns(cur, exact, st["p"]) if P else []), _bias_columns(cur)
-        allc = cols + bias_cols + _nuisance_columns(cur)
-        rows, cols_i, vals, rhs, dense = [], [], [], [], []
-        row0, by_channel = 0, {}
+    for step in range(max(1, steps)):
+        cur, J, k, cols = linearised if step == 0 and linearised else _linearise(fit, st, exact, P)
+        Jw, Gd, rows, by_channel = {}, {}, {}, {}
         for c in chans:
             r = cur.residuals[c]
-            ok = train & np.all(np.isfinite(r), axis=1)
-            for col in cols + bias_cols:
-                ok &= np.all(np.isfinite(col[c]), axis=1)
+            ok = train & np.all(np.isfinite(r), axis=1) & np.all(np.isfinite(cols[c][:, :, :P + 3]), axis=(1, 2))
             idx = np.flatnonzero(ok)
             if len(idx) == 0:
                 continue
@@ -257,28 +227,19 @@ def joint_fit(fit, train: np.ndarray, exact, n_params: int, steps: int = STEPS,
             z = r[idx] / s
             sw = huber_weights(z, HUBER_K)
             by_channel[c] = _cost(z)
-            m = len(idx)
-            Jc = J[c][idx] / s[None, :, None] * sw[:, None, None]            # (m, 3, 6)
-            rr = (np.arange(m)[:, None] * 3 + np.arange(3)[None, :]) + row0   # (m, 3)
-            cc = np.concatenate([3 * k[idx][:, None] + np.arange(3), 3 * k1[idx][:, None] + np.arange(3)], 1)
-            rows.append(np.repeat(rr[:, :, None], 6, axis=2).reshape(-1))
-            cols_i.append(np.repeat(cc[:, None, :], 3, axis=1).reshape(-1))
-            vals.append(Jc.reshape(-1))
-            Gd = np.stack([(col[c][idx] / s).reshape(-1) for col in allc], axis=1)
-            dense.append(Gd * np.repeat(sw, 3)[:, None])
-            rhs.append(-(z * sw[:, None]).reshape(-1))
-            row0 += 3 * m
+            w_row = sw[:, None, None] / s[None, :, None]                     # whitened, Huber-weighted rows
+            Jw[c] = J[c][idx] * w_row                                        # (m, 3, 6)
+            Gd[c] = cols[c][idx] * w_row if c == "mag" else cols[c][idx, :, :P + 3] * w_row
+            rows[c] = (idx, -(z * sw[:, None]))
         costs.append(sum(by_channel.values()))
-        Jw = sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols_i))),
-                           shape=(row0, 3 * K))
-        Gd, y = np.concatenate(dense), np.concatenate(rhs)
-        # normal equations of [Jw Gd] with the prior on w: [[JwᵀJw + I/σ_w², JwᵀGd], [GdᵀJw, GdᵀGd]]
+        # normal equations of [Jw Gd] (joint_normal (N1)) with the prior on w:
+        # [[JwᵀJw + I/σ_w², JwᵀGd], [GdᵀJw, GdᵀGd]]
+        Hww, Hwp, gw, GG, gp = normal_equations(Jw, k, Gd, rows, K, P + 16)
         w = st["w"]
-        Hww = (Jw.T @ Jw + sp.identity(3 * K) / SIGMA_W**2).tocsc()
-        Hwp = np.asarray((Jw.T @ Gd))
-        gw, gp = np.asarray(Jw.T @ y).ravel() - w.ravel() / SIGMA_W**2, Gd.T @ y
+        Hww = (Hww + sp.identity(3 * K) / SIGMA_W**2).tocsc()
+        gw = gw - w.ravel() / SIGMA_W**2
         X = spla.splu(Hww).solve(np.column_stack([Hwp, gw]))                 # Schur complement on (p, δb, q)
-        S = Gd.T @ Gd - Hwp.T @ X[:, :-1]
+        S = GG - Hwp.T @ X[:, :-1]
         rhs_p = gp - Hwp.T @ X[:, -1]
         if prior_info is not None and P:                                     # + pᵀΛp on the effect's block
             S[:P, :P] += prior_info
@@ -337,17 +298,21 @@ def fit_gyro_effect(fit, train: np.ndarray, exact, n_params: int, prior_info=Non
     everything = bool(np.all(train))
     key = (tag, id(fit), id(fit.residuals))
     hit = _START_CACHE.get(key) if tag and not everything else None
-    start = hit[1] if hit is not None and hit[0] is fit else None
+    start, lin = (hit[1], hit[2]) if hit is not None and hit[0] is fit else (None, None)
     st = joint_fit(fit, train, exact, n_params, steps=WARM_STEPS if start else steps, prior_info=prior_info,
-                   start=start)
+                   start=start, linearised=lin)
     if not everything:
         st = joint_fit(fit, np.ones(fit.n, bool), exact, 0, steps=TRAJECTORY_STEPS,
                        start={k: st[k] for k in ("p", "bias", "w", "q")}) | {"p": st["p"]}
+        cur = evaluate(fit, st, exact)
     elif tag:
-        if len(_START_CACHE) >= 4:
+        lin = _linearise(fit, st, exact, n_params)              # its evaluation, and the folds' first step
+        cur = lin[0]
+        if len(_START_CACHE) >= 2:
             _START_CACHE.pop(next(iter(_START_CACHE)))
-        _START_CACHE[key] = (fit, {k: st[k] for k in ("p", "bias", "w", "q")})
-    cur = evaluate(fit, st, exact)
+        _START_CACHE[key] = (fit, {k: st[k] for k in ("p", "bias", "w", "q")}, lin)
+    else:
+        cur = evaluate(fit, st, exact)
     null = null_residuals(fit, exact(np.zeros_like(st["p"])))
     res = {c: fit.residuals[c] + (cur.residuals[c] - null[c]) for c in fit.residuals}          # (J4)
     held = None if everything else heldout_cost(fit, null, cur.residuals, ~np.asarray(train, bool))  # (J5)

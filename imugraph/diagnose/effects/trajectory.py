@@ -68,6 +68,27 @@ def reintegrate(fit, gyr: np.ndarray) -> np.ndarray:
     return quat_to_rotmat(sample_orientations(fit.nRb[kf], pre))
 
 
+def reintegrate_matrices(fit, gyr: np.ndarray, nRk: np.ndarray) -> np.ndarray:
+    """`reintegrate` with keyframes nRk (K, 3, 3) given, as rotation matrices without the quaternion round
+    trip of graphs/orientation_init.sample_orientations (same formula, the joint fit's inner loop):
+
+        nRb_j = R_k Exp(u_j ε_k) ΔR_{k,j},   ε_k = Log(R_kᵀ R_{k+1} ΔR_kᵀ),   u_j: position in the interval"""
+    from imugraph.factors.gyro import keyframe_layout
+    from imugraph.geometry import expmap, logmap
+
+    kf, skf = keyframe_layout(fit.n, int(fit.info["stride"]))
+    pre = _rotations_only(np.asarray(gyr, float), fit.session.dt, kf, skf, np.asarray(fit.b_gyr_bias, float))
+    k, K = pre.sample_kf, len(nRk)
+    if K < 2:
+        return nRk[k] @ pre.kRb
+    eps = np.zeros((K, 3))
+    eps[:-1] = logmap(np.transpose(nRk[:-1], (0, 2, 1)) @ nRk[1:] @ np.transpose(pre.delta_R[:K - 1], (0, 2, 1)))
+    k_next = np.minimum(k + 1, K - 1)
+    s_k = pre.kf_samples[k]
+    u = np.where(k < K - 1, (np.arange(len(k)) - s_k) / np.maximum(pre.kf_samples[k_next] - s_k, 1), 0.0)
+    return nRk[k] @ expmap(u[:, None] * eps[k]) @ pre.kRb
+
+
 def _rotations_only(gyr: np.ndarray, dt: np.ndarray, kf: np.ndarray, skf: np.ndarray, bias: np.ndarray):
     """The rotation part of imugraph.factors.gyro.preintegrate (no covariance, no bias Jacobian, which
     `reintegrate` does not use), same layout and same Exp:
