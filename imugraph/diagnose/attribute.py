@@ -82,8 +82,9 @@ class AttributionOptions:
             significant by the sign test (A4'') of "cost" ((J5): its objective (J1) on held-out rows, AND
             the share (J6) of the base model's excess cost it removes ≥ `margin`, as (A2)) or
             "logscore" ((J5'): (A4) of the two (J1) solutions) instead of (A2)/(A4); "": as before G7.
-        joint_refit: give a jointly fitted gyro effect the stage-2 alternation (False: its screening,
-            already a joint fit of the effect and the trajectory, stands — about half its CPU).
+        joint_refit: give a jointly fitted gyro effect the stage-2 alternation (False, the default: its
+            screening, already a joint fit of the effect and the trajectory, stands — about half its CPU; the
+            same verdicts on the harness, docs/diagnose.md §4 G7).
     """
 
     n_folds: int = 5
@@ -94,7 +95,7 @@ class AttributionOptions:
     refit_top: int = 3
     refit_rounds: int = 2
     own_score: str = "cost"
-    joint_refit: bool = True
+    joint_refit: bool = False
 
 
 def fold_masks(t: np.ndarray, opt: AttributionOptions) -> list:

@@ -92,16 +92,17 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def model_arguments(p: argparse.ArgumentParser) -> None:
     """The diagnosis' model switches (read back by `diagnose_options`)."""
-    p.add_argument("--joint-gyro", action="store_true",
-                   help="gyro effects fitted jointly with the trajectory (DiagnoseOptions.joint_gyro)")
-    p.add_argument("--subsample-lag", action="store_true",
+    p.add_argument("--joint-gyro", action=argparse.BooleanOptionalAction, default=None,
+                   help="gyro effects fitted jointly with the trajectory (DiagnoseOptions.joint_gyro; default on)")
+    p.add_argument("--subsample-lag", action=argparse.BooleanOptionalAction, default=None,
                    help="the magnetometer's sub-sample lag in the base model (DiagnoseOptions.subsample_lag)")
     p.add_argument("--score", choices=("cost", "logscore", "gap"), default="cost",
                    help="significance of a jointly fitted gyro effect: its own objective on held-out rows "
                         "(cost, default), the held-out log score of the two joint solutions (logscore), or "
                         "the held-out gap (A2) as before (gap)")
-    p.add_argument("--no-joint-refit", action="store_true",
-                   help="no stage-2 alternation for a jointly fitted gyro effect (AttributionOptions.joint_refit)")
+    p.add_argument("--joint-refit", action=argparse.BooleanOptionalAction, default=None,
+                   help="stage-2 alternation for a jointly fitted gyro effect (AttributionOptions.joint_refit; "
+                        "default off)")
 
 
 def diagnose_options(args: argparse.Namespace, **fields):
@@ -110,11 +111,13 @@ def diagnose_options(args: argparse.Namespace, **fields):
 
     from imugraph.diagnose.run import DiagnoseOptions
 
-    o = DiagnoseOptions(joint_gyro=bool(getattr(args, "joint_gyro", False)),
-                        subsample_lag=bool(getattr(args, "subsample_lag", False)), **fields)
+    o = DiagnoseOptions(joint_gyro=getattr(args, "joint_gyro", None),
+                        subsample_lag=getattr(args, "subsample_lag", None), **fields)   # None: the defaults
     score = getattr(args, "score", "cost") or "cost"
-    return replace(o, attribution=replace(o.attribution, own_score="" if score == "gap" else score,
-                                          joint_refit=not getattr(args, "no_joint_refit", False)))
+    att = replace(o.attribution, own_score="" if score == "gap" else score)
+    if getattr(args, "joint_refit", None) is not None:
+        att = replace(att, joint_refit=bool(args.joint_refit))
+    return replace(o, attribution=att)
 
 
 def diagnose_function(args: argparse.Namespace):

@@ -37,7 +37,7 @@ class DiagnoseOptions:
         gap / attribution: the statistic's and the attribution's settings.
         joint_gyro: gyro_scale and gyro_bias_drift fitted jointly with the trajectory (effects/joint.py
             (J1)) instead of the keyframes-fixed first-order fit; None: the module flag `joint.ENABLED`
-            (default False). Scored by their own held-out cost (J5) when `attribution.own_score`.
+            (default True). Scored by their own held-out cost (J5) when `attribution.own_score`.
         subsample_lag: the magnetometer's sub-sample lag in the base model's prediction (fit.py (B3'));
             None: the module flag `fit.SUBSAMPLE_LAG` (default False).
     """

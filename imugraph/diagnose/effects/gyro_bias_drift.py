@@ -4,7 +4,7 @@ Model: b_gyr,j = ω_j + δ_ω + β(t_j) + e_ω with a smooth drift β(t) = Σ_p 
 polynomials of degree 1…3 in τ = 2(t − t₀)/(t₁ − t₀) − 1 (9 parameters; the constant is the base bias).
 
 Fit: the keyframes-fixed first-order fit (`_fit_first_order`, effects/base.py rule 1) by default;
-with effects/joint.ENABLED (issue 5, G6, opt-in): the coefficients c_p jointly with the trajectory (effects/joint.py (J1): keyframe
+with effects/joint.ENABLED (issue 5, G6; the default since G7/H7): the coefficients c_p jointly with the trajectory (effects/joint.py (J1): keyframe
 rotations, constant bias and magnetometer calibration re-estimated with them on the training samples of
 every channel, the base fit's σ); the extended model's bias is b̄ + β(t), so the gyro changes by
 Δω_j = b_s(j) − b̄ − β(t_j). β is smooth and global, so the held-out blocks are interpolated. (Before: the
@@ -98,7 +98,7 @@ class GyroBiasDrift(Effect):
         return corr
 
     def _fit_first_order(self, fit, train) -> Correction:
-        """The keyframes-fixed fit (before G6; the default, see joint.ENABLED)."""
+        """The keyframes-fixed fit (before G6; with joint.ENABLED False)."""
         t = fit.session.t
         B = legendre_basis(t, float(t[0]), float(t[-1]))
         seg = fit.b_gyr_bias - np.asarray(fit.calibration.gyro_bias, float)         # b_s(j) − b̄

@@ -4,7 +4,7 @@ Model: b_gyr,j = (I + M) ω_j + δ_ω + e_ω, M 3×3 (diagonal: scale-factor err
 sensitive axis tilted toward the others, non-orthogonality and misalignment).                         (S1')
 
 Fit: the keyframes-fixed first-order fit (`_fit_first_order`, effects/base.py rule 1) by default;
-with effects/joint.ENABLED (issue 5, G6, opt-in): M jointly with the trajectory (effects/joint.py (J1)): the keyframe rotations, the
+with effects/joint.ENABLED (issue 5, G6; the default since G7/H7): M jointly with the trajectory (effects/joint.py (J1)): the keyframe rotations, the
 constant gyro bias and the magnetometer's D, o, dip are re-estimated with M on the training samples of
 every channel at the base fit's σ (Gauss–Newton, exact residuals), so M is not the fraction of the effect
 that the bent base keyframes leave in the gyro residual. The old first-order fit (keyframes fixed) and
@@ -121,7 +121,7 @@ class GyroScale(Effect):
         return corr
 
     def _fit_first_order(self, fit, train) -> Correction:
-        """The keyframes-fixed fit (before G6; the default, see joint.ENABLED)."""
+        """The keyframes-fixed fit (before G6; with joint.ENABLED False)."""
         w_rate = fit.session.gyr - fit.b_gyr_bias                                  # y − b
         base = fit.residuals
 
