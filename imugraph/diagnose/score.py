@@ -70,12 +70,16 @@ class GainAccumulator:
 
     def add(self, base: dict, ext: dict, train: np.ndarray, test: np.ndarray) -> None:
         """Add one fold: base/ext are channel → (N, 3) raw residuals (ext falls back to base)."""
+        self._add_fold({c: channel_scores(np.asarray(base[c], float), np.asarray(ext.get(c, base[c]), float),
+                                          train, test) for c in CHANNELS if c in base})
+
+    def _add_fold(self, scores: dict) -> None:
+        """One fold's channel → (ℓ_base, ℓ_ext, rows) summed in; its Σ_c Δℓ_c / rows kept per fold."""
         fold = 0.0
         for c in CHANNELS:
-            if c not in base:
+            if c not in scores:
                 continue
-            lb, le, n = channel_scores(np.asarray(base[c], float), np.asarray(ext.get(c, base[c]), float),
-                                       train, test)
+            lb, le, n = scores[c]
             g = lb - le
             self.sum[c] += g
             self.base[c] += lb
@@ -128,20 +132,10 @@ class OwnCostAccumulator(GainAccumulator):
 
     def add_costs(self, held: dict) -> None:
         """Add one fold: held = {"base": {c: C}, "ext": {c: C}, "n": {c: rows}} (joint.heldout_cost)."""
-        fold = 0.0
         for c, e in (held.get("e0") or {}).items():
             self.e0[c] = float(e)
-        for c in CHANNELS:
-            n = int(held["n"].get(c, 0))
-            if not n:
-                continue
-            lb, le = float(held["base"][c]), float(held["ext"][c])
-            self.sum[c] += lb - le
-            self.base[c] += lb
-            self.ext[c] += le
-            self.n[c] += n
-            fold += (lb - le) / n
-        self.folds.append(fold)
+        self._add_fold({c: (float(held["base"][c]), float(held["ext"][c]), int(held["n"][c]))
+                        for c in CHANNELS if int(held["n"].get(c, 0))})
 
     def shrink(self, n_params: int) -> float:
         """The fraction of the base model's held-out EXCESS cost that the effect removes, net of the BIC
