@@ -126,7 +126,7 @@ def update_acc_rate_error(opt, vel_state: dict, block, nRk: np.ndarray, pre, ses
     round's VelocityBlock; nRk (K, 3, 3) the round's orientations; pre the round's Preintegration (sample_kf);
     session the Session the block was built from (acc, m/s²; dt, s); record: history entry to note κ_a in.
     """
-    if not getattr(opt, "estimate_acc_rate_error", False) or block is None or vel_state.get("s") is None:
+    if not opt.estimate_acc_rate_error or block is None or vel_state.get("s") is None:
         return 0.0
     if block.n_keyframes < 3:
         return 0.0

@@ -50,7 +50,7 @@ from array import array
 import numpy as np
 from scipy.stats import chi2
 
-from imugraph.calibration.disturbance import MERGE_S, MIN_THRESHOLD
+from imugraph.calibration.disturbance import MERGE_S, MIN_THRESHOLD, PAD_S
 
 __all__ = ["DisturbanceDetector", "field_norm_sigma"]
 
@@ -82,7 +82,7 @@ class DisturbanceDetector:
     """
 
     def __init__(self, D0: np.ndarray, o0: np.ndarray, sigma_f: float, sigma_n: float, p_alarm: float = 1e-4,
-                 p_drift: float = 0.01, pad_s: float = 0.5, max_lag_s: float = 2.0, learn_s: float = 0.0,
+                 p_drift: float = 0.01, pad_s: float = PAD_S, max_lag_s: float = 2.0, learn_s: float = 0.0,
                  merge_s: float = MERGE_S, min_deviation: float = MIN_THRESHOLD):
         self.D_inv = np.linalg.inv(np.asarray(D0, float))
         self.o = np.asarray(o0, float)

@@ -8,6 +8,7 @@ from dataclasses import dataclass, field
 import gtsam
 import numpy as np
 
+from imugraph.calibration.disturbance import PAD_S
 from imugraph.errors import SessionError
 
 
@@ -126,7 +127,7 @@ class StreamOptions:
     disturb_detect: bool = False
     disturb_p_alarm: float = 1e-4
     disturb_p_drift: float = 0.01
-    disturb_pad_s: float = 0.5
+    disturb_pad_s: float = PAD_S       # the batch's window padding (calibration.disturbance)
     disturb_learn_s: float = 10.0
     disturb_orient: bool = False
     calib_weak_prior: bool = False
