@@ -66,7 +66,8 @@ from imugraph.io.session import Session
 
 def sample_bias(est, session: Session, bias_segment_s: float) -> np.ndarray:
     """(N, 3) gyro bias of each sample from an estimate's segment biases (info["gyro_bias_segments"]; segment
-    of a sample by its time, as calibration.ml assigns keyframe intervals)."""
+    of a sample by its own time — calibration.ml assigns by the time of the sample's keyframe-interval start,
+    so a sample in an interval crossing a segment boundary can differ from ml's)."""
     seg_b = np.atleast_2d(np.asarray(est.info["gyro_bias_segments"], float))
     t = session.t - session.t[0]
     seg = np.floor(t / bias_segment_s).astype(int) if bias_segment_s > 0 else np.zeros(session.n, int)
