@@ -10,7 +10,8 @@ from imugraph.diagnose.bench import simulated_session
 from imugraph.diagnose.effects import EFFECTS
 from imugraph.diagnose.effects.base import replace_session
 from imugraph.diagnose.effects.gyro_bias_drift import legendre_basis
-from imugraph.diagnose.effects.joint import _gyro_change, _keyframe_jacobian, evaluate, moved
+from imugraph.diagnose.effects.joint import _keyframe_jacobian, evaluate, moved
+from imugraph.diagnose.effects.joint_normal import gyro_changes
 from imugraph.diagnose.fit import fit_base, subsample_lag_offset
 from imugraph.diagnose.refit import refit_effect
 from imugraph.geometry import expmap
@@ -62,7 +63,7 @@ def test_gyro_change_matches_exact_reintegration(clean):
     d = 2e-5 * np.random.default_rng(1).standard_normal((f.n, 3)) + 3e-5
     w0 = np.zeros((len(f.keyframe_samples), 3))
     base = moved(f, w0, np.zeros((f.n, 3)))    # the samples re-integrated at the fit's bias: the linearisation point
-    lin = _gyro_change(base, d)
+    lin = {c: v[:, :, 0] for c, v in gyro_changes(base, d[None]).items()}   # one change
     ex = moved(f, w0, d).residuals
     for c in ("gyr", "acc", "mag"):
         num = ex[c] - base.residuals[c]

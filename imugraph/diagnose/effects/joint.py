@@ -19,7 +19,7 @@ turns by v_j = (1 − u_j) w_k + u_j w_{k+1} (nav frame) and, to first order,
     acc_j ← acc_j + (R_jᵀ v_j) × (R_jᵀ g_n),   mag_j ← mag_j + D ((R_jᵀ v_j) × (R_jᵀ n)),                 (J2)
     gyr_j ← gyr_j − R_jᵀ (w_{k+1} − w_k) / T_k      (ω̂_j = Log(R_jᵀR_{j+1})/Δt_j: the interval turns by w_{k+1} − w_k)
 
-G: the effect's columns, B: the constant bias δb's (Δω = −δb), both by (J3) (`_gyro_change`: a gyro
+G: the effect's columns, B: the constant bias δb's (Δω = −δb), both by (J3) (`joint_normal.gyro_changes`: a gyro
 change with the keyframes fixed, the rotation inside an interval carried in the nav frame), re-linearised
 at every step. The gyro rows are whitened by the per-sample σ_ω (each sample of an interval repeats the
 interval's mismatch c_k, whose std is σ_ω/√M: M rows at σ_ω carry the interval's information once), acc
@@ -105,14 +105,6 @@ def _keyframe_jacobian(fit, D: np.ndarray, n_nav: np.ndarray) -> tuple[dict, np.
          "mag": np.concatenate([wk * M, wk1 * M], axis=2),
          "gyr": np.concatenate([G, -G], axis=2)}
     return J, k, k1
-
-
-def _gyro_change(fit, d_omega: np.ndarray) -> dict:
-    """First-order change of the residuals when the gyro changes by Δω (N, 3), keyframes fixed, with the
-    rotation inside each keyframe interval carried (nav frame; base (E1)–(E3) take the body frames of an
-    interval as one, which at 1 rad per interval (BROAD 06) left the Gauss–Newton of (J1) creeping):
-    (J3), computed by `joint_normal.gyro_changes` (one change here). Returns channel → (N, 3)."""
-    return {c: v[:, :, 0] for c, v in gyro_changes(fit, np.asarray(d_omega, float)[None]).items()}
 
 
 def _columns(cur, exact, p: np.ndarray) -> dict:

@@ -75,6 +75,11 @@ def _per_interval(x: np.ndarray, k: np.ndarray) -> tuple[np.ndarray, np.ndarray]
     return np.add.reduceat(x, start, axis=0), k[start]
 
 
+def _pair_columns(k: np.ndarray, K: int) -> np.ndarray:
+    """(len(k), 6) columns of (w_k, w_{k+1}) in the 3K keyframe vector (k + 1 → K − 1 at the last keyframe)."""
+    return np.concatenate([3 * k[:, None] + np.arange(3), 3 * np.minimum(k + 1, K - 1)[:, None] + np.arange(3)], axis=1)
+
+
 def normal_equations(J: dict, k: np.ndarray, cols: dict, rows: dict, K: int, C: int) -> tuple:
     """(N1) for the whitened, Huber-weighted rows of each channel.
 
@@ -97,7 +102,7 @@ def normal_equations(J: dict, k: np.ndarray, cols: dict, rows: dict, K: int, C: 
         JJ, kg = _per_interval(_outer(Jc, Jc), kc)
         np.add.at(HB, kg, JJ)
         # Jw of this channel as CSR (six non-zeros per row, on w_k and w_{k+1}): JwᵀGd, Jwᵀy
-        sel = np.concatenate([3 * kc[:, None] + np.arange(3), 3 * np.minimum(kc + 1, K - 1)[:, None] + np.arange(3)], 1)
+        sel = _pair_columns(kc, K)
         m = len(idx)
         Jw = sp.csr_matrix((Jc.reshape(-1), np.repeat(sel[:, None, :], 3, axis=1).reshape(-1),
                             np.arange(0, 18 * m + 1, 6)), shape=(3 * m, 3 * K))
@@ -105,9 +110,7 @@ def normal_equations(J: dict, k: np.ndarray, cols: dict, rows: dict, K: int, C: 
         Hwp[:, :w] += JwT @ G2
         gw += JwT @ y.reshape(-1)
     # place the 6 × 6 blocks on (w_k, w_{k+1}) (k + 1 → K − 1 at the end, where the block's second half is 0)
-    kk = np.arange(K)
-    k1k = np.minimum(kk + 1, K - 1)
-    sel = np.concatenate([3 * kk[:, None] + np.arange(3), 3 * k1k[:, None] + np.arange(3)], axis=1)   # (K, 6)
+    sel = _pair_columns(np.arange(K), K)                                                   # (K, 6)
     r = np.repeat(sel[:, :, None], 6, axis=2).reshape(-1)
     cidx = np.repeat(sel[:, None, :], 6, axis=1).reshape(-1)
     Hww = sp.csc_matrix((HB.reshape(-1), (r, cidx)), shape=(3 * K, 3 * K))    # duplicates summed
