@@ -172,7 +172,9 @@ def calibrate(session: Session, options: Options | None = None, initial=None,
     def ml_rounds(bias, noise, nRk, theta, values):
         """Step 2 until the noise levels and bias (and Ê, in the gyro-map phase) settle, from a state
         (values None: no previous solution). Returns bias, noise, nRk, θ, values, converged."""
-        nonlocal tau_fixed
+        nonlocal tau_fixed, opt
+        if values is None and opt.estimate_bias_rw:     # fresh rounds start from the configured q
+            opt = replace(opt, bias_rw=(options or Options()).bias_rw)
         converged = False
         for outer in range(1, opt.max_outer + 1):
             pre, prob, values, info = solve_round(bias, noise, nRk, theta, max(1, stride // opt.round_min_samples),
@@ -209,6 +211,9 @@ def calibrate(session: Session, options: Options | None = None, initial=None,
                 change = max(change, update_velocity_process(vel_state, prob.velocity, nRk, history[-1],
                                                              opt.estimate_velocity_process, opt.velocity_sigma,
                                                              opt.velocity_tau))
+            if opt.estimate_bias_rw:    # EM step of the gyro-bias random-walk density (calibration/bias_process.py)
+                from imugraph.calibration.bias_process import em_bias_rw
+                opt, change = em_bias_rw(opt, prob, values, pre, n_seg, history[-1], change)
             if windows:
                 # windowed hard iron at the current orientations (linear given them), Kok's o + Δo_w
                 D_, o_, dip_ = unpack_theta(theta)

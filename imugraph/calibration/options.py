@@ -30,6 +30,14 @@ class Options:
     bias_prior_sigma: float = 0.05
     bias_segment_s: float = 5.0       # gyro bias: one value per segment, joined by a random walk
     bias_rw: float = 2e-4             # bias random-walk density, rad/s/√s (MEMS bias instability)
+    estimate_bias_rw: bool = False    # q = bias_rw re-estimated per ML round by EM from the smoothed segment
+    #   biases and their posterior covariances (calibration/bias_process.py; start: bias_rw; held in RW_BOUNDS).
+    #   Off (H7, benchmarks/h7_bias_process.py, all 17): the ML q spans ≈ 5e-6 (04, 07, 24) to 1.4e-3 (21) — it
+    #   follows unmodelled gyro errors more than a sensor property; mean 0.666° → 0.661° (04 −0.069°, 10 −0.059°,
+    #   15 −0.015°, 16 −0.014°) but 36 +0.061° (then behind offline VQF), 07 +0.027°, 06 +0.018°, 02 +0.006°;
+    #   +0.4–3 s CPU per trial. Fixed q instead (broad_published.py --opt bias_rw=…, 8 trials): 15/16 best at 5e-5
+    #   (0.840°/0.382°) but 06 0.638°, 04 0.509°; 06 best at 5e-4 (0.552°); 02 best at today's 2e-4 (0.473°);
+    #   bias_segment_s 2 or 10: every trial within 0.004°
     gyro_rate_error: float = 0.01     # κ: gyro error growing with rate (scale factor, misalignment)
     estimate_gyro_rate_error: bool = False  # κ re-estimated per ML round from the gyro factors' residuals and
     #   posterior covariances (calibration/gyro_rate.py; start: gyro_rate_error). Off: on BROAD the ML κ is
