@@ -20,7 +20,7 @@ calibration (see docs/stream.md). Wall times; the machine may be shared: compare
 
     .venv/bin/python benchmarks/stream_speed.py [TRIALS] [--lag 2 | --no-lag] [--no-batch] [--bootstrap-s 30]
         [--calibration online|fixed|both] [--lag-solver chain|incremental|batch] [--lag-only] [--no-cal-compare] [--calib-states]
-        [--disturb] [--weak-prior] [--cache DIR]
+        [--disturb] [--weak-prior] [--offsets] [--cache DIR]
 
 TRIALS: comma-separated BROAD trial numbers, or "all" (the 17 trials; default 01). --no-lag / --no-batch skip
 the fixed-lag run / the batch smoother (time). Prints the per-trial table, then the means of the filtered
@@ -52,7 +52,7 @@ def _err(q, s):
 
 def run_trial(path: Path, lag: float | None, bootstrap_s: float, batch: bool = True, online=(True,),
               compare_cal: bool = True, lag_solver: str = "chain", lag_only: bool = False, calib_states: bool = False,
-              disturb: bool = False, weak_prior: bool = False, cache: str | None = None) -> list[dict]:
+              disturb: bool = False, weak_prior: bool = False, cache: str | None = None, offsets: bool = False) -> list[dict]:
     from imugraph.evaluate import orientation_error
     from imugraph.graphs.cpp_smoother import smooth_fixed
     from imugraph.graphs.stream import StreamOptions
@@ -92,7 +92,7 @@ def run_trial(path: Path, lag: float | None, bootstrap_s: float, batch: bool = T
         atomic_write_bytes(Path(cache) / f"cal_{name}.pkl", pickle.dumps(cached))
     for label, lag_s, on in runs:
         opts = StreamOptions(lag_s=lag_s, online_calibration=on, fixed_lag_solver=lag_solver, calib_states=calib_states,
-                             disturb_detect=disturb, calib_weak_prior=weak_prior)
+                             disturb_detect=disturb, calib_weak_prior=weak_prior, disturb_offsets=offsets)
         # the bootstrap computed above (not timed again); stream_session then learns the detector's σ_f over its
         # window and takes the weak prior's s from it, as when it bootstraps itself
         r = stream_session(s, None, opts, bootstrap_s, bootstrap=(cal, n_boot))
@@ -233,6 +233,8 @@ def main(argv=None) -> int:
                     "calibration (StreamOptions(disturb_detect=True), imugraph.graphs.stream_disturb)")
     ap.add_argument("--weak-prior", action="store_true", help="the batch's weak prior for the online calibration "
                     "when the bootstrap says D, o are not identifiable (StreamOptions(calib_weak_prior=True))")
+    ap.add_argument("--offsets", action="store_true", help="with --calib-states --disturb: each disturbance window "
+                    "its own hard-iron offset, the reported hard iron the majority's (StreamOptions(disturb_offsets=True))")
     ap.add_argument("--cache", default=None, help="DIR: reuse / store each trial's bootstrap and whole-trial batch "
                     "calibration (cal_NN.pkl; the calibration code may have changed since they were computed)")
     a = ap.parse_args(argv)
@@ -247,7 +249,7 @@ def main(argv=None) -> int:
     for p in paths:
         online = {"online": (True,), "fixed": (False,), "both": (True, False)}[a.calibration]
         rows += run_trial(p, lag, a.bootstrap_s, not a.no_batch, online, not a.no_cal_compare, a.lag_solver, a.lag_only,
-                          a.calib_states, a.disturb, a.weak_prior, a.cache)
+                          a.calib_states, a.disturb, a.weak_prior, a.cache, a.offsets)
         print(f"trial {trial_number(p):02d} done", file=sys.stderr, flush=True)
     cols = ["trial", "method", "rt_factor", "p50_ms", "p99_ms", "cpu_rt", "p99_cpu_ms", "max_cpu_ms", "p99_btw_cpu_ms",
             "max_btw_cpu_ms", "filtered_deg", "smoothed_deg", "vs_batch_deg", "E_max",

@@ -137,6 +137,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="D, o and the dip as states of the incremental graph instead of the periodic refit")
     p.add_argument("--disturb", action=argparse.BooleanOptionalAction, default=None,
                    help="detect magnetic disturbance windows causally and keep them out of the calibration")
+    p.add_argument("--disturb-offsets", action=argparse.BooleanOptionalAction, default=None,
+                   help="each detected window its own hard-iron offset; the state seen most so far is 'normal' "
+                   "(needs --calib-states --disturb)")
     p.add_argument("--weak-prior", action=argparse.BooleanOptionalAction, default=None,
                    help="when D, o are not identifiable, hold them with the batch's weak prior")
     _common(p, default_out, data_dir=True)

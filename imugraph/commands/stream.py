@@ -2,8 +2,9 @@
 smoother with --lag), starting from a short batch bootstrap calibration (or --calibration FILE) that is
 re-estimated online (held fixed with `--fixed-calibration` when the parser offers it; `--lag-solver` picks
 the fixed-lag solver for --lag: chain (default), incremental or batch, `StreamOptions.fixed_lag_solver`;
-`--calib-states`, `--disturb` (causal disturbance windows, `StreamOptions.disturb_detect`) and `--weak-prior`
-(`StreamOptions.calib_weak_prior`) likewise when offered). timing.json's counts include the disturbance windows
+`--calib-states`, `--disturb` (causal disturbance windows, `StreamOptions.disturb_detect`), `--weak-prior`
+(`StreamOptions.calib_weak_prior`) and `--disturb-offsets` (`StreamOptions.disturb_offsets`: each window its own
+hard-iron offset, the reported hard iron the majority's) likewise when offered). timing.json's counts include the disturbance windows
 found and the keyframes / field samples they flagged (`disturbances`, `disturbed_keyframes`, `disturbed_samples`).
 
 Writes (DESIGN.md): orientation.npz (smoothed, at the end), orientation_filtered.npz (the estimate available
@@ -44,12 +45,13 @@ def run_stream(args: argparse.Namespace) -> int:
     session = common.load(path, progress)
     out = common.out_dir_for(args.out, Path(path).stem)
     lag_solver = getattr(args, "lag_solver", None) or StreamOptions.fixed_lag_solver   # `--lag-solver` if offered
-    # --calib-states, --disturb, --weak-prior when the parser offers them (cli.py; StreamOptions' defaults otherwise)
+    # --calib-states, --disturb, --weak-prior, --disturb-offsets when the parser offers them (cli.py; StreamOptions' defaults otherwise)
     options = StreamOptions(keyframe_hz=args.keyframe_hz, lag_s=args.lag, fixed_lag_solver=lag_solver,
                             online_calibration=not getattr(args, "fixed_calibration", False),
                             calib_states=_flag(args, "calib_states", StreamOptions.calib_states),
                             disturb_detect=_flag(args, "disturb", StreamOptions.disturb_detect),
-                            calib_weak_prior=_flag(args, "weak_prior", StreamOptions.calib_weak_prior))
+                            calib_weak_prior=_flag(args, "weak_prior", StreamOptions.calib_weak_prior),
+                            disturb_offsets=_flag(args, "disturb_offsets", StreamOptions.disturb_offsets))
     with progress.library_output():
         result = stream_session(session, cal, options, bootstrap_s=args.bootstrap_s, say=progress.say)
     write_orientation_npz(out / "orientation.npz", result.t, result.smoothed)

@@ -271,7 +271,7 @@ class StreamSmoother(OnlineCalibrationMixin, KeyframeStartMixin, ArrivalMixin, S
         if ok.any() and not (flagged and self.opt.disturb_orient):
             if self.opt.lag_s is None:               # for the final re-issue (iSAM2 keeps every factor)
                 self._mag_index[k] = self._n_factors + graph.size()
-            graph.add(self._mag_factor(k, kRb, y, no_theta=flagged))
+            graph.add(self._mag_factor(k, kRb, y, no_theta=flagged, into=(graph, values, stamps, t_next - self._t0)))
         # prediction of keyframe k+1 from the latest estimate of keyframe k
         nRk = self._nRk.matrix()
         c = np.array([0.0, 0.0, -self._g]) * dt_k + nRk @ dv
@@ -280,7 +280,8 @@ class StreamSmoother(OnlineCalibrationMixin, KeyframeStartMixin, ArrivalMixin, S
         values.insert(keys.vel(k + 1), self._v + c)
         if self.opt.lag_s is None or self.opt.fixed_lag_solver != "batch":     # iSAM2 inside
             graph.add(gtsam.PriorFactorPose3(pose_key(k + 1), values.atPose3(pose_key(k + 1)), self._weak_pose))
-        for key in (pose_key(k + 1), keys.vel(k + 1), imu_bias_key(seg)) + self._global_keys:
+        keep = self._offsets.keep(self._offset_alive) if self._offsets is not None else ()    # stream_offsets
+        for key in (pose_key(k + 1), keys.vel(k + 1), imu_bias_key(seg)) + self._global_keys + keep:
             stamps[key] = t_next - self._t0
         self._n_factors += graph.size()
         self._update(graph, values, stamps, k + 1, seg, R_next)

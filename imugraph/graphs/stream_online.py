@@ -27,6 +27,9 @@ start calibration's own windows) left out of the online calibration: not folded 
 the pending intervals back to it), or, with θ as a state, the keyframe's factor without θ (`_init_disturb`,
 `_disturb_step`); `calib_weak_prior` — when the start says D, o are not identifiable, the batch's weak prior
 (`weak_prior`: D = s·I, o = 0, calibration.ml's σ) for the refit's (2) or θ's Λ_w with its centre.
+`disturb_offsets` (with calib_states and disturb_detect) — each detector window its own hard-iron offset Δo_w and
+the reported hard iron that of the majority of the samples seen so far (`imugraph.graphs.stream_offsets`;
+`_offset_alive`, `_offset_estimate`, the swap in `_record_state`).
 Measured on BROAD: docs/stream.md, "Disturbances and the weak prior online"."""
 
 from __future__ import annotations
@@ -42,6 +45,7 @@ from imugraph.graphs.cpp_velocity import pose_key, robust
 from imugraph.graphs.stream_calstate import (CAL_KEY, PIN_REL, WhitenessSums, cal_mag_factor, calibration_of,
                                              data_estimate, theta_of, weak_sigmas)
 from imugraph.graphs.stream_field import field_key, field_mag_factor, linearized_once
+from imugraph.graphs.stream_offsets import WindowOffsets, joint_estimate, offset_key, swap_hard_iron
 
 
 def weak_prior(cal: Calibration, scale: float | None) -> tuple[np.ndarray, np.ndarray] | None:
@@ -100,6 +104,9 @@ class OnlineCalibrationMixin:
         opt = self.opt
         self._disturbed: set = set()         # pending keyframes flagged (refit: not folded in)
         self._detector = None
+        self._win_now = None                 # the window of the interval being closed (disturb_offsets)
+        self._offsets = (WindowOffsets(self._online_scale) if opt.disturb_offsets and opt.disturb_detect
+                         and opt.online_calibration and self._calstate else None)
         if opt.disturb_detect and opt.online_calibration:
             from imugraph.graphs.stream_disturb import DisturbanceDetector, field_norm_sigma
 
@@ -123,6 +130,8 @@ class OnlineCalibrationMixin:
         is already corrected there; flagged too: the offsets were fitted with the start's D, o). Returns whether
         interval k is in a disturbance window."""
         flag, onset = self._detector.step(t_start, t_end, y)
+        if self._offsets is not None:        # the detector's window (stream_offsets; the start's own keep their handling)
+            self._win_now = self._detector.windows - 1 if flag and self._detector.windows and not known else None
         flag = flag or known
         st = self.stats
         st.disturbances = self._detector.windows
@@ -147,19 +156,41 @@ class OnlineCalibrationMixin:
         graph.add(gtsam.PriorFactorVector(CAL_KEY, self._theta0.copy(), gtsam.noiseModel.Diagonal.Sigmas(self._pin_sig)))
         stamps[CAL_KEY] = 0.0
 
+    def _offset_alive(self, key: int) -> bool:
+        """A window offset's key is still in the solver (the chain lag marginalises the others)."""
+        return key in self._solver.stamps if self._chain else True
+
+    def _offset_estimate(self, key: int):
+        """The solver's latest estimate of a window offset Δo_w, None when it has left the solver."""
+        if not self._offset_alive(key):
+            return None
+        return (self._solver.isam if self._chain else self._solver).calculateEstimateVector(key)
+
     def _record_state(self, elapsed: float) -> None:
-        """A history row: the streamed θ and its std (stream_calstate eq. 4) from iSAM2's θ̂ and marginal covariance."""
+        """A history row: the streamed θ and its std (stream_calstate eq. 4) from iSAM2's θ̂ and marginal covariance;
+        with disturb_offsets, when a window is the majority, its hard iron (stream_offsets eq. 2)."""
         self._refit_due = False
         isam = self._solver.isam if self._chain else self._solver
+        major = self._offsets.majority(self._offset_alive) if self._offsets is not None else None
         try:
             theta, cov = data_estimate(isam.calculateEstimateVector(CAL_KEY), isam.marginalCovariance(CAL_KEY),
                                        self._theta0, self._pin_sig, self._weak_sig, self._prior_mean)
+            if major is not None:       # θ and Δo_w jointly; reported: o + Δo_w
+                okey = offset_key(major)
+                J = isam.jointMarginalInformation(gtsam.KeyVector([CAL_KEY, okey]))
+                J = np.block([[J.at(CAL_KEY, CAL_KEY), J.at(CAL_KEY, okey)], [J.at(okey, CAL_KEY), J.at(okey, okey)]])
+                psi, cov_psi = joint_estimate(np.r_[isam.calculateEstimateVector(CAL_KEY), isam.calculateEstimateVector(okey)],
+                                              J, self._theta0, self._pin_sig, self._weak_sig, self._prior_mean)
+                rep, cov_rep = swap_hard_iron(psi, cov_psi)
         except (RuntimeError, np.linalg.LinAlgError):       # counted as a failed update; no row
             self.stats.failed_updates += 1
             return
         white = calibration_of(self.cal, theta, cov).std
         if max(np.max(white["D"]), np.max(white["o"])) < self.opt.calib_lin_rel * self._online_scale:
             self._theta_lin = theta          # well determined: new factors linearised there (stream_calstate eq. 5)
+        if major is not None:                # what is reported (the graph's θ keeps the start's normal state)
+            theta, cov = rep, cov_rep
+            white = calibration_of(self.cal, theta, cov).std
         self._white.end_block()
         V = self._white.factor(self._theta0)        # eq. (6): std of row j of D and o_j × √max(1, V_j)
         if V is not None:
@@ -171,7 +202,8 @@ class OnlineCalibrationMixin:
                                "std": {"D": cal.std["D"].tolist(), "o": cal.std["o"].tolist(), "dip_deg": cal.std["dip_deg"]},
                                "whiteness": None if V is None else V.tolist(),
                                "std_white": {"D": white["D"].tolist(), "o": white["o"].tolist(), "dip_deg": white["dip_deg"]},
-                               "samples": float(self._k), "rejected": int(self._gated), "applied": False})
+                               "samples": float(self._k), "rejected": int(self._gated), "applied": False,
+                               **({} if self._offsets is None else self._offsets.row(major))})
         self.stats.calib_refits += 1
 
     def _keyframe_R(self, k: int) -> np.ndarray | None:
@@ -254,18 +286,34 @@ class OnlineCalibrationMixin:
             graph.add(self._mag_factor(k, quat_to_rotmat(self._hist_kRb[k]), self._hist_y[k], exact=True))
         return graph
 
-    def _mag_factor(self, k: int, kRb: np.ndarray, y: np.ndarray, exact: bool = False, no_theta: bool = False):
+    def _mag_factor(self, k: int, kRb: np.ndarray, y: np.ndarray, exact: bool = False, no_theta: bool = False,
+                    into: tuple | None = None):
         """Huber MagPoseFactorPose3 on keyframe k: the interval's calibrated field D⁻¹(y − o) rotated into
         keyframe k and averaged (full covariance), against the current n_mag. With the field perturbation:
         stream_field's factor against n + d_k, linearised once at keyframe k's latest estimate (exact=False,
         for the incremental solvers; see stream_field.linearized_once) or the exact CustomFactor. no_theta: with θ as a
-        graph state, the factor carries no information on θ (a disturbance window: gated as by calib_gate)."""
+        graph state, the factor carries no information on θ (a disturbance window: gated as by calib_gate); with
+        disturb_offsets and a window (`_win_now`) instead on (pose_k, d_k, θ, Δo_w) (stream_offsets), its key and prior
+        added through into = (graph, values, stamps, now) when new."""
         if self._calstate:       # on (pose_k, d_k, θ), linearised once (stream_calstate eq. 1–2)
+            offs = self._offsets
+            win = self._win_now if (no_theta and offs is not None) else None
+            if win is not None:      # its own hard-iron offset (stream_offsets eq. 1), still no information on θ
+                okey, olin = offs.key_of(win, self._offset_estimate)
+            else:
+                okey = olin = None
             gate = -1.0 if no_theta else None if self.opt.calib_gate is None else self.opt.calib_gate * self._online_scale
+            info = {} if offs is not None else None
             f, rows = cal_mag_factor(pose_key(k), gtsam.Pose3(self._nRk, self._p), field_key(k) if self._field else None,
-                                     self._d, self._theta_lin, kRb, y, self._sig_y, self.opt.huber_k, self._theta0, gate)
-            if rows is not None:
+                                     self._d, self._theta_lin, kRb, y, self._sig_y, self.opt.huber_k, self._theta0, gate,
+                                     okey, olin, info)
+            if win is not None:
+                if f is not None:
+                    offs.added(win, info["offset"], info["n"], info["r2"], *into)
+            elif rows is not None:
                 self._white.add(*rows)
+                if offs is not None:
+                    offs.normal(info["n"], info["r2"])
             else:
                 self._gated += 1
             return f

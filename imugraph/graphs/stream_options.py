@@ -80,6 +80,10 @@ class StreamOptions:
             counted in `StreamStats` (disturbances, disturbed_keyframes, disturbed_samples). disturb_orient: also
             leave the magnetometer factor of a flagged keyframe out of the orientations (decided when its interval
             closes). Off by default (docs/stream.md, "Disturbances and the weak prior online").
+        disturb_offsets: with calib_states and disturb_detect, each disturbance window (the detector's and the start
+            calibration's modelled ones) gets its own hard-iron offset Δo_w as the batch's, so that its keyframes
+            inform D and the dip, and the reported hard iron is that of the majority of the samples seen so far
+            (`imugraph.graphs.stream_offsets`). Off by default (docs/stream.md, "Windowed offsets and the majority").
         calib_weak_prior: when the start calibration says D, o are not identifiable (`coverage["identifiable"]`
             False: the regularised fallback of `calibrate`), the online calibration's prior is the batch's weak
             prior — D = s·I, o = 0 with σ = weak_theta_fraction × s (o: twice), `calibration.ml`'s — instead of the
@@ -130,6 +134,7 @@ class StreamOptions:
     disturb_pad_s: float = PAD_S       # the batch's window padding (calibration.disturbance)
     disturb_learn_s: float = 10.0
     disturb_orient: bool = False
+    disturb_offsets: bool = False
     calib_weak_prior: bool = False
 
 
@@ -213,6 +218,7 @@ def isam2_thresholds(rot_threshold: float) -> "gtsam.ISAM2ThresholdMap":
     m.insert(("g", np.full(3, 0.1)))
     m.insert(("f", np.full(3, 0.05)))      # field perturbation d_k (unit-field units; σ_d 0.003–0.015)
     m.insert(("c", np.full(13, 1e9)))      # θ (stream_calstate): its factors are linear containers, never relinearised
+    m.insert(("w", np.full(3, 1e9)))       # window offsets Δo_w (stream_offsets): linear containers and a linear prior
     return m
 
 
