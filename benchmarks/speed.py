@@ -139,7 +139,8 @@ def main(argv: list[str]) -> int:
         rows.append(time_trial(path, args.repeat, options))
         r = rows[-1]
         print(f"{r['trial']} ({r['n']} samples): calibrate+smooth {r['calib_smooth_s']:.2f} s "
-              f"({r['ratio_calib_smooth']:.0f}× offline VQF), smooth with known calibration "
+              f"(CPU {r['calib_smooth_cpu_s']:.2f} s; {r['ratio_calib_smooth']:.0f}× offline VQF), "
+              f"smooth with known calibration "
               f"{r['smooth_known_s']:.2f} s ({r['ratio_smooth_known']:.1f}×), offline VQF {r['vqf_off_s']:.3f} s; "
               f"peak memory {r['mem_after_smooth_mb']:.0f} MB", flush=True)
     cols = ["trial", "n", "vqf_off_s", "calib_smooth_s", "ratio_calib_smooth", "smooth_known_s",

@@ -201,6 +201,9 @@ def build_problem(pre: Preintegration, b_acc: np.ndarray, b_mag: np.ndarray, noi
         vblock = VelocityBlock(dv, sig_dv, pre.dt, g, velocity.sigma_v, velocity.tau_v, velocity.kernel,
                                B, velocity.acc_bias_sigma0, velocity.acc_bias_rw, rest_kf, velocity.sigma_rest,
                                velocity.ar2)
+        if vblock.ar2 is not None:   # linear in the velocities: exact C++ factors, no Python per iteration
+            graph.push_back(vblock.ar2_graph())
+            vblock.ar2_in_graph = True
         v0 = np.zeros((K, vblock.state_dim)) if velocity.v0 is None else velocity.v0
         for k in range(K if fill else 0):
             values.insert(vk[k], np.asarray(v0[k], float))

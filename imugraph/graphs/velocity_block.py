@@ -14,6 +14,10 @@ Gauss–Markov rows carry only the chain's stationary start — v_0 ~ N(0, γ_0)
 interval 0's rows, zero rows elsewhere — and one more factor per k = 1 … K−2 on (s_{k−1}, s_k, s_{k+1}):
 
     [ −a_2 I   −a_1 I   I ] / √q · [δv_{k−1}; δv_k; δv_{k+1}] = −(v_{k+1} − a_1 v_k − a_2 v_{k−1}) / √q
+
+The zero rows are left out of the interval factors. The AR(2) terms are linear in the velocities, so
+`single_imu.build_problem` puts them into the nonlinear graph once per solve as C++ LinearContainerFactors
+(`ar2_graph`; GTSAM re-linearises them exactly), instead of K Python-built factors per LM iteration.
 """
 
 from __future__ import annotations
@@ -50,6 +54,8 @@ class VelocityBlock:
     rest: np.ndarray | None = None    # (K,) keyframes at rest: zero-velocity prior v_k ~ N(0, σ_rest²)
     sigma_rest: float = 0.02
     ar2: tuple | None = None          # (a_1, a_2, q): AR(2) velocity process replacing (σ_v, τ_v); K ≥ 3
+    ar2_in_graph: bool = False        # the AR(2) terms are C++ factors of the graph (`ar2_graph`): then neither
+    #                                   `cost` nor `linearize` evaluates them in Python
 
     @property
     def n_keyframes(self) -> int:
@@ -87,7 +93,9 @@ class VelocityBlock:
         return np.r_[np.broadcast_to(np.asarray(sigma0, float), (3,)),
                      np.full(self.state_dim - 3, self.bias_sigma0)]
 
-    def cost_at(self, nRk: np.ndarray, s: np.ndarray) -> float:
+    def cost_at(self, nRk: np.ndarray, s: np.ndarray, with_ar2: bool = True) -> float:
+        """The block's cost at orientations nRk (K, 3, 3) and states s (K, d); with_ar2=False leaves out the
+        AR(2) terms (when they are in the graph: `ar2_graph`)."""
         r, _, _, _, _, gm, walk = self.terms(nRk, s)
         total = self.kernel.rho(np.linalg.norm(r, axis=1)).sum() + 0.5 * np.sum(gm**2)
         total += 0.5 * np.sum((s[0] / self._prior_sigma()) ** 2)
@@ -95,12 +103,12 @@ class VelocityBlock:
             total += 0.5 * np.sum(walk**2)
         if self.rest is not None:
             total += 0.5 * np.sum((s[self.rest, :3] / self.sigma_rest) ** 2)
-        if self.ar2 is not None:
+        if self.ar2 is not None and with_ar2:
             total += 0.5 * np.sum(ar2_residuals(s[:, :3], *self.ar2)[2:] ** 2)
         return float(total)
 
     def cost(self, values: gtsam.Values) -> float:
-        return self.cost_at(*self._state(values))
+        return self.cost_at(*self._state(values), with_ar2=not self.ar2_in_graph)
 
     def linearize(self, values: gtsam.Values) -> gtsam.GaussianFactorGraph:
         nRk, s = self._state(values)
@@ -127,18 +135,46 @@ class VelocityBlock:
             A0[:, :3, 3:] = np.einsum("kij,kjl->kil", nRk[:-1], self.B) * sw
             A0[:, 6:9, 3:] = -eye / srw; A1[:, 6:9, 3:] = eye / srw
             rhs[:, 6:9] = -walk
-        unit = gtsam.noiseModel.Unit.Create(rows)
         vk, rk = state_keys(keys.vel, n + 1), state_keys(keys.rot, n + 1)
-        for k in range(n):
-            gfg.push_back(gtsam.JacobianFactor(rk[k], A_R[k], vk[k], A0[k], vk[k + 1], A1[k], rhs[k], unit))
+        self._interval_factors(gfg, rk, vk, A_R, A0, A1, rhs)
         if self.rest is not None:
             A = np.zeros((3, d)); A[:, :3] = eye / self.sigma_rest
             unit3 = gtsam.noiseModel.Unit.Create(3)
             for k in np.flatnonzero(self.rest):
                 gfg.push_back(gtsam.JacobianFactor(keys.vel(int(k)), A, -s[k, :3] / self.sigma_rest, unit3))
-        if self.ar2 is not None:
+        if self.ar2 is not None and not self.ar2_in_graph:
             self._ar2_factors(gfg, s, vk)
         return gfg
+
+    def _interval_factors(self, gfg: gtsam.GaussianFactorGraph, rk, vk, A_R, A0, A1, rhs) -> None:
+        """One JacobianFactor per interval from the stacked rows (module docstring). With the AR(2) process the
+        Gauss–Markov rows 3:6 of intervals k ≥ 1 are exactly zero (σ_w = ∞) and are left out (rows that add
+        nothing to the normal equations, but cost their conversion and elimination)."""
+        n, rows = rhs.shape
+        k0 = 0
+        if self.ar2 is not None and n > 1:
+            gfg.push_back(gtsam.JacobianFactor(rk[0], A_R[0], vk[0], A0[0], vk[1], A1[0], rhs[0],
+                                               gtsam.noiseModel.Unit.Create(rows)))
+            keep = np.r_[0:3, 6:rows]
+            A_R, A0, A1, rhs = A_R[:, keep], A0[:, keep], A1[:, keep], rhs[:, keep]
+            k0 = 1
+        unit = gtsam.noiseModel.Unit.Create(rhs.shape[1])
+        push, JF = gfg.push_back, gtsam.JacobianFactor
+        for k in range(k0, n):
+            push(JF(rk[k], A_R[k], vk[k], A0[k], vk[k + 1], A1[k], rhs[k], unit))
+
+    def ar2_graph(self) -> gtsam.NonlinearFactorGraph:
+        """The AR(2) terms as C++ nonlinear factors for the graph itself (exact: they are linear in s):
+        LinearContainerFactors of their Jacobians at s = 0, which GTSAM re-linearises (b = −A s) and evaluates
+        without Python per iteration. The caller sets `ar2_in_graph` once they are in the graph."""
+        K = self.n_keyframes
+        vk = state_keys(keys.vel, K)
+        gfg = gtsam.GaussianFactorGraph()
+        self._ar2_factors(gfg, np.zeros((K, self.state_dim)), vk)
+        zero = gtsam.Values()
+        for key in vk:
+            zero.insert(key, np.zeros(self.state_dim))
+        return gtsam.LinearContainerFactor.ConvertLinearGraph(gfg, zero)
 
     def _ar2_factors(self, gfg: gtsam.GaussianFactorGraph, s: np.ndarray, vk: list) -> None:
         """The AR(2) terms k = 1 … K−2 (module docstring) as three-key JacobianFactors."""
