@@ -38,6 +38,7 @@ class Window:
     offset: np.ndarray | None = None
     explained: bool = False
     residual_rms: float = float("nan")
+    decided: bool = False      # `explained` fixed by an earlier fit (fit_offsets(keep_decision=True))
 
     def as_dict(self, t: np.ndarray) -> dict:
         return {"t_start": float(t[self.start]), "t_end": float(t[self.stop - 1]),
@@ -83,9 +84,12 @@ def detect_windows(t: np.ndarray, m_cal: np.ndarray) -> list[Window]:
 
 
 def fit_offsets(windows: list[Window], t: np.ndarray, b_mag: np.ndarray, nRb: np.ndarray, D: np.ndarray,
-                o: np.ndarray, n_mag: np.ndarray, undisturbed_rms: float) -> None:
+                o: np.ndarray, n_mag: np.ndarray, undisturbed_rms: float, keep_decision: bool = False) -> None:
     """Δo_w for each window given per-sample orientations nRb (N, 3, 3); marks whether it explains it.
     n_mag: the nav-frame field (3,), or per sample (N, 3) (with a field perturbation, imugraph.factors.field).
+    keep_decision: a window's `explained` is decided at its first fit and kept (its offset is still refitted):
+    the first fit sees orientations and a σ_mag the window did not influence (it starts left out); later
+    verdicts depend on whether it was in the previous solve, and flipped on BROAD 32 (Options.freeze_window_decision).
 
     Δo_w = median_j (y_j − D bRn_j n_mag − o); explained when the remaining RMS (per axis) is within
     EXPLAINED × the undisturbed RMS and the window lasts at least MIN_OFFSET_S.
@@ -103,7 +107,9 @@ def fit_offsets(windows: list[Window], t: np.ndarray, b_mag: np.ndarray, nRb: np
         r = y[ok] - pred
         w.offset = np.median(r, axis=0)
         w.residual_rms = float(np.sqrt(np.mean((r - w.offset) ** 2)))
-        w.explained = bool(w.residual_rms <= EXPLAINED * undisturbed_rms)
+        verdict = bool(w.residual_rms <= EXPLAINED * undisturbed_rms)
+        w.explained = w.explained if keep_decision and w.decided else verdict
+        w.decided = True
 
 
 def apply_windows(windows: list[Window], b_mag: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -20,6 +20,7 @@ import numpy as np
 
 from imugraph import keys
 from imugraph.calibration.noise import field_dof, reestimate
+from imugraph.calibration.rounds import solved_samples_block, thinned as _thinned
 from imugraph.calibration.options import Options  # noqa: F401  (public here: ml.Options)
 from imugraph.calibration.acc_timing import session_lead, with_lead
 from imugraph.calibration.gyro_rate import update_rate_error
@@ -192,7 +193,8 @@ def calibrate(session: Session, options: Options | None = None, initial=None,
             if prob.block.with_field and prob.block.mag is not None:   # d_k absorbs part of the field residuals
                 extra = {"mag": field_dof(prob.block.field_information(nRk, theta), pre.dt, opt.field_sigma,
                                           opt.field_tau)}
-            new = reestimate(prob.block, nRk, theta, pre.cov, values, noise.gyr, extra)   # cov: AHRS factors' Σ
+            block = solved_samples_block(prob.block) if opt.noise_skip_excluded else prob.block
+            new = reestimate(block, nRk, theta, pre.cov, values, noise.gyr, extra)   # cov: AHRS factors' Σ
             taus = {c: new.pop(c + "_tau") for c in ("acc", "mag") if c + "_tau" in new}
             if opt.correlated_noise:
                 # τ from the first (white-noise) solution only: later solutions lean on the gyro and their
@@ -222,7 +224,7 @@ def calibrate(session: Session, options: Options | None = None, initial=None,
                 if prob.block.field_offsets is not None:          # n + d_k of each sample's keyframe
                     n_nav = n_nav + prob.block.field_offsets[pre.sample_kf]
                 fit_offsets(windows, session.t, session.mag, nRb, D_, o_, n_nav,
-                            float(np.sqrt(np.mean(noise.mag ** 2))))
+                            float(np.sqrt(np.mean(noise.mag ** 2))), opt.freeze_window_decision)
                 mag_state["y"], mag_state["w"] = apply_windows(windows, session.mag)
                 history[-1]["windows"] = [w.as_dict(session.t) for w in windows]
             if phase["map"]:
@@ -308,17 +310,6 @@ def calibrate(session: Session, options: Options | None = None, initial=None,
                      "disturbance_windows": [w.as_dict(session.t) for w in windows], "keyframe_samples": kf,
                      "field_offsets": prob.block.field_offsets, "gyro_map": gyro.E,
                      "gyro_map_gate": gate, "gyro_rate_error": rate["kappa"]})
-
-
-def _thinned(y: np.ndarray, every: int) -> np.ndarray:
-    """Every `every`-th field sample kept (NaN elsewhere): the ML rounds only steer the noise levels,
-    bias and θ toward the final solve, which uses every sample."""
-    if every <= 1:
-        return y
-    out = np.full_like(y, np.nan)
-    idx = np.flatnonzero(np.all(np.isfinite(y), axis=1))[::every]
-    out[idx] = y[idx]
-    return out
 
 
 def _velocity_process(opt: Options, vel: dict) -> dict:

@@ -99,6 +99,19 @@ class Options:
     #   1.05 / 1.08° (one-way spins about a horizontal axis); largest loss 04 +0.02 / +0.04°.
     #   Not estimated: in the graph δ trades with the tilt about the spin axis (benchmarks/c1_timing.py)
     disturbance_windows: bool = True  # windowed hard-iron offsets (imugraph.calibration.disturbance)
+    noise_skip_excluded: bool = False  # the ML rounds' noise re-estimate sees only the field samples the solve
+    #   sees: rows of weight 0 (unexplained disturbance windows) are left out of Σm (calibration/rounds.py).
+    #   Off, their raw residuals leak into σ_mag (BROAD 32: the magnet's 58 µT → σ_z 0.7 → 6.6–8.8 µT), the
+    #   window's "explained" test (≤ 3 σ_mag) flips, and the rounds cycle (period 5) to max_outer. On (BROAD, all
+    #   17, broad_published.py --opt): 32 0.476 → 0.448° in 4 rounds (σ_mag 0.67 µT), but 36 1.211 → 1.287°
+    #   (its σ_z 1.40 → 0.81 µT: the leak from its short unmodelled windows down-weighted a still-disturbed
+    #   field), 34 +0.011°, 28 +0.008°; a simulated nav-frame disturbance: 7.45° (8 rounds) → 0.17°. Off
+    freeze_window_decision: bool = False  # each disturbance window's "modelled" verdict (offset explains it:
+    #   residual ≤ 3 σ_mag) is taken at its first fit and kept; its offset is still refitted every round
+    #   (disturbance.fit_offsets keep_decision). The first fit sees orientations and σ_mag the window did not
+    #   influence (it starts left out); re-judged each round, BROAD 32's verdict flipped with σ_mag (period 5).
+    #   On (BROAD, all 17): 32 0.476 → 0.455°, converged in 6 rounds (σ_mag,z still leaks: 29.5 µT); the other
+    #   16 identical (their verdicts never flip); simulated nav-frame disturbance 7.45° → 0.14°. Off (lead's call)
     heading_only_orientation: bool = False  # final orientations with the field as heading only
     #                                        (graphs.heading_block): BROAD mean 1.13° vs 1.06° joint, off
     field_sigma: float | tuple | None = (0.015, 0.003, 0.015)  # σ_d per nav axis (x along the horizontal

@@ -1,0 +1,48 @@
+"""Helpers of the ML rounds (imugraph.calibration.ml.ml_rounds): which field samples a round's solve and its
+noise re-estimate see.
+
+Kok & Schön's step 2 alternates the MAP solve with the ML noise levels from that solve's residuals. The two
+must see the same samples: a magnetometer sample the solve leaves out (weight 0, e.g. inside a disturbance
+window that its hard-iron offset does not explain, imugraph.calibration.disturbance) has no likelihood term,
+so its residual carries no information about Σm. Counting it anyway (robust kernel weight only) leaked the
+magnet's 58 µT into σ_mag,z on BROAD 32 (0.7 → 6.6–8.8 µT); the inflated σ then made the window look
+"explained" (residual ≤ 3 σ), the next solve took it in, σ shrank again, the window flipped back to
+unexplained: the rounds cycled with a period of 5 and ran to max_outer (Options.noise_skip_excluded).
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+
+from imugraph.graphs.measurements import MeasurementBlock
+
+
+def solved_samples_block(block: MeasurementBlock) -> MeasurementBlock:
+    """The block with the magnetometer rows of fixed weight 0 (left out of the solve) removed, for the noise
+    re-estimate; the block itself when no row is left out. The remaining rows keep their weights, so
+
+        σ_m,axis² = Σ_j w_j f_j ê_j,axis² / (Σ_j w_j f_j − p_m / 3)       (noise.reestimate, f_j the fixed weight)
+
+    is the ML variance over exactly the samples in the solve's likelihood (rows with f_j = 0 add 0 to both sums
+    in the solve's normal equations, and their information share p_m is already 0)."""
+    ch = block.mag
+    if ch is None or ch.weight_floor is None:
+        return block
+    keep = np.asarray(ch.weight_floor) > 0
+    if keep.all():
+        return block
+    mag = replace(ch, kf=ch.kf[keep], kRb=ch.kRb[keep], values=ch.values[keep], weight_floor=ch.weight_floor[keep])
+    return replace(block, mag=mag if keep.any() else None, _last={})
+
+
+def thinned(y: np.ndarray, every: int) -> np.ndarray:
+    """Every `every`-th field sample kept (NaN elsewhere): the ML rounds only steer the noise levels,
+    bias and θ toward the final solve, which uses every sample."""
+    if every <= 1:
+        return y
+    out = np.full_like(y, np.nan)
+    idx = np.flatnonzero(np.all(np.isfinite(y), axis=1))[::every]
+    out[idx] = y[idx]
+    return out
