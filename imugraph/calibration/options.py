@@ -111,7 +111,10 @@ class Options:
     #   (disturbance.fit_offsets keep_decision). The first fit sees orientations and σ_mag the window did not
     #   influence (it starts left out); re-judged each round, BROAD 32's verdict flipped with σ_mag (period 5).
     #   On (BROAD, all 17): 32 0.476 → 0.455°, converged in 6 rounds (σ_mag,z still leaks: 29.5 µT); the other
-    #   16 identical (their verdicts never flip); simulated nav-frame disturbance 7.45° → 0.14°. Off (lead's call)
+    #   16 identical (their verdicts never flip); simulated nav-frame disturbance 7.45° → 0.14°. Off: a
+    #   simulated ATTACHED magnet (tests/test_disturbance.py, 3 × the field for 30 s) is then judged unexplained at
+    #   its first fit and left out (0.30 → 0.39°; noise_skip_excluded alike): the ≤ 3 σ_mag test is passed there only
+    #   thanks to the leak. Both need a verdict judged from a solve with the window modelled (not done)
     heading_only_orientation: bool = False  # final orientations with the field as heading only
     #                                        (graphs.heading_block): BROAD mean 1.13° vs 1.06° joint, off
     field_sigma: float | tuple | None = (0.015, 0.003, 0.015)  # σ_d per nav axis (x along the horizontal
