@@ -48,14 +48,15 @@ import numpy as np
 from imugraph import keys
 from imugraph.calibration.result import Calibration
 from imugraph.errors import SessionError
-from imugraph.graphs.cpp_velocity import G_KEY, imu_bias_key, pose_key, split_noise, super_sample_pim
-from imugraph.graphs.stream_interval import (NAN3 as _NAN3, Q_ID, ArrivalMixin, gauss_markov_factor,
-                                             interval_preintegration, lead_interval, qmul, qpos, qstep,
+from imugraph.graphs.cpp_velocity import G_KEY, imu_bias_key, pose_key, super_sample_pim
+from imugraph.graphs.stream_interval import (NAN3 as _NAN3, Q_ID, ArrivalMixin,
+                                             interval_preintegration, lead_interval, qmul,
                                              row3 as _row3)
 from imugraph.graphs.orientation_init import triad
 from imugraph.graphs.stream_calib import OnlineMagCalibration
 from imugraph.graphs.stream_calstate import CAL_KEY
-from imugraph.graphs.stream_field import field_key, field_step_factor
+from imugraph.graphs.stream_field import field_key
+from imugraph.graphs.stream_kernels import StepBlocks, linear_step, split_noise_one
 from imugraph.graphs.stream_lag import window_rotations
 from imugraph.graphs.stream_online import OnlineCalibrationMixin
 from imugraph.graphs.stream_options import (SIGMA_WEAK_POSE, StreamOptions, StreamStats, acc_lead, make_solver,
@@ -117,6 +118,7 @@ class StreamSmoother(OnlineCalibrationMixin, KeyframeStartMixin, ArrivalMixin, S
         self._IE = tuple(tuple(float(v) for v in row) for row in np.eye(3) + E) if np.any(E) else None
         self._IE_inv = np.linalg.inv(np.eye(3) + E).T if np.any(E) else None      # rows: w @ this = recorded gyro
         self._sig_v, self._tau_v = velocity_process(options, cal)    # σ_v, τ_v: options', else the calibration's
+        self._steps = StepBlocks(self._sig_v, self._tau_v, options.field_sigma, options.field_tau)
         self._lead_n, self._lead_f = acc_lead(options, cal)          # δ = n + f: options', else the calibration's
         self._acc_tail = np.zeros((0, 3))    # the last n accelerometer rows before the open interval
         self._estimate_g = options.g is None
@@ -146,47 +148,64 @@ class StreamSmoother(OnlineCalibrationMixin, KeyframeStartMixin, ArrivalMixin, S
     def push(self, t: float, gyr, acc, mag=None) -> np.ndarray:
         """Add one sample; returns the filtered orientation nRb (4,) w,x,y,z available now (for a dropped
         sample: that of the newest accepted one; NaN before any sample)."""
-        t = float(t)
-        gx, gy, gz = _row3(gyr)
+        mx, my, mz = _NAN3 if mag is None else _row3(mag)
+        return np.array(self.push_floats(float(t), *_row3(gyr), *_row3(acc), mx, my, mz))
+
+    def push_floats(self, t: float, gx: float, gy: float, gz: float, ax: float, ay: float, az: float,
+                    mx: float = math.nan, my: float = math.nan, mz: float = math.nan) -> tuple:
+        """`push` of one row given as ten Python floats (NaN magnetometer: no sample), the filtered orientation
+        as a 4-tuple of floats: the per-sample fast path (`stream_session`; no numpy call per sample — the
+        same arithmetic as `push`, whose result is this tuple as an array)."""
         if self._IE is not None:              # (I + E)·b_gyr: the calibration's gyro scale/misalignment
             (a, b, c), (d, e, f), (g, h, i) = self._IE
             gx, gy, gz = a * gx + b * gy + c * gz, d * gx + e * gy + f * gz, g * gx + h * gy + i * gz
-        ax, ay, az = _row3(acc)
-        m = _NAN3 if mag is None else _row3(mag)
         # one sum is finite iff all its terms are (an inf − inf is NaN)
         if self._finished or not math.isfinite(t + gx + gy + gz + ax + ay + az):
             self.stats.invalid += 1
-            return self._filtered()
+            return self._filtered_q()
         if t <= self._t_last:
-            return self._late((t, gx, gy, gz, ax, ay, az) + m)
-        has_mag = math.isfinite(m[0] + m[1] + m[2])
+            return tuple(self._late((t, gx, gy, gz, ax, ay, az, mx, my, mz)).tolist())
+        has_mag = math.isfinite(mx + my + mz)
         if has_mag:
             self.stats.mag_samples += 1
+            m = (mx, my, mz)
         else:
             m = _NAN3
         self.stats.accepted += 1
         row = (t, gx, gy, gz, ax, ay, az) + m
+        buf = self._buf
         if self._t0 is None:
             self._t0 = t
             self._kf_t.append(t)
-        elif len(self._buf) >= self.stride:
+        elif len(buf) >= self.stride:
             self._close(t)                    # this sample is keyframe k+1
             self._t_last = t
             self._buf = [row]
             self._q_open = Q_ID
             self._attach_delayed_mag(m, has_mag)
-            return self._filtered()
-        else:
-            prev = self._buf[-1]
+            return self._filtered_q()
+        else:                                 # q_open ⊗ Exp((ω − b)Δt): stream_interval.qstep written out
+            prev = buf[-1]
             bx, by, bz = self._b_now
-            self._q_open = qstep(self._q_open, prev[1] - bx, prev[2] - by, prev[3] - bz, t - prev[0])
+            dt = t - prev[0]
+            x, y, z = (prev[1] - bx) * dt, (prev[2] - by) * dt, (prev[3] - bz) * dt
+            t2 = x * x + y * y + z * z
+            if t2 < 1e-16:
+                c, s = 1.0 - t2 / 8.0, 0.5 - t2 / 48.0
+            else:
+                th = math.sqrt(t2)
+                c, s = math.cos(0.5 * th), math.sin(0.5 * th) / th
+            self._q_open = qmul(self._q_open, (c, s * x, s * y, s * z))
         self._t_last = t
-        self._buf.append(row)
+        buf.append(row)
         if self._mag_shift > 0:
             self._attach_delayed_mag(m, has_mag)
-        if self._mid and len(self._buf) >= self._mid and (self._refit_due or not self._maintained):
+        if self._mid and len(buf) >= self._mid and (self._refit_due or not self._maintained):
             self._between_keyframes()
-        return self._filtered()
+        if self._q_nk is None:
+            return self._filtered_q()
+        q = qmul(self._q_nk, self._q_open)    # the sign convention of qpos (w ≥ 0)
+        return q if q[0] >= 0 else (-q[0], -q[1], -q[2], -q[3])
 
     def _between_keyframes(self) -> None:
         """Periodic work done on the samples between two keyframes (from halfway on), one job per sample, off
@@ -215,13 +234,17 @@ class StreamSmoother(OnlineCalibrationMixin, KeyframeStartMixin, ArrivalMixin, S
         self.stats.between_cpu_s.append(time.thread_time() - start_cpu)
 
     def _filtered(self) -> np.ndarray:
+        return np.array(self._filtered_q())
+
+    def _filtered_q(self) -> tuple:
         if self._q_nk is None:
             if not self._buf:
-                return np.full(4, np.nan)
+                return _NAN3 + (math.nan,)
             a, m = np.array(self._buf[0][4:7]), np.array(self._buf[0][7:10])
             m = self.cal.apply(m[None])[0] if np.all(np.isfinite(m)) else np.cross(a, [0.0, 1.0, 0.0])
-            return _quat(gtsam.Rot3(triad(a[None], m[None])[0]).compose(gtsam.Rot3.Quaternion(*self._q_open)))
-        return qpos(qmul(self._q_nk, self._q_open))
+            return tuple(_quat(gtsam.Rot3(triad(a[None], m[None])[0]).compose(gtsam.Rot3.Quaternion(*self._q_open))).tolist())
+        q = qmul(self._q_nk, self._q_open)
+        return q if q[0] >= 0 else (-q[0], -q[1], -q[2], -q[3])
 
     # ------------------------------------------------------------------ keyframes
     def _close(self, t_next: float) -> None:
@@ -229,14 +252,14 @@ class StreamSmoother(OnlineCalibrationMixin, KeyframeStartMixin, ArrivalMixin, S
         start, start_cpu = time.perf_counter(), time.thread_time()
         n, k = len(self._buf), self._k
         rows = np.array(self._buf)
-        t = np.append(rows[:, 0], t_next)
+        t = np.array([r[0] for r in self._buf] + [t_next])
         w, a, m_raw = rows[:, 1:4], rows[:, 4:7], rows[:, 7:10]
         if self._lead_n or self._lead_f:      # accelerometer timing δ, as smooth_fixed (stream_interval eq. 4)
             w_rec = w if self._IE_inv is None else w @ self._IE_inv
             a, self._acc_tail = lead_interval(t, w_rec, a, self._acc_tail, self._lead_n, self._lead_f)
-        steps = np.diff(t)
-        gap = steps > 1.5 / self.rate                  # counted on the interval as accepted (late rows in)
-        if gap.any():
+        steps = t[1:] - t[:-1]
+        if steps.max() > 1.5 / self.rate:              # counted on the interval as accepted (late rows in)
+            gap = steps > 1.5 / self.rate
             self.stats.gaps += int(gap.sum())
             self.stats.missing += int(np.sum(np.round(steps[gap] * self.rate) - 1))
         # the batch path's preintegration (factors.gyro.preintegrate, factors.velocity.velocity_increments)
@@ -261,11 +284,12 @@ class StreamSmoother(OnlineCalibrationMixin, KeyframeStartMixin, ArrivalMixin, S
         pim = super_sample_pim(self._pim_params, omega, dv / dt_k, dt_k, self._b_hat)
         ends = (pose_key(k), keys.vel(k), pose_key(k + 1), keys.vel(k + 1), imu_bias_key(seg))
         f = gtsam.ImuFactorWithGravityVector(*ends, G_KEY, pim) if self._estimate_g else gtsam.ImuFactor(*ends, pim)
-        for model in split_noise(cov[None], np.array([sig_dv]), self.opt.acc_huber_k)[0]:
+        for model in split_noise_one(cov, sig_dv, self.opt.acc_huber_k):      # cpp_velocity.split_noise
             graph.add(f.cloneWithNewNoiseModel(model))
-        graph.add(gauss_markov_factor(keys.vel(k), keys.vel(k + 1), dt_k, self._sig_v, self._tau_v))
+        # v_{k+1} = φ v_k + w (stream_interval.gauss_markov_factor); blocks by Δt_k (stream_kernels.StepBlocks)
+        graph.add(linear_step(keys.vel(k), keys.vel(k + 1), self._steps.velocity(dt_k)))
         if self._field:                              # d_{k+1} = φ_k d_k + w_k (stream_field eq. 2)
-            graph.add(field_step_factor(field_key(k), field_key(k + 1), dt_k, self.opt.field_sigma, self.opt.field_tau))
+            graph.add(linear_step(field_key(k), field_key(k + 1), self._steps.field(dt_k)))
             values.insert(field_key(k + 1), np.exp(-dt_k / self.opt.field_tau) * self._d)
             stamps[field_key(k + 1)] = t_next - self._t0
         if ok.any() and not (flagged and self.opt.disturb_orient):
@@ -338,7 +362,7 @@ class StreamSmoother(OnlineCalibrationMixin, KeyframeStartMixin, ArrivalMixin, S
                 self._smoothed_kf.setdefault(k_new - 1, self._nRk.matrix())
                 self._smoothed_kf.setdefault(k_new, np.asarray(R_pred))
             self._nRk = gtsam.Rot3(R_pred)
-            self._q_nk = tuple(_quat(self._nRk))
+            self._q_nk = tuple(_quat(self._nRk).tolist())      # Python floats: the per-sample product
             self._d = np.exp(-self.stride / self.rate / self.opt.field_tau) * self._d if self._field else self._d
             return
         self._nRk, self._p, self._v = est_pose.rotation(), est_pose.translation(), est_v
@@ -346,7 +370,7 @@ class StreamSmoother(OnlineCalibrationMixin, KeyframeStartMixin, ArrivalMixin, S
         if est_d is not None:
             self._d = np.asarray(est_d, float)
         self._b_now = tuple(float(v) for v in self._b_gyr_est)
-        self._q_nk = tuple(_quat(self._nRk))
+        self._q_nk = tuple(_quat(self._nRk).tolist())      # Python floats: the per-sample product
 
     # ------------------------------------------------------------------ end
     def finish(self) -> None:

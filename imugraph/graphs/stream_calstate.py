@@ -116,23 +116,26 @@ def cal_mag_jacobians(R_k: np.ndarray, d: np.ndarray, theta: np.ndarray, M: np.n
     batch model's rows (`factors.magnetometer.magnetometer_rows`) of one "sample" whose ΔRᵀ is the interval's
     mean M (the model is linear in ΔRᵀ): e = D M R_kᵀ(n + d) + o − ȳ, ∂e/∂ξ = D M [R_kᵀ(n + d)]×, ∂e/∂d = D M R_kᵀ,
     ∂e/∂vec D = I₃ ⊗ (M v)ᵀ, ∂e/∂o = I₃, ∂e/∂δ = D M R_kᵀ n'(δ). Written out for one row block (the general
-    function's (M, 3, 17) layout cost ≈ 0.2 ms per keyframe; equal to it to 1e-12, tests/test_stream_calstate.py)."""
+    function's (M, 3, 17) layout cost ≈ 0.2 ms per keyframe; equal to it to 1e-12, tests/test_stream_calstate.py).
+    The 3×3 products stay numpy's: in Python floats (no fused multiply-add) they were 2× faster but moved BROAD 15's
+    end D by 2e-9 (its weakly determined θ amplifies rounding)."""
     th = np.asarray(theta, float)
     D, o, dip = th[:9].reshape(3, 3), th[9:12], float(th[12])
     cd, sd = math.cos(dip), math.sin(dip)
     Rt = np.asarray(R_k, float).T
-    d = np.asarray(d, float)
-    v = Rt @ (np.array([cd, 0.0, -sd]) + d)                      # v = R_kᵀ (n + d_k)
+    v = Rt @ (np.array([cd, 0.0, -sd]) + np.asarray(d, float))  # v = R_kᵀ (n + d_k)
     DM = D @ np.asarray(M, float)                                # D M
     u = M @ v                                                    # M v
-    J_th = np.zeros((3, THETA_DIM))
-    J_th[0, 0:3], J_th[1, 3:6], J_th[2, 6:9] = u, u, u          # I₃ ⊗ uᵀ
-    J_th[0, 9] = J_th[1, 10] = J_th[2, 11] = 1.0                 # I₃
-    J_th[:, 12] = DM @ (Rt @ np.array([-sd, 0.0, -cd]))          # D M R_kᵀ n'(δ)
+    (u0, u1, u2), (vx, vy, vz) = u.tolist(), v.tolist()
+    c0, c1, c2 = (DM @ (Rt @ np.array([-sd, 0.0, -cd]))).tolist()   # D M R_kᵀ n'(δ)
+    J_th = np.array([[u0, u1, u2, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, c0],       # I₃ ⊗ uᵀ, I₃, ∂/∂δ
+                     [0.0, 0.0, 0.0, u0, u1, u2, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, c1],
+                     [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, u0, u1, u2, 0.0, 0.0, 1.0, c2]])
     J_pose = np.zeros((3, 6))
-    vx, vy, vz = v
     J_pose[:, :3] = DM @ np.array([[0.0, -vz, vy], [vz, 0.0, -vx], [-vy, vx, 0.0]])   # D M [v]×
-    return D @ u + o - np.asarray(y_avg, float), J_pose, DM @ Rt, J_th
+    e = D @ u + o - np.asarray(y_avg, float)
+    # the products are numpy's (BLAS) as before, only the arrays are built with fewer calls: the same bits
+    return e, J_pose, DM @ Rt, J_th
 
 
 def cal_mag_factor(pose_k: int, pose: gtsam.Pose3, field_k: int | None, d: np.ndarray, theta: np.ndarray,
@@ -153,15 +156,21 @@ def cal_mag_factor(pose_k: int, pose: gtsam.Pose3, field_k: int | None, d: np.nd
     ∂e/∂Δo_w = I), linearised at `offset` (None: at the value that zeroes the residual at (pose, θ_pin): a new
     window's start). info (a dict, filled when given): n (valid samples), r2 (|whitened residual at (pose, θ_pin,
     offset)|²), offset (the Δo_w used)."""
-    ok = np.all(np.isfinite(y), axis=1)
-    n = int(ok.sum())
-    if n == 0:
-        return None, None
-    every = n == len(y)                                      # no fancy indexing when every row has a field
-    M = (kRb if every else kRb[ok]).mean(axis=0).T           # mean ΔR_iᵀ
+    if math.isfinite(float(y.sum())):                        # every row has a field (a sum is finite iff all its
+        n = len(y)                                           # terms are): no mask, no fancy indexing
+        if n == 0:
+            return None, None
+        sum_R, sum_y = kRb.sum(axis=0), y.sum(axis=0)
+    else:
+        ok = np.all(np.isfinite(y), axis=1)
+        n = int(ok.sum())
+        if n == 0:
+            return None, None
+        sum_R, sum_y = kRb[ok].sum(axis=0), y[ok].sum(axis=0)
+    M = sum_R.T / n                                          # mean ΔR_iᵀ (as ndarray.mean: the sum, then / n)
     d3 = np.zeros(3) if field_k is None else np.asarray(d, float)
     theta = np.asarray(theta, float)
-    e, J_pose, J_d, J_th = cal_mag_jacobians(pose.rotation().matrix(), d3, theta, M, (y if every else y[ok]).mean(axis=0))
+    e, J_pose, J_d, J_th = cal_mag_jacobians(pose.rotation().matrix(), d3, theta, M, sum_y / n)
     inv_sig = np.sqrt(n) / np.asarray(sig_y, float)          # whitening by cov ē = diag(σ_y²)/n
     # the residual at the pinned θ, which the orientations were estimated with (exact: (1) is linear in θ at a pose)
     e_pin = e if theta_pin is None else e + J_th @ (np.asarray(theta_pin, float) - theta)
@@ -170,7 +179,7 @@ def cal_mag_factor(pose_k: int, pose: gtsam.Pose3, field_k: int | None, d: np.nd
         e, e_pin = e + offset, e_pin + offset
     if info is not None:
         info.update(n=n, r2=float(np.sum((inv_sig * e_pin) ** 2)), offset=offset)
-    gated = gate is not None and float(np.linalg.norm(e_pin)) > gate
+    gated = gate is not None and math.sqrt(float(e_pin @ e_pin)) > gate        # |e_pin| (as np.linalg.norm)
     if gated:
         e = e_pin
     r = inv_sig * e

@@ -102,11 +102,12 @@ class DisturbanceDetector:
     def mean_deviation(self, y: np.ndarray) -> tuple[float, int]:
         """ē_k of (1) and n_k for one interval's raw field rows y (n, 3), NaN rows = no sample (ē NaN when n_k = 0)."""
         m = (np.asarray(y, float) - self.o) @ self.D_inv.T
-        ok = np.isfinite(m[:, 0])
-        n = int(ok.sum())
+        if not math.isfinite(float(m[:, 0].sum())):          # a row without a field (NaN): mask them
+            m = m[np.isfinite(m[:, 0])]
+        n = len(m)
         if n == 0:
             return float("nan"), 0
-        return float(np.mean(np.sqrt(np.einsum("ij,ij->i", m[ok], m[ok]))) - 1.0), n
+        return float(np.mean(np.sqrt(np.einsum("ij,ij->i", m, m))) - 1.0), n
 
     @property
     def windows(self) -> int:

@@ -141,11 +141,13 @@ class ChainLagSmoother:
         return self.isam.calculateEstimate()
 
 
+_INDEX_MASK, _X = (1 << 56) - 1, ord("x")      # gtsam.Symbol's key layout (chr << 56 | index)
+
+
 def keyframe_group(key: int):
     """The stream's grouping: keyframe index of a pose (x), velocity (v) or field perturbation (f) key; None for
     gravity and the bias segments (in every clique of their span: eliminated last)."""
-    sym = gtsam.Symbol(key)
-    return sym.index() if chr(sym.chr()) in "xvf" else None
+    return key & _INDEX_MASK if chr(key >> 56) in "xvf" else None       # gtsam.Symbol: 8-bit chr, 56-bit index
 
 
 def _key_list(keys) -> gtsam.KeyList:
@@ -164,7 +166,6 @@ def _pose_rotations(isam: gtsam.ISAM2, keys) -> dict:
     """Keyframe index → nRb (3×3), iSAM2's latest estimate, of the pose keys (x) among `keys`."""
     out = {}
     for k in keys:
-        sym = gtsam.Symbol(k)
-        if chr(sym.chr()) == "x":
-            out[sym.index()] = isam.calculateEstimatePose3(k).rotation().matrix()
+        if k >> 56 == _X:                                     # gtsam.Symbol(k).chr() == "x"
+            out[k & _INDEX_MASK] = isam.calculateEstimatePose3(k).rotation().matrix()
     return out

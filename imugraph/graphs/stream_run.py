@@ -177,17 +177,18 @@ def stream_session(session: Session, cal: Optional[Calibration] = None, options:
     g0 = float(np.median(np.linalg.norm(session.acc[:n_g], axis=1)))
     smoother = StreamSmoother(cal, session.rate, options, g0=g0, weak_scale=weak_scale(session, n_boot),
                               start_window_s=float(session.t[n_boot - 1] - session.t[0]) if n_boot else 0.0)
-    filtered = np.empty((session.n, 4))
     say(f"streaming {session.n} samples ({'iSAM2' if options.lag_s is None else f'lag {options.lag_s:g} s'})")
     start, start_cpu = time.perf_counter(), time.process_time()
-    push = smoother.push
-    # rows as Python floats (one tolist per channel and block, not a numpy row view per sample: the push path
-    # takes lists as they are, stream_interval.row3); blocks keep the lists' memory bounded on long sessions
+    push, out = smoother.push_floats, []
+    keep = out.append
+    # rows as ten Python floats (one tolist per block, not a numpy row view per sample: push_floats, the push
+    # path without numpy), the filtered 4-tuples gathered and made one array at the end; blocks keep the
+    # lists' memory bounded on long sessions
     for i0 in range(0, session.n, 4096):
         blk = slice(i0, i0 + 4096)
-        rows = zip(session.t[blk].tolist(), session.gyr[blk].tolist(), session.acc[blk].tolist(), session.mag[blk].tolist())
-        for i, row in enumerate(rows, i0):
-            filtered[i] = push(*row)
+        for row in np.column_stack((session.t[blk], session.gyr[blk], session.acc[blk], session.mag[blk])).tolist():
+            keep(push(*row))
+    filtered = np.array(out, float).reshape(-1, 4)
     smoother.finish()
     seconds, cpu_seconds = time.perf_counter() - start, time.process_time() - start_cpu
     smoothed = smoother.smoothed()

@@ -28,7 +28,7 @@ class KeyframeStartMixin:
         up = np.einsum("mij,mj->i", kRb[:n], a[:n])
         fld = np.einsum("mij,mj->i", kRb[:n][ok], m_cal[ok]) if ok.any() else np.cross(up, [0.0, 1.0, 0.0])
         self._nRk = gtsam.Rot3(triad(up[None], fld[None])[0])
-        self._q_nk = tuple(_quat(self._nRk))
+        self._q_nk = tuple(_quat(self._nRk).tolist())
         values.insert(pose_key(0), gtsam.Pose3(self._nRk, np.zeros(3)))
         values.insert(keys.vel(0), np.zeros(3))
         graph.add(gauss_markov_factors(np.array([1.0]), self._sig_v, self._tau_v)[0])
