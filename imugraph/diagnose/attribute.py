@@ -359,8 +359,10 @@ def significant(res: EffectResult, null_gap: dict, opt: AttributionOptions = Att
         if opt.own_score == "logscore":
             return clearly_better(res.own_ll_gain, res.own_ll_folds)
         return clearly_better(res.own_gain, res.own_folds) and bool(res.own_shrink >= opt.margin)   # (J6)
-    if res.support_fraction < 1.0 and clearly_better(res.loglik_gain, res.loglik_folds):
-        return True          # (A4''): a localised effect preferred by the held-out log score on its support
+    by_score = res.support_fraction < 1.0 or (res.params or {}).get("significance") == "log_score"
+    if by_score and clearly_better(res.loglik_gain, res.loglik_folds):
+        return True          # (A4''): a localised effect preferred by the held-out log score on its support,
+                             # or an effect whose fit asks for it (time_offset (T6), docs/diagnose.md §4 S14-A)
     return bool(res.penalised >= opt.margin)
 
 

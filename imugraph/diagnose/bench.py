@@ -103,6 +103,11 @@ def model_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--joint-refit", action=argparse.BooleanOptionalAction, default=None,
                    help="stage-2 alternation for a jointly fitted gyro effect (AttributionOptions.joint_refit; "
                         "default off)")
+    p.add_argument("--timing-rules", action=argparse.BooleanOptionalAction, default=None,
+                   help="time_offset's rules T5–T7 (field remainder out, log-score significance, rotation check; "
+                        "DiagnoseOptions.timing_rules; default on)")
+    p.add_argument("--drift-basis", choices=("legendre", "spline"), default=None,
+                   help="gyro_bias_drift's basis (DiagnoseOptions.drift_basis; default legendre)")
 
 
 def diagnose_options(args: argparse.Namespace, **fields):
@@ -112,7 +117,9 @@ def diagnose_options(args: argparse.Namespace, **fields):
     from imugraph.diagnose.run import DiagnoseOptions
 
     o = DiagnoseOptions(joint_gyro=getattr(args, "joint_gyro", None),
-                        subsample_lag=getattr(args, "subsample_lag", None), **fields)   # None: the defaults
+                        subsample_lag=getattr(args, "subsample_lag", None),
+                        timing_rules=getattr(args, "timing_rules", None),
+                        drift_basis=getattr(args, "drift_basis", None), **fields)   # None: the defaults
     score = getattr(args, "score", "cost") or "cost"
     att = replace(o.attribution, own_score="" if score == "gap" else score)
     if getattr(args, "joint_refit", None) is not None:

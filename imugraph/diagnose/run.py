@@ -40,6 +40,12 @@ class DiagnoseOptions:
             (default True). Scored by their own held-out cost (J5) when `attribution.own_score`.
         subsample_lag: the magnetometer's sub-sample lag in the base model's prediction (fit.py (B3'));
             None: the module flag `fit.SUBSAMPLE_LAG` (default False).
+        timing_rules: time_offset's S14-A rules (effects/time_offset.py (T5) field remainder out, (T6) held-out
+            log-score significance, (T7) rotation check of the gyro-referenced delay); None: the module flags
+            (default True since session 14; False: as before S14-A).
+        drift_basis: gyro_bias_drift's basis, "legendre" (the cubic (D1)) or "spline" (knots every 10 s
+            (D2), effects/gyro_bias_drift.py, docs/diagnose.md §4 S14-B); None: the module's `BASIS`
+            (default "legendre").
     """
 
     keyframe_hz: float = 5.0
@@ -48,6 +54,8 @@ class DiagnoseOptions:
     window_hints: bool = False
     joint_gyro: bool | None = None
     subsample_lag: bool | None = None
+    timing_rules: bool | None = None
+    drift_basis: str | None = None
     gap: GapOptions = field(default_factory=GapOptions)
     attribution: AttributionOptions = field(default_factory=AttributionOptions)
 
@@ -122,9 +130,21 @@ def model_switches(options: DiagnoseOptions):
     diagnosis, restored afterwards (None: left as the module has them)."""
     from imugraph.diagnose import fit as fitmod
     from imugraph.diagnose.effects import joint
+    from imugraph.diagnose.effects import gyro_bias_drift as dmod
+    from imugraph.diagnose.effects import time_offset as tmod
 
     old = (joint.ENABLED, fitmod.SUBSAMPLE_LAG)
+    old_t = (tmod.MAG_REMAINDER_OUT, tmod.LOG_SCORE_SIGNIFICANCE, tmod.ROTATION_CHECK)
+    old_d = dmod.BASIS
     try:
+        if options.drift_basis is not None:
+            if options.drift_basis not in ("legendre", "spline"):
+                from imugraph.errors import SessionError
+
+                raise SessionError("<options>", "drift_basis", repr(options.drift_basis), "'legendre' or 'spline'")
+            dmod.BASIS = options.drift_basis
+        if options.timing_rules is not None:
+            tmod.MAG_REMAINDER_OUT = tmod.LOG_SCORE_SIGNIFICANCE = tmod.ROTATION_CHECK = bool(options.timing_rules)
         if options.joint_gyro is not None:
             joint.ENABLED = bool(options.joint_gyro)
         if options.subsample_lag is not None:
@@ -132,6 +152,8 @@ def model_switches(options: DiagnoseOptions):
         yield
     finally:
         joint.ENABLED, fitmod.SUBSAMPLE_LAG = old
+        tmod.MAG_REMAINDER_OUT, tmod.LOG_SCORE_SIGNIFICANCE, tmod.ROTATION_CHECK = old_t
+        dmod.BASIS = old_d
 
 
 def diagnose(session: Session, options: DiagnoseOptions = DiagnoseOptions(), effects: dict | None = None,

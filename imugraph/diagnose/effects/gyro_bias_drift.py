@@ -1,7 +1,12 @@
 """gyro_bias_drift: the gyroscope bias drifts over the session (warm-up, temperature).
 
-Model: b_gyr,j = ω_j + δ_ω + β(t_j) + e_ω with a smooth drift β(t) = Σ_p c_p P_p(τ_j), P_p the Legendre
-polynomials of degree 1…3 in τ = 2(t − t₀)/(t₁ − t₀) − 1 (9 parameters; the constant is the base bias).
+Model: b_gyr,j = ω_j + δ_ω + β(t_j) + e_ω with a smooth drift β(t), by `BASIS`:
+  "legendre" (default): β(t) = Σ_p c_p P_p(τ_j), P_p the Legendre polynomials of degree 1…3 in
+      τ = 2(t − t₀)/(t₁ − t₀) − 1 (9 parameters; the constant is the base bias)                         (D1)
+  "spline" (issue 5, S14-B; `DiagnoseOptions.drift_basis`): piecewise linear with knots every ≈ KNOT_S = 10 s,
+      β(t₀) = 0 (`hat_basis` (D2); 3 parameters per knot: 18 on a 60 s crop, 54 on a 3-minute trial).
+      It nests the ramp and holds a slow "wander" the cubic cannot (docs/diagnose.md §4 S14-B: BROAD 04 +
+      the harness' wander ×10 (3 °/s): (J6) S 0.685 against 0.013 with the cubic).
 
 Fit: the keyframes-fixed first-order fit (`_fit_first_order`, effects/base.py rule 1) by default;
 with effects/joint.ENABLED (issue 5, G6; the default since G7/H7): the coefficients c_p jointly with the trajectory (effects/joint.py (J1): keyframe
@@ -38,6 +43,41 @@ def legendre_basis(t: np.ndarray, t0: float, t1: float, degree: int = DEGREE) ->
     """(N, degree) Legendre polynomials P_1…P_degree of τ ∈ [−1, 1]."""
     tau = 2.0 * (t - t0) / max(t1 - t0, 1e-9) - 1.0
     return np.stack([np.polynomial.legendre.Legendre.basis(p)(tau) for p in range(1, degree + 1)], axis=1)
+
+
+# The drift's basis (DiagnoseOptions.drift_basis sets it per diagnosis): "legendre" (the cubic above, default)
+# or "spline" (`hat_basis`: piecewise linear, knots every ≈ KNOT_S s, docs/diagnose.md §4 S14-B).
+BASIS = "legendre"
+KNOT_S = 10.0
+
+
+def hat_basis(t: np.ndarray, t0: float, t1: float, knot_s: float = KNOT_S) -> np.ndarray:
+    """(N, K) linear B-splines ("hat" functions) at the K knots t0 + kΔ, k = 1…K, Δ = (t1 − t0)/K with
+    K = ⌈(t1 − t0)/knot_s⌉:
+
+        β(t) = Σ_k c_k h_k(t),  h_k(t) = max(0, 1 − |x(t) − k|),  x(t) = K (t − t0)/(t1 − t0)       (D2)
+
+    piecewise linear between the knots, β(t0) = 0 (the knot at t0 is left out: a constant is the base
+    model's bias). It represents every drift slower than the knot spacing — a ramp exactly, a warm-up or a
+    wander of period ≥ ~3Δ closely — where the cubic (D1) holds a ramp and a warm-up but not a wander
+    (28 % of harness case 006's variance, docs/diagnose.md §4 G7)."""
+    K = max(1, int(np.ceil((t1 - t0) / max(knot_s, 1e-9) - 1e-9)))
+    x = np.clip((t - t0) / max(t1 - t0, 1e-9) * K, 0.0, K)
+    return np.stack([np.clip(1.0 - np.abs(x - k), 0.0, None) for k in range(1, K + 1)], axis=1)
+
+
+def drift_basis(t: np.ndarray) -> np.ndarray:
+    """The drift's basis (N, P/3) over the session t, by `BASIS`: (D1) or (D2)."""
+    t0, t1 = float(t[0]), float(t[-1])
+    return hat_basis(t, t0, t1, KNOT_S) if BASIS == "spline" else legendre_basis(t, t0, t1)
+
+
+def drift_params(C: np.ndarray, beta: np.ndarray) -> dict:
+    """Correction.params of a fitted drift: its basis' coefficients (P/3, 3) and β's peak-to-peak."""
+    out = {"legendre_coefficients_rad_s": C.tolist()} if BASIS != "spline" else \
+        {"basis": "spline", "knot_s": KNOT_S, "spline_coefficients_rad_s": C.tolist()}
+    out["peak_to_peak_deg_s"] = float(np.rad2deg(np.max(np.ptp(beta, axis=0))))
+    return out
 
 
 DriftCorrection = GyroCorrection
@@ -80,17 +120,16 @@ class GyroBiasDrift(Effect):
         if not joint.ENABLED:
             return self._fit_first_order(fit, train)
         t = fit.session.t
-        B = legendre_basis(t, float(t[0]), float(t[-1]))
+        B = drift_basis(t)
         seg = fit.b_gyr_bias - np.asarray(fit.calibration.gyro_bias, float)         # b_s(j) − b̄
 
         def exact(p):
             return seg - B @ np.asarray(p, float).reshape(B.shape[1], 3)            # Δω = b_s − b̄ − β
 
-        out = joint.fit_gyro_effect(fit, train, exact, B.shape[1] * 3, tag=self.name)
+        out = joint.fit_gyro_effect(fit, train, exact, B.shape[1] * 3, tag=f"{self.name}:{BASIS}")
         C = out["p"].reshape(B.shape[1], 3)
         beta = B @ C
-        corr = DriftCorrection(self.name, {"legendre_coefficients_rad_s": C.tolist(),
-                                           "peak_to_peak_deg_s": float(np.rad2deg(np.max(np.ptp(beta, axis=0))))},
+        corr = DriftCorrection(self.name, drift_params(C, beta),
                                n_params=C.size, channel=self.channel,
                                deltas={"d_omega": out["d_omega"], "d_effect": out["d_effect"],
                                            "residuals": out["residuals"], "of": fit, "heldout": out["heldout"]})
@@ -100,7 +139,7 @@ class GyroBiasDrift(Effect):
     def _fit_first_order(self, fit, train) -> Correction:
         """The keyframes-fixed fit (before G6; with joint.ENABLED False)."""
         t = fit.session.t
-        B = legendre_basis(t, float(t[0]), float(t[-1]))
+        B = drift_basis(t)
         seg = fit.b_gyr_bias - np.asarray(fit.calibration.gyro_bias, float)         # b_s(j) − b̄
         base = fit.residuals
 
@@ -115,7 +154,7 @@ class GyroBiasDrift(Effect):
                     out.append({c: r1[c] - r0[c] for c in base})
             return r0, out
 
-        r0, cols = cached_columns(fit, self.name, columns)                          # shared by the folds
+        r0, cols = cached_columns(fit, f"{self.name}:{BASIS}", columns)             # shared by the folds
         rows_A, rows_y = [], []
         for c in ("gyr", "acc", "mag"):
             ok = train & np.all(np.isfinite(r0[c]), axis=1)
@@ -126,8 +165,7 @@ class GyroBiasDrift(Effect):
         C = coef.reshape(B.shape[1], 3)
         beta = B @ C
         d_omega = seg - beta
-        corr = FirstOrderCorrection(self.name, {"legendre_coefficients_rad_s": C.tolist(),
-                                           "peak_to_peak_deg_s": float(np.rad2deg(np.max(np.ptp(beta, axis=0))))},
+        corr = FirstOrderCorrection(self.name, drift_params(C, beta),
                                n_params=C.size, channel=self.channel, deltas={"d_omega": d_omega})
         res = corr.raw_residuals(fit)
         corr.deltas["noise_scale"] = noise_scale(fit, res, train, ["gyr", "acc", "mag"])

@@ -23,6 +23,14 @@ correction undoes the shift by interpolation: y'_c(t) = y_c(t + τ).
 
 Relevance (`size`): |τ| ≥ one sample period.
 
+S14-A rules (opt-in: `DiagnoseOptions.timing_rules`, module flags below, default off; docs/diagnose.md §4
+S14-A): (T5) a magnetometer shift within ½ sample is the base model's alignment remainder, not a candidate
+(`base_remainder`); (T7) a gyro-referenced delay (T2) is a candidate only where the rotation model explains
+most of the channel's change (`rotation_explained` > ½: not a hand-held accelerometer); (T6) the fitted
+correction asks to be judged by the held-out log score's sign test (attribute.significant, (A4'')) — a
+delay's residual τ ḣ is motion-locked and small beside a hand's linear acceleration, whose colour and
+shape (G1) sees first (07 + 18 ms gyro delay: (A2) −0.00, log score +0.29 nats per sample, every fold > 0).
+
 Injection ranges (RANGES): τ = 5–50 ms (a digital low-pass filter's group delay — a 2nd-order 20–40 Hz
 low-pass delays by ~5–10 ms —, or a channel read out on its own schedule or time-stamped by a host over
 USB/Bluetooth, tens of ms), never below one sample period (`injection_range_s`: the relevance threshold;
@@ -37,11 +45,15 @@ from __future__ import annotations
 import numpy as np
 
 from imugraph.calibration.alignment import estimate_mag_delay
+from imugraph.geometry import skew
 from imugraph.diagnose.effects.base import (Correction, Effect, check_train, gyro_exact, gyro_refit, noise_scale,
                                              replace_session, shift_signal)
 
 RANGES = {"tau_ms": (5.0, 50.0), "channel_p": {"acc": 0.5, "gyr": 0.5}}
 MAX_DELAY_S = 0.1            # search range of the gyro-referenced delay (T2), ± s
+MAG_REMAINDER_OUT = True     # (T5): a magnetometer shift within ½ sample is the base model's, not a candidate
+LOG_SCORE_SIGNIFICANCE = True    # (T6): significant by the held-out log score's sign test (A4'')
+ROTATION_CHECK = True        # (T7): a gyro-referenced delay only where rotation is most of the channel's change
 
 
 def injection_range_s(rate_hz: float) -> tuple[float, float]:
@@ -68,6 +80,17 @@ def _relative_cost(fit, res: dict, train: np.ndarray, channels) -> float:
                for c in channels)
 
 
+def base_remainder(tau_s: float, rate_hz: float) -> bool:
+    """True when a magnetometer shift τ is within the base model's own alignment remainder (T5): the base
+    model puts the field on the gyro's time base by whole samples (diagnose/fit.py (B3)), which leaves up
+    to ½ sample period, τ_f, that (B3') puts in the prediction. A shift |τ| ≤ ½ sample is therefore that
+    remainder, part of the base model, not a channel timing the model leaves out; it is also below
+    relevance (`size`: 1 sample) by construction, so when it wins the candidates (its whitened cost falls
+    by 14–22 % on the fast crops, docs/diagnose.md §5) it hides a relevant delay of acc or gyr, which
+    then never reaches the verdict."""
+    return abs(float(tau_s)) * float(rate_hz) <= 0.5
+
+
 def gyro_referenced_delays(fit, train: np.ndarray) -> dict:
     """channel → τ (s) from the raw measurements and the gyro only (T2), training samples only: acc and
     mag by `imugraph.calibration.alignment.estimate_mag_delay` (a constant
@@ -83,12 +106,49 @@ def gyro_referenced_delays(fit, train: np.ndarray) -> dict:
     try:
         D = np.asarray(fit.calibration.D, float)
         m = np.linalg.solve(D, (s.mag - np.asarray(fit.calibration.o, float)).T).T
-        out["mag"] = estimate_mag_delay(s.t, np.where(hide, np.nan, m), w, max_delay_s=MAX_DELAY_S)
-        out["acc"] = estimate_mag_delay(s.t, np.where(hide, np.nan, s.acc), w, max_delay_s=MAX_DELAY_S)
-        out["gyr"] = -out["acc"]
+        for c, y in (("mag", m), ("acc", s.acc)):
+            y = np.where(hide, np.nan, y)
+            tau = estimate_mag_delay(s.t, y, w, max_delay_s=MAX_DELAY_S)
+            if not ROTATION_CHECK or rotation_explained(s.t, y, w, tau) > 0.5:                  # (T7)
+                out[c] = tau
+        if "acc" in out:
+            out["gyr"] = -out["acc"]
     except (np.linalg.LinAlgError, ValueError):
         return {}
     return out
+
+
+def rotation_explained(t: np.ndarray, y: np.ndarray, b_gyr: np.ndarray, tau_s: float, window_s: float = 0.04,
+                       max_rows: int = 4000) -> float:
+    """Fraction of a channel's change over `window_s` windows that the rotation model of (T2) explains at
+    the delay τ (the model `estimate_mag_delay` fits, at one lag: Δy_j ≈ [y_j]× A ΔΩ_j(τ), A a free 3×3):
+
+        E = 1 − Σ_j |Δy_j − [y_j]× Â ΔΩ_j(τ)|² / Σ_j |Δy_j|²                                        (T7)
+
+    (T2) holds when the channel sees a CONSTANT nav-frame vector from the turning body; its delay is a
+    candidate only when that model is most of what the channel does (E > ½). Measured (60 s crops): the
+    accelerometer of simulations without linear acceleration E = 0.98; hand-held BROAD 01, 02, 06, 07
+    E = 0.07–0.25, where (T2) gave +36, −8.1, −17 ms and 0 (no optimum) against the accelerometer's own
+    ≈ −1…−5 ms — its hand's linear acceleration, not gravity, is most of the change; the field
+    E = 0.69–0.98 on every crop. Rows with a non-finite end (held-out blocks) are left out."""
+    t = np.asarray(t, float)
+    y = np.asarray(y, float)
+    step = float(np.median(np.diff(t)))
+    h = max(1, int(round(0.5 * window_s / step)))
+    mid = np.arange(h, len(t) - h)
+    mid = mid[np.linspace(0, mid.size - 1, min(mid.size, max_rows)).round().astype(int)] if mid.size else mid
+    lo, hi = mid - h, mid + h
+    dy = y[hi] - y[lo]
+    omega = np.concatenate([np.zeros((1, 3)), np.cumsum(np.nan_to_num(b_gyr[:-1]) * np.diff(t)[:, None], axis=0)])
+    d_om = np.stack([np.interp(t[hi] - tau_s, t, omega[:, i]) - np.interp(t[lo] - tau_s, t, omega[:, i])
+                     for i in range(3)], axis=1)                                          # ΔΩ_j(τ)
+    ok = np.all(np.isfinite(dy), axis=1) & np.all(np.isfinite(y[mid]), axis=1)
+    if ok.sum() < 20:
+        return 0.0
+    A = np.einsum("nik,nl->nikl", skew(y[mid][ok]), d_om[ok]).reshape(-1, 9)           # [y_j]× ⊗ ΔΩ_jᵀ
+    b = dy[ok].reshape(-1)
+    theta = np.linalg.lstsq(A, b, rcond=None)[0]
+    return float(1.0 - np.sum((b - A @ theta) ** 2) / max(float(np.sum(b * b)), 1e-300))
 
 
 def _first_order_floor(fit, r0: dict, J: dict, train: np.ndarray, channels) -> float:
@@ -180,7 +240,7 @@ class TimeOffset(Effect):
             if tau is None:
                 continue
             for tau_c in (tau, ref.get(c)):           # Gauss–Newton on (T1) and the gyro-referenced (T2)
-                if tau_c is None:
+                if tau_c is None or (MAG_REMAINDER_OUT and c == "mag" and base_remainder(tau_c, s.rate)):
                     continue
                 corr = TimeOffsetCorrection(self.name, {"channel": c, "tau_s": float(tau_c)}, 2, channel=c)
                 res = corr.raw_residuals(fit)       # (a gyro shift re-integrates the trajectory: kept, not redone)
@@ -192,6 +252,8 @@ class TimeOffset(Effect):
             corr.deltas["d_omega"] = np.nan_to_num(shift_signal(s.t, s.gyr, -corr.params["tau_s"]) - s.gyr)
         corr.params["train_cost_reduction"] = float(1.0 - _cost(fit, res, train, channels) / max(base_cost, 1e-30))
         corr.deltas["noise_scale"] = noise_scale(fit, res, train, [corr.channel])
+        if LOG_SCORE_SIGNIFICANCE:
+            corr.params["significance"] = "log_score"                                  # (T6)
         return corr
 
 
