@@ -41,13 +41,26 @@ def test_apply_windows_removes_offsets_and_drops_unexplained():
     assert np.all(y == 0)                                 # the input is untouched
 
 
-def test_attached_magnet_window_is_modelled():
+def test_apply_windows_leaves_out_the_dropped_rows_of_a_modelled_window():
+    y = np.zeros((10, 3))
+    out, w = apply_windows([Window(2, 6, np.array([1.0, 0.0, 0.0]), True, drop=np.array([2, 5]))], y)
+    assert w.tolist() == [1, 1, 0, 1, 1, 0, 1, 1, 1, 1]
+    np.testing.assert_allclose(out[2:6, 0], -1.0)
+    _, w = apply_windows([Window(2, 6, None, False, drop=np.array([2]))], y)     # left out: the whole window
+    assert w.tolist() == [1, 1, 0, 0, 0, 0, 1, 1, 1, 1]
+
+
+@pytest.mark.parametrize("opts", [{}, {"window_trial_verdict": True}])
+def test_attached_magnet_window_is_modelled(opts):
     s, truth = distorted_session(11, duration_s=90.0, rate_hz=100.0)
     offset = np.array([0.3, -0.2, 1.1]) * truth.field_norm       # larger than the field, as in BROAD 32
     window = (s.t > 30.0) & (s.t < 60.0)
     mag = s.mag.copy()
     mag[window] += offset
-    est = calibrate(s.with_mag(mag), Options())
+    est = calibrate(s.with_mag(mag), Options(**opts))
+    if opts:        # judged on a solve with it modelled, once: modelled from the trial round on, rounds converge
+        assert est.calibration.converged and est.calibration.iterations < Options().max_outer
+        assert all(h["windows"][0]["modelled"] for h in est.info["history"])
     wins = est.info["disturbance_windows"]
     assert len(wins) == 1 and wins[0]["modelled"]
     assert abs(wins[0]["t_start"] - 30.0) < 1.5 and abs(wins[0]["t_end"] - 60.0) < 1.5

@@ -20,14 +20,14 @@ import numpy as np
 
 from imugraph import keys
 from imugraph.calibration.noise import field_dof, reestimate
-from imugraph.calibration.rounds import solved_samples_block, thinned as _thinned
+from imugraph.calibration.rounds import fit_windows, solved_samples_block, thinned as _thinned
 from imugraph.calibration.options import Options  # noqa: F401  (public here: ml.Options)
 from imugraph.calibration.acc_timing import session_lead, with_lead
 from imugraph.calibration.gyro_rate import update_rate_error
 from imugraph.calibration.gyro_map_select import calibrate_chosen
 from imugraph.calibration.result import Calibration, n_mag_from_dip
 from imugraph.factors.gyro import keyframe_layout, preintegrate
-from imugraph.calibration.disturbance import apply_windows, detect_windows, fit_offsets
+from imugraph.calibration.disturbance import apply_windows, detect_windows
 from imugraph.calibration.acc_rate import update_acc_rate_error
 from imugraph.calibration.solution import marginal_covariances, per_sample_residuals  # noqa: F401 (public here)
 from imugraph.factors.velocity import gravity_from_velocity
@@ -223,8 +223,8 @@ def calibrate(session: Session, options: Options | None = None, initial=None,
                 n_nav = n_mag_from_dip(dip_)
                 if prob.block.field_offsets is not None:          # n + d_k of each sample's keyframe
                     n_nav = n_nav + prob.block.field_offsets[pre.sample_kf]
-                fit_offsets(windows, session.t, session.mag, nRb, D_, o_, n_nav,
-                            float(np.sqrt(np.mean(noise.mag ** 2))), opt.freeze_window_decision)
+                change = max(change, fit_windows(windows, opt, session, nRk, pre, D_, o_, n_nav, nRb,
+                                                 float(np.sqrt(np.mean(noise.mag ** 2)))))    # rounds.py
                 mag_state["y"], mag_state["w"] = apply_windows(windows, session.mag)
                 history[-1]["windows"] = [w.as_dict(session.t) for w in windows]
             if phase["map"]:

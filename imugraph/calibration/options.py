@@ -115,6 +115,10 @@ class Options:
     #   simulated ATTACHED magnet (tests/test_disturbance.py, 3 × the field for 30 s) is then judged unexplained at
     #   its first fit and left out (0.30 → 0.39°; noise_skip_excluded alike): the ≤ 3 σ_mag test is passed there only
     #   thanks to the leak. Both need a verdict judged from a solve with the window modelled (not done)
+    window_trial_verdict: bool = False  # each disturbance window's verdict judged on a solve WITH it modelled,
+    #   once: a window whose offset reduces its residual is modelled for one round ("on trial"), then kept
+    #   modelled for good if its residual RMS ≤ 3 × the undisturbed samples' residual RMS of that same solve
+    #   (not σ_mag), else left out for good (disturbance.fit_offsets_on_trial, rounds.fit_windows). Off (measuring)
     heading_only_orientation: bool = False  # final orientations with the field as heading only
     #                                        (graphs.heading_block): BROAD mean 1.13° vs 1.06° joint, off
     field_sigma: float | tuple | None = (0.015, 0.003, 0.015)  # σ_d per nav axis (x along the horizontal

@@ -8,6 +8,9 @@ so its residual carries no information about Σm. Counting it anyway (robust ker
 magnet's 58 µT into σ_mag,z on BROAD 32 (0.7 → 6.6–8.8 µT); the inflated σ then made the window look
 "explained" (residual ≤ 3 σ), the next solve took it in, σ shrank again, the window flipped back to
 unexplained: the rounds cycled with a period of 5 and ran to max_outer (Options.noise_skip_excluded).
+
+fit_windows: each round's windowed hard-iron fit, with the verdict judged against σ_mag (fit_offsets) or on a
+solve with the window modelled against that solve's undisturbed residual (Options.window_trial_verdict).
 """
 
 from __future__ import annotations
@@ -16,6 +19,7 @@ from dataclasses import replace
 
 import numpy as np
 
+from imugraph.calibration.disturbance import field_residuals, fit_offsets, fit_offsets_on_trial, robust_scale
 from imugraph.graphs.measurements import MeasurementBlock
 
 
@@ -46,3 +50,34 @@ def thinned(y: np.ndarray, every: int) -> np.ndarray:
     idx = np.flatnonzero(np.all(np.isfinite(y), axis=1))[::every]
     out[idx] = y[idx]
     return out
+
+
+def undisturbed_rms(windows: list, b_mag: np.ndarray, nRk: np.ndarray, pre, D: np.ndarray, o: np.ndarray,
+                    n_nav: np.ndarray) -> float:
+    """Robust residual scale (disturbance.robust_scale, per axis, raw unit) of the field samples outside every
+    disturbance window at the solve's per-sample orientations (keyframes nRk interpolated as in the final
+    output) of r_j = y_j − D bRn_j n_j − o, j undisturbed — the same formula as the windows' residual."""
+    from imugraph.geometry import quat_to_rotmat
+    from imugraph.graphs.orientation_init import sample_orientations
+
+    out = np.all(np.isfinite(b_mag), axis=1)
+    for w in windows:
+        out[w.start:w.stop] = False
+    if not out.any():
+        return float("nan")
+    nRb = quat_to_rotmat(sample_orientations(nRk, pre)[out])
+    r = field_residuals(b_mag[out], nRb, D, o, n_nav if np.ndim(n_nav) == 1 else n_nav[out])
+    return robust_scale(r)
+
+
+def fit_windows(windows: list, opt, session, nRk: np.ndarray, pre, D: np.ndarray, o: np.ndarray, n_nav: np.ndarray,
+                nRb: np.ndarray, sigma_mag: float) -> float:
+    """One round's windowed hard-iron fit at the solve's orientations (nRb: per sample inside the windows).
+    Returns a convergence 'change' for the rounds: inf while a window waits to be judged on the next solve
+    (Options.window_trial_verdict), else 0."""
+    if not opt.window_trial_verdict:
+        fit_offsets(windows, session.t, session.mag, nRb, D, o, n_nav, sigma_mag, opt.freeze_window_decision)
+        return 0.0
+    pending = fit_offsets_on_trial(windows, session.t, session.mag, nRb, D, o, n_nav,
+                                   lambda: undisturbed_rms(windows, session.mag, nRk, pre, D, o, n_nav))
+    return float("inf") if pending else 0.0
