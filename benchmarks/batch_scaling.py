@@ -1,7 +1,8 @@
 """Issue 3 (many sessions): `imugraph batch` on the shared BROAD trials with 1 and 2 local worker
 processes, in the same run. Prints per-session time and error vs truth, the wall time of each run
 (cluster start-up included), the speed-up wall(1)/wall(2), and whether both runs gave the same
-results; writes bench_out/batch_scaling.json (results in bench_out/batch_scaling/w1, w2).
+results (each session's calibration.json and orientation.npz compared bit for bit, `same_outputs`;
+before: only the error vs truth); writes bench_out/batch_scaling.json (results in bench_out/batch_scaling/w1, w2).
 
     .venv/bin/python benchmarks/batch_scaling.py [TRIAL_NUMBERS,...]          # default: all 17 trials
     .venv/bin/python benchmarks/batch_scaling.py --sim 2 --duration 30        # simulated sessions instead
@@ -55,6 +56,18 @@ def source_digest() -> str:
     return h.hexdigest()[:12]
 
 
+def same_outputs(r1: dict, r2: dict) -> bool:
+    """Both runs wrote the same results for a session: calibration.json equal as parsed JSON and the
+    orientation.npz arrays equal bit for bit (failed sessions: the same error message)."""
+    if r1["status"] != "ok":
+        return r1.get("error") == r2.get("error")
+    a, b = Path(r1["out"]), Path(r2["out"])
+    if json.loads((a / "calibration.json").read_text()) != json.loads((b / "calibration.json").read_text()):
+        return False
+    with np.load(a / "orientation.npz") as za, np.load(b / "orientation.npz") as zb:
+        return set(za.files) == set(zb.files) and all(np.array_equal(za[k], zb[k]) for k in za.files)
+
+
 def main(argv: list[str]) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("trials", nargs="?", default=None, help="comma-separated BROAD trial numbers (01,02,...)")
@@ -92,7 +105,7 @@ def main(argv: list[str]) -> int:
         table.append({"session": r1["session"], "status": r1["status"], "t_w1_s": r1["time_s"],
                       "t_w2_s": r2["time_s"], "error_deg": r1["error_deg"],
                       "error_w2_deg": r2["error_deg"],
-                      "same": r1["error_deg"] == r2["error_deg"] and r1["status"] == r2["status"]})
+                      "same": r1["status"] == r2["status"] and same_outputs(r1, r2)})
     print_table(table, list(table[0].keys()))
     w1, w2 = runs[1]["wall_s"], runs[2]["wall_s"]
     work = sum(r["time_s"] or 0.0 for r in runs[1]["rows"])

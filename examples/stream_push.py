@@ -10,6 +10,8 @@ mag=None when the magnetometer has no new sample (lower rate). `finish()` then `
 smoothed orientation of every accepted sample (rows at `sample_times()`). The calibration (D, o) is
 re-estimated online from the bootstrap start: `smoother.cal` is the latest one applied, and
 `smoother.calibration_history` one row per refit (t, D, o, dip_deg, std, applied) for a convergence plot.
+`imugraph stream SESSION --out OUT` writes the same rows to OUT/calibration_history.json;
+`examples/plot_convergence.py OUT [--batch calibration.json]` draws them.
 """
 
 import numpy as np
