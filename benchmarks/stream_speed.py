@@ -19,8 +19,8 @@ and the online refits, StreamSmoother._between_keyframes), the largest entry of 
 calibration (see docs/stream.md). Wall times; the machine may be shared: compare ratios in one run.
 
     .venv/bin/python benchmarks/stream_speed.py [TRIALS] [--lag 2 | --no-lag] [--no-batch] [--bootstrap-s 30]
-        [--calibration online|fixed|both] [--lag-solver chain|incremental|batch] [--lag-only] [--no-cal-compare] [--calib-states]
-        [--disturb] [--weak-prior] [--offsets] [--cache DIR]
+        [--calibration online|fixed|both] [--lag-solver chain|incremental|batch] [--lag-only] [--no-cal-compare] [--[no-]calib-states]
+        [--[no-]disturb] [--weak-prior] [--[no-]offsets] [--cache DIR]   (defaults: StreamOptions')
 
 TRIALS: comma-separated BROAD trial numbers, or "all" (the 17 trials; default 01). --no-lag / --no-batch skip
 the fixed-lag run / the batch smoother (time). Prints the per-trial table, then the means of the filtered
@@ -51,8 +51,8 @@ def _err(q, s):
 
 
 def run_trial(path: Path, lag: float | None, bootstrap_s: float, batch: bool = True, online=(True,),
-              compare_cal: bool = True, lag_solver: str = "chain", lag_only: bool = False, calib_states: bool = False,
-              disturb: bool = False, weak_prior: bool = False, cache: str | None = None, offsets: bool = False) -> list[dict]:
+              compare_cal: bool = True, lag_solver: str = "chain", lag_only: bool = False, calib_states: bool = True,
+              disturb: bool = True, weak_prior: bool = False, cache: str | None = None, offsets: bool = True) -> list[dict]:
     from imugraph.evaluate import orientation_error
     from imugraph.graphs.cpp_smoother import smooth_fixed
     from imugraph.graphs.stream import StreamOptions
@@ -227,13 +227,15 @@ def main(argv=None) -> int:
                          "BatchFixedLagSmoother for --lag")
     ap.add_argument("--lag-only", action="store_true", help="skip the full iSAM2 run")
     ap.add_argument("--no-cal-compare", action="store_true", help="skip the whole-trial batch calibration")
-    ap.add_argument("--calib-states", action="store_true", help="online calibration with θ as a graph state "
+    from imugraph.graphs.stream import StreamOptions
+
+    ap.add_argument("--calib-states", action=argparse.BooleanOptionalAction, default=StreamOptions.calib_states, help="online calibration with θ as a graph state "
                     "(StreamOptions(calib_states=True)) instead of the closed-form refit on fixed orientations")
-    ap.add_argument("--disturb", action="store_true", help="causal disturbance windows left out of the online "
+    ap.add_argument("--disturb", action=argparse.BooleanOptionalAction, default=StreamOptions.disturb_detect, help="causal disturbance windows left out of the online "
                     "calibration (StreamOptions(disturb_detect=True), imugraph.graphs.stream_disturb)")
     ap.add_argument("--weak-prior", action="store_true", help="the batch's weak prior for the online calibration "
                     "when the bootstrap says D, o are not identifiable (StreamOptions(calib_weak_prior=True))")
-    ap.add_argument("--offsets", action="store_true", help="with --calib-states --disturb: each disturbance window "
+    ap.add_argument("--offsets", action=argparse.BooleanOptionalAction, default=StreamOptions.disturb_offsets, help="with --calib-states --disturb: each disturbance window "
                     "its own hard-iron offset, the reported hard iron the majority's (StreamOptions(disturb_offsets=True))")
     ap.add_argument("--cache", default=None, help="DIR: reuse / store each trial's bootstrap and whole-trial batch "
                     "calibration (cal_NN.pkl; the calibration code may have changed since they were computed)")

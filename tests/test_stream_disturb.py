@@ -103,7 +103,9 @@ def test_weak_prior_is_the_batch_prior():
 
 def _stream(session, cal, detect: bool):
     sm = StreamSmoother(cal, session.rate, StreamOptions(lag_s=2.0, disturb_detect=detect, calib_memory_s=None,
-                                                         calib_prior_from_start=False), start_window_s=8.0)
+                                                         calib_prior_from_start=False, calib_states=False,
+                                                         disturb_offsets=False),   # the refit's fold-in
+                        start_window_s=8.0)
     for row in zip(session.t, session.gyr, session.acc, session.mag):
         sm.push(*row)
     sm.finish()

@@ -45,9 +45,10 @@ class StreamOptions:
             graph in every magnetometer factor, pinned at the start calibration, and the streamed calibration is
             what the data say about it jointly with the orientations (`imugraph.graphs.stream_calstate` eq. 3–4,
             weak prior calib_prior_rel × scale; the orientations keep the start calibration); the refit options
-            above then do not apply. False (default): the closed-form refit on fixed orientations (stream_calib), whose
-            swapped-in refits do reach the orientations; on (measured, docs/stream.md): D within 0.3–0.7 % of the
-            batch's instead of 0.8–5.5 %, but 10/17 within 3 model std (refit 11/17) and a slower periodic step.
+            above then do not apply. True (default since session 14, with disturb_detect and disturb_offsets: all 17
+            BROAD trials within 3 reported std of the batch calibration, filtered 1.27° vs 1.45°; README, issue 3).
+            False: the closed-form refit on fixed orientations (stream_calib), whose swapped-in refits do reach
+            the orientations (10/17 within 3 std).
             calib_lin_rel: once every std of the streamed D, o is below calib_lin_rel × field scale, new
             magnetometer factors are linearised at the streamed θ (stream_calstate eq. 5; 0: never). calib_gate:
             a keyframe whose mean field residual exceeds calib_gate × field scale gives no information on θ
@@ -79,11 +80,12 @@ class StreamOptions:
             out of the online calibration (the refit's fold-in; with calib_states their factors carry no θ);
             counted in `StreamStats` (disturbances, disturbed_keyframes, disturbed_samples). disturb_orient: also
             leave the magnetometer factor of a flagged keyframe out of the orientations (decided when its interval
-            closes). Off by default (docs/stream.md, "Disturbances and the weak prior online").
+            closes). On by default since session 14 (docs/stream.md, "Disturbances and the weak prior online").
         disturb_offsets: with calib_states and disturb_detect, each disturbance window (the detector's and the start
             calibration's modelled ones) gets its own hard-iron offset Δo_w as the batch's, so that its keyframes
             inform D and the dip, and the reported hard iron is that of the majority of the samples seen so far
-            (`imugraph.graphs.stream_offsets`). Off by default (docs/stream.md, "Windowed offsets and the majority").
+            (`imugraph.graphs.stream_offsets`). On by default since session 14 (docs/stream.md, "Windowed offsets and the
+            majority").
         calib_weak_prior: when the start calibration says D, o are not identifiable (`coverage["identifiable"]`
             False: the regularised fallback of `calibrate`), the online calibration's prior is the batch's weak
             prior — D = s·I, o = 0 with σ = weak_theta_fraction × s (o: twice), `calibration.ml`'s — instead of the
@@ -122,19 +124,19 @@ class StreamOptions:
     calib_memory_s: float | None = 20.0
     calib_swap_rel: float = 0.002
     calib_swap_white: bool = False
-    calib_states: bool = False
+    calib_states: bool = True          # default since session 14 (README, docs/stream.md)
     calib_lin_rel: float = 0.01
     calib_gate: float | None = 0.3
     field_sigma: float | tuple | None = (0.015, 0.003, 0.015)
     field_tau: float = 1.0
     lag_hold_s: float = 0.5
-    disturb_detect: bool = False
+    disturb_detect: bool = True
     disturb_p_alarm: float = 1e-4
     disturb_p_drift: float = 0.01
     disturb_pad_s: float = PAD_S       # the batch's window padding (calibration.disturbance)
     disturb_learn_s: float = 10.0
     disturb_orient: bool = False
-    disturb_offsets: bool = False
+    disturb_offsets: bool = True
     calib_weak_prior: bool = False
 
 
