@@ -107,13 +107,19 @@ def test_unexplained_window_stays_left_out_and_rounds_converge(field):
             est.calibration.noise["mag"]
 
 
-def test_broad_32_rounds_converge_with_solved_samples_noise():
+
+def _broad_32():
+    """BROAD trial 32 (the 1 cm attached magnet), or skip when the data folder lacks it."""
     from benchmarks.common import iter_broad
 
     trials = list(iter_broad({"32"}))
     if not trials:
         pytest.skip("BROAD trial 32 not available (imugraph.config.data_dir())")
-    _, s, _ = trials[0]
+    return trials[0][1]
+
+
+def test_broad_32_rounds_converge_with_solved_samples_noise():
+    s = _broad_32()
     est = calibrate(s, Options(noise_skip_excluded=True), allow_weak=True)
     assert est.calibration.converged and est.calibration.iterations < Options().max_outer
     assert np.all(np.asarray(est.calibration.noise["mag"]) < 1.0)      # µT: the magnet's 58 µT kept out
@@ -150,12 +156,7 @@ def test_fit_offsets_keeps_the_first_verdict_and_refits_the_offset():
 
 
 def test_broad_32_rounds_converge_with_frozen_window_decision():
-    from benchmarks.common import iter_broad
-
-    trials = list(iter_broad({"32"}))
-    if not trials:
-        pytest.skip("BROAD trial 32 not available (imugraph.config.data_dir())")
-    _, s, _ = trials[0]
+    s = _broad_32()
     est = calibrate(s, Options(freeze_window_decision=True), allow_weak=True)
     assert est.calibration.converged and est.calibration.iterations < Options().max_outer
     verdicts = {tuple(w["modelled"] for w in h["windows"]) for h in est.info["history"]}
@@ -210,12 +211,7 @@ def test_robust_scale_ignores_a_minority_of_outlying_rows():
 
 
 def test_broad_32_rounds_converge_with_trial_verdict():
-    from benchmarks.common import iter_broad
-
-    trials = list(iter_broad({"32"}))
-    if not trials:
-        pytest.skip("BROAD trial 32 not available (imugraph.config.data_dir())")
-    _, s, _ = trials[0]
+    s = _broad_32()
     est = calibrate(s, Options(window_trial_verdict=True), allow_weak=True)
     assert est.calibration.converged and est.calibration.iterations < Options().max_outer
     verdicts = [tuple(w["modelled"] for w in h["windows"]) for h in est.info["history"]]
