@@ -65,9 +65,9 @@ def _common(p: argparse.ArgumentParser, out_help: str, data_dir: bool = False) -
                             "(default: $IMUGRAPH_DATA, else ../shared/data)")
 
 
-def _keyframes(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--keyframe-hz", type=_positive(float), default=5.0, metavar="HZ",
-                   help="orientation states per second (every sample is still used; default 5)")
+def _keyframes(p: argparse.ArgumentParser, default: float = 5.0) -> None:
+    p.add_argument("--keyframe-hz", type=_positive(float), default=default, metavar="HZ",
+                   help=f"orientation states per second (every sample is still used; default {default:g})")
 
 
 def _allow_weak(p: argparse.ArgumentParser) -> None:
@@ -143,7 +143,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--weak-prior", action=argparse.BooleanOptionalAction, default=None,
                    help="when D, o are not identifiable, hold them with the batch's weak prior")
     _common(p, default_out, data_dir=True)
-    _keyframes(p)
+    _keyframes(p, default=10.0)        # StreamOptions.keyframe_hz: what the stream benchmarks measure
 
     p = sub.add_parser("batch", help="calibrate and smooth many sessions in parallel on Dask",
                        description="One folder DIR/<session stem> per session with the files of calibrate, "
