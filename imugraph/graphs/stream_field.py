@@ -57,14 +57,9 @@ def field_step_factor(field_k: int, field_next: int, dt_k: float, sigma_d, tau_d
     """(d_{k+1} − φ_k d_k)/σ_w,k ~ N(0, I), φ_k = exp(−Δt_k/τ_d), σ_w,k = σ_d √(1 − φ_k²): eq. (2), exact.
     The coefficients of `imugraph.factors.field.field_steps` in scalar arithmetic (one interval per call:
     the array version's overhead was half of this function's time; tests/test_stream_field.py compares)."""
-    phi = math.exp(-float(dt_k) / max(tau_d, 1e-9))                    # gauss_markov with σ = 1
-    unit_w = math.sqrt(max(1.0 - phi * phi, 1e-12))
-    sig_w = unit_w * field_sigmas(sigma_d)                             # σ_w,k per nav axis
-    jf = gtsam.JacobianFactor(field_k, np.diag(-phi / sig_w), field_next, np.diag(1.0 / sig_w), _ZERO3, _UNIT3)
-    lin = gtsam.Values()
-    lin.insert(field_k, _ZERO3)
-    lin.insert(field_next, _ZERO3)
-    return gtsam.LinearContainerFactor(jf, lin)
+    from imugraph.graphs.stream_kernels import field_blocks, linear_step
+
+    return linear_step(field_k, field_next, field_blocks(dt_k, field_sigmas(sigma_d), tau_d))
 
 
 def linearized_once(factor, pose_k: int, pose: gtsam.Pose3, field_k: int, d: np.ndarray) -> gtsam.LinearContainerFactor:

@@ -159,13 +159,9 @@ def gauss_markov_factor(key_k: int, key_next: int, dt_k: float, sigma_v: float, 
     """The bounded-velocity factor of one interval, v_{k+1} − φ v_k ~ N(0, σ_v²(1 − φ²) I), φ = exp(−Δt/τ_v): the
     interval term of `cpp_velocity.gauss_markov_factors` (an exact linear factor), without its v_0 prior.
     φ and σ_w as `imugraph.factors.velocity.gauss_markov`, in scalar arithmetic (one interval per call)."""
-    phi = math.exp(-float(dt_k) / max(tau_v, 1e-9))
-    sig_w = sigma_v * math.sqrt(max(1.0 - phi * phi, 1e-12))
-    jf = gtsam.JacobianFactor(key_k, (-phi / sig_w) * _EYE3, key_next, _EYE3 / sig_w, _ZERO3, _UNIT3)
-    lin = gtsam.Values()
-    lin.insert(key_k, _ZERO3)
-    lin.insert(key_next, _ZERO3)
-    return gtsam.LinearContainerFactor(jf, lin)
+    from imugraph.graphs.stream_kernels import linear_step, velocity_blocks
+
+    return linear_step(key_k, key_next, velocity_blocks(dt_k, sigma_v, tau_v))
 
 
 class ArrivalMixin:

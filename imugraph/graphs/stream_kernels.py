@@ -57,6 +57,21 @@ def split_noise_one(cov: np.ndarray, sigma_dv: float, huber_k: float | None) -> 
             robust(gtsam.noiseModel.Diagonal.Precisions(prec), huber_k))
 
 
+def velocity_blocks(dt_k: float, sigma_v: float, tau_v: float) -> tuple:
+    """(A_k, A_{k+1}) of (v_{k+1} − φ v_k)/σ_w, φ = exp(−Δt/τ_v), σ_w = σ_v √(1 − φ²) (scalar arithmetic)."""
+    phi = math.exp(-float(dt_k) / max(tau_v, 1e-9))
+    sig_w = sigma_v * math.sqrt(max(1.0 - phi * phi, 1e-12))
+    return (-phi / sig_w) * _EYE3, _EYE3 / sig_w
+
+
+def field_blocks(dt_k: float, sig_d: np.ndarray, tau_d: float) -> tuple:
+    """(A_k, A_{k+1}) of (d_{k+1} − φ d_k)/σ_w per nav axis, φ = exp(−Δt/τ_d), σ_w = σ_d √(1 − φ²); sig_d from
+    `field_sigmas`."""
+    phi = math.exp(-float(dt_k) / max(tau_d, 1e-9))
+    sig_w = math.sqrt(max(1.0 - phi * phi, 1e-12)) * sig_d
+    return np.diag(-phi / sig_w), np.diag(1.0 / sig_w)
+
+
 class StepBlocks:
     """Blocks (A_k, A_{k+1}) of the two Gauss–Markov steps of an interval, by Δt_k (at most `size` cached):
 
@@ -73,18 +88,14 @@ class StepBlocks:
     def velocity(self, dt_k: float) -> tuple:
         got = self._vel.get(dt_k)
         if got is None:
-            phi = math.exp(-float(dt_k) / max(self.tau_v, 1e-9))
-            sig_w = self.sigma_v * math.sqrt(max(1.0 - phi * phi, 1e-12))
-            got = ((-phi / sig_w) * _EYE3, _EYE3 / sig_w)
+            got = velocity_blocks(dt_k, self.sigma_v, self.tau_v)
             self._keep(self._vel, dt_k, got)
         return got
 
     def field(self, dt_k: float) -> tuple:
         got = self._field.get(dt_k)
         if got is None:
-            phi = math.exp(-float(dt_k) / max(self.tau_d, 1e-9))
-            sig_w = math.sqrt(max(1.0 - phi * phi, 1e-12)) * self.sig_d
-            got = (np.diag(-phi / sig_w), np.diag(1.0 / sig_w))
+            got = field_blocks(dt_k, self.sig_d, self.tau_d)
             self._keep(self._field, dt_k, got)
         return got
 
