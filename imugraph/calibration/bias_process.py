@@ -51,6 +51,7 @@ from dataclasses import replace
 import gtsam
 import numpy as np
 
+from imugraph.graphs.single_imu import segment_dt      # the graph's own segment spacing (must match)
 from imugraph import keys
 
 # Physical limits of q, rad/s/√s (order-of-magnitude choices, not datasheet values; the rate random walk K
@@ -148,11 +149,6 @@ def em_rw_density(e_inc: np.ndarray, seg_dt: float, bounds: tuple = RW_BOUNDS) -
     e_inc = np.asarray(e_inc, float)
     q2 = float(np.sum(e_inc)) / (3.0 * len(e_inc) * seg_dt)                  # (B1)
     return float(np.clip(np.sqrt(max(q2, 0.0)), *bounds))
-
-
-def segment_dt(pre, n_seg: int) -> float:
-    """The segment spacing the graph's random-walk factors use (build_problem: total keyframe time / S)."""
-    return float(np.sum(pre.dt) / n_seg) if len(pre.dt) else 1.0
 
 
 def update_bias_rw(rw: float, prob, values: gtsam.Values, pre, n_seg: int,

@@ -122,6 +122,12 @@ class Problem:
     velocity: VelocityBlock | None = None
 
 
+
+def segment_dt(pre, n_seg: int) -> float:
+    """The spacing of the gyro-bias segments' random walk: total keyframe time / number of segments (also the
+    Δt of calibration/bias_process.py's EM step, which must match)."""
+    return float(pre.dt.sum() / n_seg) if len(pre.dt) else 1.0
+
 def build_problem(pre: Preintegration, b_acc: np.ndarray, b_mag: np.ndarray, noise: Noise, g: float,
                   nRk0: np.ndarray, bias0: np.ndarray, theta0: np.ndarray | None,
                   theta_prior_sigma: np.ndarray | None = None, bias_prior_sigma: float = 0.05,
@@ -168,7 +174,7 @@ def build_problem(pre: Preintegration, b_acc: np.ndarray, b_mag: np.ndarray, noi
     for k in range(K if fill else 0):
         values.insert(rk[k], gtsam.Rot3(nRk0[k]))
     prior = gtsam.noiseModel.Isotropic.Sigma(3, bias_prior_sigma)
-    seg_dt = (pre.dt.sum() / n_seg) if len(pre.dt) else 1.0
+    seg_dt = segment_dt(pre, n_seg)
     rw = gtsam.noiseModel.Isotropic.Sigma(3, max(bias_rw_sigma, 1e-9) * np.sqrt(seg_dt))
     for i in range(n_seg):
         b_i = bias0[min(i, len(bias0) - 1)]
