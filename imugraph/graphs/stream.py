@@ -202,10 +202,7 @@ class StreamSmoother(OnlineCalibrationMixin, KeyframeStartMixin, ArrivalMixin, S
             self._attach_delayed_mag(m, has_mag)
         if self._mid and len(buf) >= self._mid and (self._refit_due or not self._maintained):
             self._between_keyframes()
-        if self._q_nk is None:
-            return self._filtered_q()
-        q = qmul(self._q_nk, self._q_open)    # the sign convention of qpos (w ≥ 0)
-        return q if q[0] >= 0 else (-q[0], -q[1], -q[2], -q[3])
+        return self._filtered_q()
 
     def _between_keyframes(self) -> None:
         """Periodic work done on the samples between two keyframes (from halfway on), one job per sample, off
