@@ -34,7 +34,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from imugraph.errors import SessionError
-from imugraph.geometry import quat_slerp, quat_to_rotmat
+from imugraph.geometry import integrate_gyro, quat_slerp, quat_to_rotmat
 
 G0 = 9.81                               # m/s² per g: G in rad/s per g
 DEFAULT_LAGS = np.arange(-3.0, 3.01, 0.25)
@@ -44,14 +44,8 @@ TERMS = ("base", "split", "rate2", "g2")
 
 def strapdown(gyr: np.ndarray, dt: np.ndarray) -> np.ndarray:
     """(N+1, 3, 3) R_k = Π_{i<k} Exp(ω_i Δt_i), R_0 = I (body → integration frame)."""
-    from scipy.spatial.transform import Rotation
-
-    steps = Rotation.from_rotvec(gyr * dt[:, None]).as_matrix()
-    R = np.empty((len(gyr) + 1, 3, 3))
-    R[0] = np.eye(3)
-    for k in range(len(gyr)):
-        R[k + 1] = R[k] @ steps[k]
-    return R
+    q = integrate_gyro(np.vstack([gyr, gyr[-1:]]), np.r_[dt, dt[-1:]])   # the padded last row only sizes q to N+1
+    return quat_to_rotmat(q)
 
 
 def _kron_rows(v: np.ndarray) -> np.ndarray:
