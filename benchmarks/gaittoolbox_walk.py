@@ -76,7 +76,8 @@ def ours(root: Path, use_mag: bool, hinges: tuple, lag: float | None = None, var
     secs = time.perf_counter() - t0
     info = {"seconds": secs, "samples": int(session.n), "npose": res.info.get("npose"),
             "realtime_factor": res.info.get("realtime_factor"),
-            "iterations": [p.get("iterations") for p in res.info.get("passes", [])]}
+            "iterations": [p.get("iterations") for p in res.info.get("passes", [])],
+            "mag_sigmas": res.info.get("mag_sigmas")}
     return {n: res.n_quat[:, i] for i, n in enumerate(res.names)}, info
 
 

@@ -87,6 +87,8 @@ class BodyProblem:
     init: gtsam.Values
     bRs_fixed: dict | None = None      # for hinge factors (second pass)
     mag_dirs: dict | None = None       # per-sensor field direction n_m(s) (use_mag)
+    mag_sigmas: dict | None = None     # per-sensor σ of the field direction (B5'; None: BodyOptions.mag_sigma)
+    mag_active: bool = True            # False during the magnetometer-free first pass (mag_sigma_ml)
     bias_seg: np.ndarray | None = None  # (K,) bias segment of each keyframe (body_model.bias_segments)
 
     def bkey(self, s: int, k: int) -> int:
@@ -159,6 +161,32 @@ def _mag_direction(pb: BodyProblem, name: str, values: gtsam.Values) -> np.ndarr
     return d / np.linalg.norm(d)
 
 
+def mag_noise(pb: BodyProblem, values: gtsam.Values, sigma_floor: float) -> tuple[dict, dict]:
+    """(B5') per-sensor field direction and its noise, by maximum likelihood at a magnetometer-free solution.
+
+    With the sensor orientations nRs_k of that solution, n_m(s) = mean_k nRs_k b̂_k / |·| and
+        σ_m(s)² = Σ_k ‖s_kRn n_m(s) − b̂_k‖² / (2 K)        (b̂ unit vectors: two degrees of freedom each),
+    floored at `sigma_floor`. A magnetometer that sees a field that is not constant in the navigation frame
+    (iron near the floor at a foot, a distorted sensor: the real walk's left shank spreads 37° RMS) thus gets a
+    weight that matches what it explains, instead of turning its segment."""
+    dirs, sigmas = {}, {}
+    for s, name in enumerate(pb.names):
+        mag = pb.session.sensors[name].mag[pb.kf]
+        ok = np.all(np.isfinite(mag), axis=1) & (np.linalg.norm(np.nan_to_num(mag), axis=1) > 0)
+        if not ok.any():
+            dirs[name], sigmas[name] = np.array([1.0, 0.0, 0.0]), float("inf")
+            continue
+        b_hat = mag[ok] / np.linalg.norm(mag[ok], axis=1, keepdims=True)
+        nRs = np.stack([values.atPose3(bf.pose_key(s, k)).rotation().matrix() for k in np.flatnonzero(ok)])
+        n_dirs = np.einsum("kij,kj->ki", nRs, b_hat)
+        n_m = n_dirs.mean(axis=0)
+        n_m /= np.linalg.norm(n_m)
+        r = np.einsum("kji,j->ki", nRs, n_m) - b_hat
+        dirs[name] = n_m
+        sigmas[name] = max(sigma_floor, float(np.sqrt(np.sum(r * r) / (2 * len(r)))))
+    return dirs, sigmas
+
+
 def factors_at(pb: BodyProblem, k: int) -> gtsam.NonlinearFactorGraph:
     """All factors whose newest keyframe is k (k = 0 also carries the priors on global variables)."""
     o = pb.opts
@@ -180,7 +208,7 @@ def factors_at(pb: BodyProblem, k: int) -> gtsam.NonlinearFactorGraph:
             lever_model = gtsam.noiseModel.Isotropic.Sigma(3, o.lever_sigma_m)
             for i, (_, _, l_nom) in enumerate(pb.levers):
                 g.add(gtsam.PriorFactorPoint3(bf.lever_key(i), l_nom, lever_model))
-        if o.use_mag:
+        if o.use_mag and pb.mag_dirs is None:
             pb.mag_dirs = {n: _mag_direction(pb, n, pb.init) for n in pb.names}
     else:
         for s, name in enumerate(pb.names):
@@ -194,12 +222,13 @@ def factors_at(pb: BodyProblem, k: int) -> gtsam.NonlinearFactorGraph:
         for f in bf.joint_factors(bf.joint_key(j, k), bf.pose_key(P, k), bf.lever_key(lever_index[(jt.parent, j)]),
                                   bf.pose_key(C, k), bf.lever_key(lever_index[(jt.child, j)]), _joint_model(pb, jt)):
             g.add(f)
-    if o.use_mag:
-        model = gtsam.noiseModel.Isotropic.Sigma(3, o.mag_sigma)
+    if o.use_mag and pb.mag_active:
         for s, name in enumerate(pb.names):
             m = pb.session.sensors[name].mag[pb.kf[k]]
             if np.all(np.isfinite(m)) and np.linalg.norm(m) > 0:
-                g.add(bf.mag_factor(bf.pose_key(s, k), m / np.linalg.norm(m), 1.0, pb.mag_dirs[name], model))
+                sigma = pb.mag_sigmas[name] if pb.mag_sigmas else o.mag_sigma
+                g.add(bf.mag_factor(bf.pose_key(s, k), m / np.linalg.norm(m), 1.0, pb.mag_dirs[name],
+                                    gtsam.noiseModel.Isotropic.Sigma(3, sigma)))
     if pb.bRs_fixed is not None:
         hm = gtsam.noiseModel.Isotropic.Sigma(2, o.hinge_sigma_rad)
         g.push_back(body_axial.axial_factors_at(pb, k))       # soft axial rotations (S2), their hinges (S3)
@@ -287,15 +316,30 @@ def solve_body_incremental(session, opts: BodyOptions = BodyOptions(), lag_s: fl
     return run(session, opts, lag_s, **kwargs)
 
 
+def optimize_with_mag_noise(pb: BodyProblem) -> tuple[gtsam.Values, list, gtsam.NonlinearFactorGraph]:
+    """LM from pb.init; with magnetometers and BodyOptions.mag_sigma_ml, first without them, then with each
+    sensor's field direction and σ from that solution (mag_noise, B5'), warm-started.
+    Returns (estimate, pass infos, the last pass's graph)."""
+    passes, x = [], pb.init
+    if pb.opts.use_mag and pb.opts.mag_sigma_ml:
+        pb.mag_active = False                         # first pass: inertial sensors and the body model only
+        x, info = optimize(pb, full_graph(pb), x)
+        passes.append(info)
+        pb.mag_dirs, pb.mag_sigmas = mag_noise(pb, x, pb.opts.mag_sigma)
+        pb.mag_active = True
+    graph = full_graph(pb)
+    x, info = optimize(pb, graph, x)
+    passes.append(info)
+    return x, passes, graph
+
+
 def solve_body_batch(session, opts: BodyOptions = BodyOptions()) -> BodyResult:
     """Batch LM over the whole session: a `BodyResult` with all skeleton segments at every input sample."""
     from imugraph.graphs.body_output import estimate_placements, make_result
     t0 = time.perf_counter()
     pb = build_problem(session, opts)
     t_build = time.perf_counter() - t0
-    graph = full_graph(pb)
-    x, info = optimize(pb, graph, pb.init)
-    passes = [info]
+    x, passes, graph = optimize_with_mag_noise(pb)
     if opts.hinges:
         pb.bRs_fixed = {n: p[0] for n, p in estimate_placements(pb, x)[0].items()}
         graph = full_graph(pb)
@@ -303,4 +347,6 @@ def solve_body_batch(session, opts: BodyOptions = BodyOptions()) -> BodyResult:
         passes.append(info2)
     info = {"build_s": t_build, "passes": passes, "keyframes": pb.K, "npose": pb.npose_method,
             "factors": int(graph.size()), "solve_s": sum(p["seconds"] for p in passes)}
+    if pb.mag_sigmas:
+        info["mag_sigmas"] = dict(pb.mag_sigmas)
     return make_result(pb, x, info)

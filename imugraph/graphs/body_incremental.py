@@ -54,7 +54,7 @@ import numpy as np
 
 from imugraph.errors import SessionError
 from imugraph.factors import body as bf
-from imugraph.graphs.body import BodyProblem, build_problem, factors_at, full_graph, optimize
+from imugraph.graphs.body import BodyProblem, build_problem, factors_at, optimize_with_mag_noise
 from imugraph.graphs.body_bootstrap import motion_bootstrap_s
 from imugraph.graphs.body_model import BodyOptions
 from imugraph.geometry import expmap, rotmat_to_quat
@@ -291,10 +291,11 @@ def _bootstrap(session, pb: BodyProblem, opts: BodyOptions, bootstrap_s: float):
     n = int(pb.kf[m]) + 1                                   # the sub-problem's last keyframe is pb.kf[m]
     sub = replace(session, t=session.t[:n], sensors={k: v.slice(0, n) for k, v in session.sensors.items()})
     pb_b = build_problem(sub, replace(opts, hinges=()))
-    x_b, info = optimize(pb_b, full_graph(pb_b), pb_b.init)
+    x_b, passes, _ = optimize_with_mag_noise(pb_b)
+    pb.mag_dirs, pb.mag_sigmas = pb_b.mag_dirs, pb_b.mag_sigmas    # (B5') carried into the stream
     place = estimate_placements(pb_b, x_b)
     return m + 1, x_b, place, {"seconds": time.perf_counter() - t0, "keyframes": m + 1,
-                               "iterations": info["iterations"], "psi_deg": float(np.rad2deg(place[1]))}
+                               "iterations": sum(p["iterations"] for p in passes), "psi_deg": float(np.rad2deg(place[1]))}
 
 
 def _anchor(pb: BodyProblem, x: gtsam.Values, k: int) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Values]:
