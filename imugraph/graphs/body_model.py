@@ -53,8 +53,10 @@ class BodyOptions:
             the segment; `default_placement`).
         use_mag: magnetometer factors (B5) with a per-sensor field direction from the N-pose.
         mag_sigma: σ of the normalised field direction (unitless, per axis); with mag_sigma_ml its floor.
-        mag_sigma_ml: batch only — a first pass without magnetometers, then each sensor's field direction and
-            σ by maximum likelihood at that solution (body.mag_noise), then the pass with them (warm).
+        mag_sigma_ml: how many times each sensor's field-direction σ is estimated by maximum likelihood
+            (body.mag_noise, B5'): first at a magnetometer-free solution, then again at the solution with them
+            (one more pass if some σ moved by > 10 %); 0: mag_sigma for all, one pass. With a bootstrap the
+            fixed lag takes them from the bootstrap's batch.
         init_heading_from_mag: initial sensor headings from the magnetometers (no magnetometer factors);
             None: when use_mag, or when every sensor has magnetometer samples in the N-pose.
         hinges: segments (children) whose joint is a hinge about the lateral axis (B4), e.g. ("RightLowerLeg",).
@@ -103,7 +105,7 @@ class BodyOptions:
     use_mag: bool = False
     init_heading_from_mag: bool | None = None
     mag_sigma: float = 0.05
-    mag_sigma_ml: bool = True
+    mag_sigma_ml: int = 2
     hinges: tuple = ()
     hinge_sigma_rad: float = 0.05
     g: float = 9.81
