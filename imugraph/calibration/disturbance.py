@@ -49,9 +49,25 @@ class Window:
     drop: np.ndarray | None = None         # sample indices of a modelled window left out (fit_offsets_on_trial)
 
     def as_dict(self, t: np.ndarray) -> dict:
+        """The window as calibration.json carries it (Calibration.corrected applies it as apply_windows does):
+        t_start/t_end (s, inclusive), offset, modelled, residual_rms, and left_out: [[t_a, t_b], ...] (s,
+        inclusive), the runs of rows of a MODELLED window that the solve leaves out (w.drop; [] otherwise — an
+        unmodelled window is left out whole by modelled = false)."""
         return {"t_start": float(t[self.start]), "t_end": float(t[self.stop - 1]),
                 "offset": None if self.offset is None else np.asarray(self.offset).tolist(),
-                "modelled": bool(self.explained), "residual_rms": float(self.residual_rms)}
+                "modelled": bool(self.explained), "residual_rms": float(self.residual_rms),
+                "left_out": left_out_runs(t, self.drop) if self.explained and self.offset is not None else []}
+
+
+def left_out_runs(t: np.ndarray, rows: np.ndarray | None) -> list[list[float]]:
+    """Runs of consecutive row indices as [[t_first, t_last], ...] (s, inclusive); [] for None or no rows.
+    Exact in JSON (floats round-trip), so t_first ≤ t ≤ t_last selects the same rows of the same session."""
+    if rows is None or len(rows) == 0:
+        return []
+    idx = np.unique(np.asarray(rows, int))
+    cut = np.flatnonzero(np.diff(idx) > 1)
+    first, last = np.r_[idx[0], idx[cut + 1]], np.r_[idx[cut], idx[-1]]
+    return [[float(t[a]), float(t[b])] for a, b in zip(first, last)]
 
 
 def _moving_median(x: np.ndarray, n: int) -> np.ndarray:

@@ -31,7 +31,10 @@ class Calibration:
         mag_delay_s: lag of the magnetometer behind the gyroscope, s (applied before the calibration:
             `imugraph.calibration.alignment.undelay_magnetometer`).
         disturbances: lasting disturbances found (`imugraph.calibration.disturbance`): a list of
-            {"t_start", "t_end" (s), "offset" (3, raw unit, or None), "modelled"}; `corrected` applies them.
+            {"t_start", "t_end" (s), "offset" (3, raw unit, or None), "modelled", "left_out"}; `corrected` applies
+            them as the calibration's own solve did (disturbance.apply_windows). left_out (optional, [] when absent):
+            [[t_a, t_b], ...] s inclusive, rows of a modelled window the solve left out (Options.window_trial_verdict:
+            the margins before a magnet arrives).
         gyro_map: (3, 3) gyro scale/misalignment E (`imugraph.calibration.gyro_map`): the rate is
             ω = (I + E)·b_gyr − gyro_bias; zero when not estimated. `corrected_gyro` applies it.
         acc_lead_samples: δ, accelerometer row j paired with the strapdown orientation of row j + δ
@@ -78,7 +81,8 @@ class Calibration:
 
     def corrected(self, t: np.ndarray, b_mag: np.ndarray) -> np.ndarray:
         """The raw field on the gyro's time base with the disturbance windows applied: the lag removed,
-        modelled offsets subtracted, unexplained windows set to NaN (no sample). (N, 3) → (N, 3)."""
+        modelled offsets subtracted, unexplained windows and a modelled window's left_out runs set to NaN (no
+        sample): y_j − Δo_w for j ∈ w modelled, weight 0 elsewhere in w (disturbance.apply_windows). (N, 3) → (N, 3)."""
         from imugraph.calibration.alignment import undelay_magnetometer
 
         y = undelay_magnetometer(t, b_mag, self.mag_delay_s)
@@ -86,6 +90,8 @@ class Calibration:
             inside = (t >= d["t_start"]) & (t <= d["t_end"])
             if d.get("modelled") and d.get("offset") is not None:
                 y[inside] -= np.asarray(d["offset"], float)
+                for a, b in d.get("left_out") or ():
+                    y[(t >= a) & (t <= b)] = np.nan
             else:
                 y[inside] = np.nan
         return y
@@ -122,7 +128,7 @@ class Calibration:
             std={k: np.asarray(v, float) for k, v in d.get("std", {}).items()},
             coverage=d.get("coverage", {}), converged=bool(d.get("converged", False)),
             iterations=int(d.get("iterations", 0)), mag_delay_s=float(d.get("mag_delay_s", 0.0)),
-            disturbances=list(d.get("disturbances", [])),
+            disturbances=_disturbances(d.get("disturbances")),
             gyro_map=_gyro_map(d.get("gyro_map")),
             acc_lead_samples=float(d.get("acc_lead_samples", 0.0)),
             velocity_sigma=_opt_float(d.get("velocity_sigma")), velocity_tau=_opt_float(d.get("velocity_tau")),
@@ -140,6 +146,30 @@ def _opt_float(value) -> float | None:
     if not (np.isfinite(x) and x > 0):
         raise ValueError(f"{x!r}, expected a positive number or null")
     return x
+
+
+def _disturbances(value) -> list:
+    """The optional `disturbances` field of calibration.json: absent or null → []; each window's optional
+    `left_out` must be a list of [t_a, t_b] pairs of finite numbers with t_a ≤ t_b (s)."""
+    if value is None:
+        return []
+    if not isinstance(value, list) or not all(isinstance(d, dict) for d in value):
+        raise ValueError(f"disturbances: {str(value)[:60]!r}, expected a list of objects")
+    out = []
+    for i, d in enumerate(value):
+        runs = d.get("left_out")
+        if runs is not None:
+            try:
+                arr = np.asarray(runs, float).reshape(-1, 2) if len(runs) else np.zeros((0, 2))
+            except (TypeError, ValueError):
+                raise ValueError(f"disturbances[{i}].left_out: {str(runs)[:60]!r}, expected a list of "
+                                 "[t_start, t_end] pairs of numbers") from None
+            if arr.shape[0] != len(runs) or not np.all(np.isfinite(arr)) or np.any(arr[:, 0] > arr[:, 1]):
+                raise ValueError(f"disturbances[{i}].left_out: {str(runs)[:60]!r}, expected a list of "
+                                 "[t_start, t_end] pairs of finite numbers with t_start ≤ t_end")
+            d = {**d, "left_out": arr.tolist()}
+        out.append(dict(d))
+    return out
 
 
 def _gyro_map(value) -> np.ndarray:

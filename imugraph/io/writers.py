@@ -4,7 +4,9 @@ A reader of the target path sees either the old file or the complete new one, ne
 write; on any error the temporary file is removed and the target is untouched.
 
 `calibration.json` (DESIGN.md): ``D`` 3×3 rows, ``o`` (3), ``dip_deg``, ``gyro_bias`` (3, rad/s),
-``noise``, ``std``, ``coverage``, ``converged``, ``iterations``. Non-finite numbers are written as
+``noise``, ``std``, ``coverage``, ``converged``, ``iterations``, and additive fields (``disturbances``: each
+window's ``t_start``/``t_end``, ``offset``, ``modelled`` and ``left_out`` runs [[t_a, t_b], ...] of rows the solve
+left out, applied by Calibration.corrected; ``gyro_map``, ...). Non-finite numbers are written as
 ``null`` (strict JSON) and read back as NaN.
 `orientation.npz`: ``t`` (N, s) and ``quat`` (N, 4, w,x,y,z, sensor→nav).
 """
