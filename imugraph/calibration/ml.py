@@ -122,6 +122,9 @@ def calibrate(session: Session, options: Options | None = None, initial=None,
 
     vel_state = {"v": None, "s": None, "sigma": opt.velocity_sigma, "tau": opt.velocity_tau, "g": None,
                  "rest": rest_mask, "ar2": None, "kappa_a": opt.acc_rate_error}
+    if opt.estimate_velocity_process == "hetero_ar2":   # motion intensity per interval (velocity_hetero.py)
+        from imugraph.calibration.velocity_hetero import interval_intensity
+        vel_state["intensity"] = interval_intensity(session.acc, g, skf, len(kf))
     windows = detect_windows(session.t, m_cal0) if opt.disturbance_windows else []
     mag_state = {"y": session.mag, "w": apply_windows(windows, session.mag)[1] if windows else None}
 
@@ -212,7 +215,8 @@ def calibrate(session: Session, options: Options | None = None, initial=None,
             if vel_state["v"] is not None and opt.estimate_velocity_process != "off":   # EM step of σ_v, τ_v
                 change = max(change, update_velocity_process(vel_state, prob.velocity, nRk, history[-1],
                                                              opt.estimate_velocity_process, opt.velocity_sigma,
-                                                             opt.velocity_tau))
+                                                             opt.velocity_tau, opt.velocity_prior_strength,
+                                                             opt.velocity_em_inner))
             if opt.estimate_bias_rw:    # EM step of the gyro-bias random-walk density (calibration/bias_process.py)
                 from imugraph.calibration.bias_process import em_bias_rw
                 opt, change = em_bias_rw(opt, prob, values, pre, n_seg, history[-1], change)

@@ -118,7 +118,12 @@ class Options:
     window_trial_verdict: bool = False  # each disturbance window's verdict judged on a solve WITH it modelled,
     #   once: a window whose offset reduces its residual is modelled for one round ("on trial"), then kept
     #   modelled for good if its residual RMS ≤ 3 × the undisturbed samples' residual RMS of that same solve
-    #   (not σ_mag), else left out for good (disturbance.fit_offsets_on_trial, rounds.fit_windows). Off (measuring)
+    #   (not σ_mag), else left out for good (disturbance.fit_offsets_on_trial, rounds.fit_windows). BROAD (all 17):
+    #   only 32 0.476 → 0.420°, 34 0.933 → 0.881°, 36 1.211 → 1.008°; a modelled window's left-out rows go to
+    #   calibration.json (`left_out`). Gates (benchmarks/b_window_gates.py): EXPLAINED 2.5–3.5 and TRIAL_GAIN
+    #   0.4–0.5 change no verdict; TRIAL_GAIN ≥ 0.55 puts 36's windows (gain 0.535–0.662) on trial, they pass
+    #   (1.01–1.19 ≪ 3) and 36 returns to 1.10–1.21°. Off: with it, smooth_fixed from 36's calibration (24 windows
+    #   left out) starts 43° off and ends at 79° (orientation_init borrows a far keyframe's field; fix pending)
     heading_only_orientation: bool = False  # final orientations with the field as heading only
     #                                        (graphs.heading_block): BROAD mean 1.13° vs 1.06° joint, off
     field_sigma: float | tuple | None = (0.015, 0.003, 0.015)  # σ_d per nav axis (x along the horizontal
@@ -204,3 +209,13 @@ class Options:
     field_select_folds: int = 2        # folds (block b held out in fold b mod folds)
     field_select_z: float = 2.0        # the best candidate replaces these settings only when its held-out score
     #   is lower by ≥ this many standard errors, paired over the blocks (field_select.choose)
+    velocity_prior_strength: float = 300.0  # ν_0 of estimate_velocity_process="map_ar2": the settings' process
+    #   (velocity_sigma, velocity_tau) as an inverse-gamma prior on the AR(2) innovation variance q worth ν_0
+    #   pseudo-innovations (calibration/velocity_ar2.py) instead of the hard floor of "bounded_ar2". H9, all 17
+    #   (benchmarks/h9_velocity_trace.py --opt …): "map_ar2" at 300: mean 0.666° → 0.662° (02 0.473 → 0.438°, 01
+    #   −0.025°, 04 −0.031°, 32 −0.050°; 07 0.506 → 0.563°, 26 +0.039°); at 3000: 02 0.563°, 07 0.507°. A BROAD trial
+    #   holds 2–3 thousand innovations, so the prior blends ML and floor; no ν_0 frees 02 and keeps 07. Off
+    velocity_em_inner: int = 1        # EM steps of an AR(2) velocity process per ML round at the round's
+    #   orientations (E-step by a banded solve of the velocity chain, no graph solve: calibration/velocity_em.py);
+    #   1: one step per round (the rounds' solves are the E-steps). 30 with "free_ar2" (H9, all 17): rounds
+    #   02 7 → 5, 07 7 → 4, CPU mean 1.81 → 1.82 s (load ≈ 4), mean 0.650° → 0.652° (06 +0.037°). Off

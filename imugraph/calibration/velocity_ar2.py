@@ -22,6 +22,15 @@ characteristic roots (z² = a_1 z + a_2) are real, the slower one r = (a_1 + √
 decay slower than the first-order limit; complex roots — an oscillation — are not limited), the stationary std
 √γ_0 within (σ_lo, σ_hi), and the innovation variance q ≥ σ_lo² (1 − φ_max²) (the one-step spread of the
 loosest allowed first-order process: "bounded" keeps the short-term steps from tightening).
+
+Mode "map_ar2" replaces that hard floor on q by a prior (MAP instead of ML for q; a_1, a_2 free in the
+stationary region): the conjugate inverse-gamma prior IG(ν_0/2, ν_0 q_0/2) — ν_0 pseudo-innovations of variance
+q_0 — centred on the floor value q_0 = σ_v² (1 − exp(−2Δt/τ_v)) of the settings (Gelman et al., Bayesian Data
+Analysis, 3rd ed., sec. 3.3, the normal model with unknown variance; its mode, the +2 dropped):
+
+    −log p(a, q | v) = ((N + ν_0)/2) ln q + (f(a) + ν_0 q_0) / (2q),    q̂(a) = (f(a) + ν_0 q_0) / (N + ν_0)
+
+so the prior binds (q̂ → q_0) only where the data hold few innovations against ν_0.
 """
 
 from __future__ import annotations
@@ -50,9 +59,11 @@ def ar2_objective_terms(E: list[np.ndarray]) -> tuple[float, np.ndarray, np.ndar
 
 
 def fit_ar2(syy: float, sxy: np.ndarray, sxx: np.ndarray, N: int, sigma_bounds: tuple, phi_max: float,
-            ) -> tuple[float, float, float]:
-    """(a_1, a_2, q) minimising the conditional −log L (module docstring) under the bounds."""
+            prior: tuple | None = None) -> tuple[float, float, float]:
+    """(a_1, a_2, q) minimising the conditional −log L (module docstring) under the bounds; prior (q_0, ν_0):
+    the inverse-gamma prior on q of mode "map_ar2" (module docstring) added, None: ML."""
     q_floor = sigma_bounds[0] ** 2 * (1.0 - phi_max**2)
+    q0, nu0 = (0.0, 0.0) if prior is None else (float(prior[0]), float(prior[1]))
 
     def nll(a1, a2):
         f = syy - 2 * (a1 * sxy[0] + a2 * sxy[1]) + a1**2 * sxx[0, 0] + 2 * a1 * a2 * sxx[0, 1] + a2**2 * sxx[1, 1]
@@ -61,9 +72,9 @@ def fit_ar2(syy: float, sxy: np.ndarray, sxx: np.ndarray, N: int, sigma_bounds: 
             ok = ((a1 + a2 < 1 - ROOT_MARGIN) & (a2 - a1 < 1 - ROOT_MARGIN) & (a2 > -1 + ROOT_MARGIN)
                   & (a1 <= phi_max * (1 - a2))
                   & ((a1**2 + 4 * a2 < 0) | (a1 + np.sqrt(np.abs(a1**2 + 4 * a2)) <= 2 * phi_max)))
-            q = np.maximum(f / N, np.maximum(q_floor, sigma_bounds[0] ** 2 * cfac))
+            q = np.maximum((f + nu0 * q0) / (N + nu0), np.maximum(q_floor, sigma_bounds[0] ** 2 * cfac))
             q = np.minimum(q, np.maximum(sigma_bounds[1] ** 2 * cfac, q_floor))
-            val = 0.5 * N * np.log(q) + 0.5 * f / q
+            val = 0.5 * (N + nu0) * np.log(q) + 0.5 * (f + nu0 * q0) / q
         return np.where(ok, val, np.inf), q
 
     best = None
@@ -81,7 +92,7 @@ def fit_ar2(syy: float, sxy: np.ndarray, sxx: np.ndarray, N: int, sigma_bounds: 
 
 
 def update_ar2(vel_state: dict, block, nRk: np.ndarray, record: dict | None, sigma_bounds: tuple,
-               tau_bounds: tuple) -> float:
+               tau_bounds: tuple, prior: tuple | None = None) -> float:
     """One EM step of the AR(2) process from a round's solution: sets vel_state["ar2"] = (a_1, a_2, q) and,
     for the first-order consumers (Calibration, smooth_fixed), vel_state["sigma"] = √γ_0 and
     vel_state["tau"] = −Δt / ln ρ_1 (inside tau_bounds). Returns the largest change (|Δa|, |Δ ln q|)."""
@@ -93,7 +104,9 @@ def update_ar2(vel_state: dict, block, nRk: np.ndarray, record: dict | None, sig
     syy, sxy, sxx = ar2_objective_terms(lag_moments(s[:, :3], Z))
     dt = float(np.median(block.dt_k))
     phi_max = float(np.exp(-dt / tau_bounds[1]))
-    a1, a2, q = fit_ar2(syy, sxy, sxx, 3 * (K - 2), sigma_bounds, phi_max)
+    if prior is not None:               # (σ_v, τ_v, ν_0) of the settings → (q_0, ν_0) at this spacing
+        prior = (prior[0] ** 2 * (1.0 - np.exp(-2.0 * dt / prior[1])), prior[2])
+    a1, a2, q = fit_ar2(syy, sxy, sxx, 3 * (K - 2), sigma_bounds, phi_max, prior)
     prev = vel_state.get("ar2")
     if prev is None:                    # the first-order chain as an AR(2) with a_2 = 0
         phi = np.exp(-dt / float(np.max(vel_state["tau"])))
