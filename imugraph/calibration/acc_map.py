@@ -33,7 +33,7 @@ BROAD (H10, benchmarks/h10_acc_map.py; optical truth as a diagnostic only): ever
 m/s² (06) — 06 vs 16: 0.085 m/s² at directions 3.6° apart, which a constant map could only give with ≈ 7 % skew
 or a 1.3 m/s² offset: the accelerometer's z reading moves by ≈ 0.8 % between recordings, so a map fitted on other
 recordings does not carry over. Optical fits per trial (scale/skew 0.0–0.4 %, offsets ≤ 0.04 m/s² where well
-determined) applied before calibrate do not close 06/15/16 (Options.acc_map comment); hence off.
+determined) applied before calibrate do not close 06/15/16 (README, issue 2c H10); not used by calibrate.
 """
 
 from __future__ import annotations
