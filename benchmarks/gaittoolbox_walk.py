@@ -21,7 +21,14 @@ Per joint: RMSE of flexion/abduction/rotation and "all" (RMS of the three). Targ
 knee and hip.
 
     .venv/bin/python benchmarks/gaittoolbox_walk.py [--mag] [--hinges knees] [--axial thighs|shanks|legs|SEGS]
-                                                   [--lag S] [--ablation] [--figure]
+                                                   [--lag S] [--ablation] [--figure] [--skeleton SPEC] [--subsample]
+
+--skeleton bvh:mvn reads the session onto the subject's skeleton, from the HIERARCHY (OFFSETs only, never the
+motion) of the trial's MVN BVH; also 'height:H' or 'bvh:PATH' (imugraph.body.skeleton.skeleton_from_spec).
+Measured 2026-11-23: no change (≤ 0.02° per joint): the lever arms sensor → joint are estimated, their
+skeleton-derived priors (σ 7 cm) do not bind (estimated thigh hip–knee distances 0.396 / 0.422 m R / L on
+either skeleton; Vicon's joint centres 0.394 / 0.416 m; MVN's BVH 0.485 m, the nominal 0.429 m).
+--subsample also scores both systems at their best fractional shift (integer ±5 + 0.1-sample slerp steps).
 
 --lag S also runs the fixed-lag smoother (imugraph.graphs.body_incremental) and scores it the same way;
 --ablation also runs ours without the joint factors and without the lever-arm priors (issue 4c on real data).
@@ -57,15 +64,17 @@ AXIAL_SETS = {"thighs": ("RightUpperLeg", "LeftUpperLeg"), "shanks": ("RightLowe
 JOINTS = ("RightHip", "LeftHip", "RightKnee", "LeftKnee", "RightAnkle", "LeftAnkle")
 
 
-def ours(root: Path, use_mag: bool, hinges: tuple, lag: float | None = None, variant: str = "full", axial: tuple = ()):
+def ours(root: Path, use_mag: bool, hinges: tuple, lag: float | None = None, variant: str = "full", axial: tuple = (),
+         skeleton: str | None = None):
     """({segment: (N, 4)}, info) of our batch (or, with lag, fixed-lag) estimate on the rawimu recording;
     variant: an ablation of benchmarks/body_bench.ablation_options ('full', 'no_joints', 'no_levers'); axial:
-    BodyOptions.axial_segments (soft axial sensor-to-segment rotations, seen through the hinges)."""
+    BodyOptions.axial_segments (soft axial sensor-to-segment rotations, seen through the hinges); skeleton: the
+    reader's skeleton spec (None: lower_body(1.75); 'bvh:PATH': the subject's, from a BVH hierarchy)."""
     from benchmarks.body_bench import ablation_options
     from imugraph.graphs.body import solve_body_batch
     from imugraph.io.gaittoolbox import read_gaittoolbox
 
-    session = read_gaittoolbox(root / "rawimu")
+    session = read_gaittoolbox(root / "rawimu", skeleton=skeleton)
     opts, _ = ablation_options(variant, use_mag=use_mag, hinges=hinges, **({"axial_segments": axial} if axial else {}))
     t0 = time.perf_counter()
     if lag is None:
@@ -77,7 +86,7 @@ def ours(root: Path, use_mag: bool, hinges: tuple, lag: float | None = None, var
     info = {"seconds": secs, "samples": int(session.n), "npose": res.info.get("npose"),
             "realtime_factor": res.info.get("realtime_factor"),
             "iterations": [p.get("iterations") for p in res.info.get("passes", [])],
-            "mag_sigmas": res.info.get("mag_sigmas")}
+            "mag_sigmas": res.info.get("mag_sigmas"), "skeleton": session.meta.get("skeleton")}
     return {n: res.n_quat[:, i] for i, n in enumerate(res.names)}, info
 
 
@@ -129,6 +138,39 @@ def figure(path: Path, vicon: dict, systems: dict, shifts: dict) -> None:
     save_figure_atomic(fig, path)
 
 
+def fractional(q: dict, f: float) -> dict:
+    """{segment: (N, 4)} of `q` delayed by f ∈ [0, 1) samples: q_f[i] = slerp(q[i], q[i+1], f) (last sample held)."""
+    from imugraph.geometry import quat_slerp
+
+    out = {}
+    for n, a in q.items():
+        a = np.asarray(a, float)
+        out[n] = quat_slerp(a, np.vstack([a[1:], a[-1:]]), np.full(len(a), f))
+    return out
+
+
+def subsample_table(systems: dict, vicon: dict, step: float = 0.1) -> dict:
+    """Each system at its best fractional time shift (integer ±5 of compare_with_vicon + f, f = 0, step, …
+    < 1; the same rule for every system), per handling: {handling: {system: compare_with_vicon result +
+    "shift_total"}}; printed beside the integer-shift means."""
+    from imugraph.body.evaluate import compare_with_vicon
+
+    out, rows = {}, []
+    for h, kw in HANDLINGS.items():
+        out[h] = {}
+        for name, q in systems.items():
+            runs = [(f, compare_with_vicon(vicon, fractional(q, f), **kw)) for f in np.arange(0.0, 1.0 - 1e-9, step)]
+            f, best = min(runs, key=lambda r: r[1]["mean_all_deg"])
+            out[h][name] = dict(best, shift_total=float(best["shift_samples"] + f))
+            rows.append([h, name, runs[0][1]["mean_all_deg"], runs[0][1]["joints"]["LeftHip"]["all"],
+                         out[h][name]["shift_total"], best["mean_all_deg"]] +
+                        [best["joints"][j]["all"] for j in JOINTS])
+    print()
+    print_table(rows, ["handling", "system", "mean (int)", "L hip (int)", "shift", "mean (frac)"] +
+                [f"{j} (frac)" for j in JOINTS])
+    return out
+
+
 def main(argv=None) -> int:
     from imugraph.body.evaluate import compare_with_vicon
 
@@ -139,6 +181,11 @@ def main(argv=None) -> int:
                     "'thighs', 'shanks', 'legs'); needs --hinges")
     ap.add_argument("--lag", type=float, default=None, help="also score the fixed-lag estimate with this lag, s")
     ap.add_argument("--ablation", action="store_true", help="also our estimate without joints / lever priors")
+    ap.add_argument("--skeleton", default="nominal", help="our skeleton: 'nominal' (lower_body(1.75)), 'height:H', "
+                    "'bvh:PATH' or 'bvh:mvn' (the subject's, from the hierarchy of the trial's MVN BVH; its "
+                    "motion unused)")
+    ap.add_argument("--subsample", action="store_true", help="also score both systems at their best fractional "
+                    "shift (0.1-sample slerp steps on top of the integer search)")
     ap.add_argument("--figure", action="store_true")
     ap.add_argument("--out", default="gaittoolbox_walk.json", help="file name in bench_out/")
     a = ap.parse_args(argv)
@@ -148,16 +195,19 @@ def main(argv=None) -> int:
     root, vicon = data
     hinges = ("RightLowerLeg", "LeftLowerLeg") if a.hinges == "knees" else tuple(h for h in a.hinges.split(",") if h)
     axial = AXIAL_SETS.get(a.axial, tuple(x for x in a.axial.split(",") if x))
-    q_ours, info = ours(root, a.mag, hinges, axial=axial)
+    skeleton = f"bvh:{root / 'xsens' / 'S02-Trial-Walk-1.bvh'}" if a.skeleton == "bvh:mvn" else a.skeleton
+    q_ours, info = ours(root, a.mag, hinges, axial=axial, skeleton=skeleton)
+    info["skeleton_stated"] = ("subject's, from the MVN BVH hierarchy" if a.skeleton == "bvh:mvn" else info["skeleton"])
+    print(f"skeleton: {info['skeleton_stated']}")
     print(f"ours: {info['samples']} samples solved in {info['seconds']:.1f} s (npose {info['npose']}, "
           f"LM iterations {info['iterations']})")
     systems = {"ours": q_ours, "Xsens MVN": xsens_mvn(root)}
     for variant in (("no_joints", "no_levers") if a.ablation else ()):
-        systems[f"ours {variant}"], info[variant] = ours(root, a.mag, hinges, None, variant, axial)
+        systems[f"ours {variant}"], info[variant] = ours(root, a.mag, hinges, None, variant, axial, skeleton)
         print(f"ours {variant}: {info[variant]['seconds']:.1f} s")
     if a.lag is not None:
         try:
-            q_lag, info["fixed_lag"] = ours(root, a.mag, hinges, a.lag, axial=axial)
+            q_lag, info["fixed_lag"] = ours(root, a.mag, hinges, a.lag, axial=axial, skeleton=skeleton)
             systems[f"ours lag {a.lag:g} s"] = q_lag
             print(f"ours, fixed lag {a.lag:g} s: {info['fixed_lag']['seconds']:.1f} s")
         except Exception as exc:              # report the failure of the incremental solver, score the rest
@@ -187,11 +237,14 @@ def main(argv=None) -> int:
                      for h in results for j in JOINTS + ("mean",) if j != "mean"] +
                     [[h, "mean"] + [results[h][n]["mean_all_deg"] for n in ["ours", "Xsens MVN"] + others]
                      for h in results], ["handling", "joint (all, °)", "ours", "Xsens MVN"] + others)
+    if a.subsample:
+        results["subsample"] = subsample_table({n: q for n, q in systems.items() if n in ("ours", "Xsens MVN")}, vicon)
     if a.figure:
         shown = {n: q for n, q in systems.items() if n in ("ours", "Xsens MVN")}
         shifts = {n: results["offset"][n]["shift_samples"] for n in shown}
         figure(OUT_DIR / "gaittoolbox_walk.png", vicon, shown, shifts)
-    payload = {"issue": "4b", "use_mag": a.mag, "hinges": list(hinges), "axial_segments": list(axial), "ours": info, "handlings": HANDLINGS,
+    payload = {"issue": "4b", "use_mag": a.mag, "skeleton": skeleton or "nominal",
+               "hinges": list(hinges), "axial_segments": list(axial), "ours": info, "handlings": HANDLINGS,
                "results": results, "peak_memory_mb": peak_memory_mb(),
                "command": "benchmarks/gaittoolbox_walk.py " + " ".join(sys.argv[1:] if argv is None else argv)}
     print(f"\nwrote {write_json(a.out, payload)}")

@@ -306,3 +306,34 @@ def from_bvh(bvh, mapping: Optional[dict] = None) -> tuple[Skeleton, dict]:
 
     skel, mapping, _ = skeleton_from_bvh(bvh, mapping)
     return skel, mapping
+
+
+def skeleton_from_spec(spec: Optional[str], segments: Iterable[str] = LOWER_BODY) -> Optional[Skeleton]:
+    """The skeleton an option string names, restricted to `segments`; None for the reader's default.
+
+    spec: None, "" or "nominal" → None (the caller keeps its nominal skeleton); "height:H" → `full_body(H)`
+    (Winter's proportions for body height H m); "bvh:PATH" → the segment lengths and joint positions of a BVH
+    file's HIERARCHY (its OFFSETs, `from_bvh`; the MOTION is not used), e.g. the subject's own dimensions as
+    entered in Xsens MVN: ``bvh:gaittoolbox/xsens/S02-Trial-Walk-1.bvh``.
+    Raises:
+        SessionError: an unknown form, an implausible height, an unreadable BVH, or a BVH without a joint
+        for one of `segments` (the message names the file and the missing segments).
+    """
+    segments = tuple(segments)
+    if spec is None or spec in ("", "nominal"):
+        return None
+    kind, _, arg = str(spec).partition(":")
+    if kind == "height" and arg:
+        try:
+            h = float(arg)
+        except ValueError:
+            raise SessionError("--skeleton", "height", repr(arg), "a body height in m, e.g. height:1.80") from None
+        return full_body(h).subset(segments)
+    if kind == "bvh" and arg:
+        skel, _ = from_bvh(arg)
+        missing = [s for s in segments if s not in skel.names]
+        if missing:
+            raise SessionError(arg, "HIERARCHY", f"no joint for {missing}",
+                               f"a skeleton with joints for {list(segments)} (CMU, Xsens MVN or imugraph names)")
+        return skel.subset(segments)
+    raise SessionError("--skeleton", "spec", repr(spec), "'nominal', 'height:H' or 'bvh:PATH'")

@@ -18,7 +18,8 @@ Writes in --out DIR (default imugraph_out/<session name>):
 
 Options: --lag S runs the fixed-lag incremental solver keeping S seconds instead of batch LM; --mag uses the
 magnetometers (default off: indoor fields near the body are rarely homogeneous); --hinges LIST treats joints
-as hinges (comma-separated: knees, elbows, or joint names RightKnee, LeftElbow, … or child segment names).
+as hinges (comma-separated: knees, elbows, or joint names RightKnee, LeftElbow, … or child segment names);
+--skeleton SPEC replaces the session's skeleton (height:H, or bvh:PATH: the OFFSETs of a BVH hierarchy).
 """
 
 from __future__ import annotations
@@ -52,6 +53,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--hinges", metavar="LIST", default="",
                    help="joints constrained to hinges about the lateral axis: knees, elbows, or joint names "
                         "(RightKnee, LeftElbow, ...), comma-separated")
+    p.add_argument("--skeleton", metavar="SPEC", default="nominal",
+                   help="segment lengths and joint positions: nominal (the session's own), height:H (Winter's "
+                        "proportions for body height H m), or bvh:PATH (the HIERARCHY OFFSETs of a BVH file, e.g. "
+                        "the subject's dimensions in an Xsens MVN export; its motion is not used)")
 
 
 def hinge_segments(spec: str, skel) -> tuple:
@@ -83,6 +88,26 @@ def hinge_segments(spec: str, skel) -> tuple:
             if child not in out:
                 out.append(child)
     return tuple(out)
+
+
+def apply_skeleton(session, spec: str):
+    """`session` with its skeleton replaced by the one `spec` names (`imugraph.body.skeleton.skeleton_from_spec`,
+    restricted to the session's segments, the session's sensed set kept); 'nominal' returns it unchanged.
+
+    Raises:
+        SessionError: a bad spec, or a BVH without joints for the session's segments (naming the file).
+    """
+    import dataclasses
+
+    from imugraph.body.skeleton import skeleton_from_spec
+
+    skel = session.skeleton
+    new = skeleton_from_spec(spec, skel.names)
+    if new is None:
+        return session
+    new = dataclasses.replace(new, sensed=tuple(s for s in skel.sensed))
+    meta = dict(session.meta, skeleton=f"--skeleton {spec}")
+    return dataclasses.replace(session, skeleton=new, meta=meta)
 
 
 def write_mocap_npz(path: Path, t: np.ndarray, names, quat: np.ndarray, pos: np.ndarray) -> Path:
@@ -127,7 +152,8 @@ def timing_summary(info: dict, duration_s: float) -> dict:
 
 
 def run_mocap(args: argparse.Namespace) -> int:
-    """mocap SESSION [--out DIR] [--lag S] [--mag|--no-mag] [--hinges LIST] [--data-dir DIR] [--quiet]."""
+    """mocap SESSION [--out DIR] [--lag S] [--mag|--no-mag] [--hinges LIST] [--skeleton SPEC] [--data-dir DIR]
+    [--quiet]."""
     from imugraph.body.angles import joint_angles, write_joint_angles_csv
     from imugraph.graphs.body_model import BodyOptions
     from imugraph.io.body_figures import plot_joint_angles, plot_stick_figures
@@ -142,6 +168,8 @@ def run_mocap(args: argparse.Namespace) -> int:
     skel = session.skeleton
     if skel is None:
         raise SessionError(str(path), "skeleton", "none", "a body session with a skeleton")
+    session = apply_skeleton(session, getattr(args, "skeleton", "nominal"))
+    skel = session.skeleton
     progress.say(f"{len(session.sensors)} sensors on {len(skel.names)} segments, {session.n} samples, "
                  f"{session.t[-1] - session.t[0]:.1f} s at {session.rate:.1f} Hz")
     hinges = hinge_segments(args.hinges, skel)
@@ -175,7 +203,8 @@ def run_mocap(args: argparse.Namespace) -> int:
                        title=f"Stick figures: {session.name}")
     written += [out / "joint_angles.png", out / "stick_figures.png"]
     info = {"session": str(path), "name": session.name, "solver": solver, "use_mag": bool(args.mag),
-            "hinges": list(hinges), "samples": int(session.n), "segments": list(result.names),
+            "hinges": list(hinges), "skeleton": session.meta.get("skeleton", "session's own"),
+            "samples": int(session.n), "segments": list(result.names),
             "placements": result.placements, "info": {k: v for k, v in result.info.items()
                                                       if k in ("build_s", "solve_s", "passes", "keyframes", "npose",
                                                                "factors", "timing", "biases", "joint_names")},

@@ -21,7 +21,7 @@ from typing import Union
 
 import numpy as np
 
-from imugraph.body.skeleton import lower_body
+from imugraph.body.skeleton import LOWER_BODY, lower_body, skeleton_from_spec
 from imugraph.errors import SessionError
 from imugraph.io.body_session import BodySession
 from imugraph.io.session import Session
@@ -49,12 +49,15 @@ def _first_counter(path: Path) -> int:
         raise SessionError(str(path), "PacketCounter", f"first row {first[:2]}", "an integer packet counter") from None
 
 
-def read_gaittoolbox(folder: PathLike, trial: str | None = None) -> BodySession:
+def read_gaittoolbox(folder: PathLike, trial: str | None = None, skeleton=None) -> BodySession:
     """The 7 lower-body MTw of one trial as a BodySession on `lower_body()` (nominal 1.75 m proportions).
 
     Args:
         folder: the ``rawimu`` folder.
         trial: trial prefix (e.g. 'S02-Trial-Walk-1'); None: the only one present.
+        skeleton: None (default: `lower_body(1.75)`), a Skeleton with the 7 segments, or a spec string of
+            `imugraph.body.skeleton.skeleton_from_spec` ('bvh:PATH': the subject's dimensions from a BVH
+            HIERARCHY, e.g. the trial's own Xsens MVN export).
     Returns:
         BodySession (t from 0 s, sensors keyed by MVN segment; each Session's quat is the MTw's onboard
         estimate, not ground truth; truth None).
@@ -91,10 +94,27 @@ def read_gaittoolbox(folder: PathLike, trial: str | None = None) -> BodySession:
         sensors[seg] = Session(part.t - part.t[0], part.gyr, part.acc, part.mag, part.quat, None,
                                part.source, seg, dict(part.meta, sensor_id=SENSOR_IDS[seg]))
     t = sensors["Pelvis"].t
+    skel, how = _skeleton(skeleton)
     meta = {"format": "gaittoolbox-rawimu", "trial": trial, "rate_hz": rate, "sensor_ids": dict(SENSOR_IDS),
-            "first_packet": c0, "skeleton": "lower_body(1.75) nominal proportions (subject's not known)"}
-    return BodySession(t=t, sensors=sensors, skeleton=lower_body(1.75), truth=None, source=str(folder),
+            "first_packet": c0, "skeleton": how}
+    return BodySession(t=t, sensors=sensors, skeleton=skel, truth=None, source=str(folder),
                        name=trial, meta=meta)
+
+
+def _skeleton(skeleton) -> tuple:
+    """(Skeleton, description) for `read_gaittoolbox`'s skeleton argument."""
+    if isinstance(skeleton, str) and skeleton.startswith("bvh:"):
+        return (skeleton_from_spec(skeleton, LOWER_BODY),
+                f"from the BVH hierarchy {skeleton[4:]} (its OFFSETs, not its motion)")
+    if skeleton is None or isinstance(skeleton, str):
+        skel = skeleton_from_spec(skeleton, LOWER_BODY)
+        if skel is None:
+            return lower_body(1.75), "lower_body(1.75) nominal proportions (subject's not known)"
+        return skel, f"full_body({skeleton[7:]}) proportions"
+    missing = [s for s in LOWER_BODY if s not in getattr(skeleton, "names", ())]
+    if missing:
+        raise SessionError("skeleton", "names", f"no segment {missing}", f"a Skeleton with {list(LOWER_BODY)}")
+    return skeleton, "given skeleton"
 
 
 def _data_list(path: Path, trial: str) -> tuple[int, int] | None:
