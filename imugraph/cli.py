@@ -113,6 +113,8 @@ def build_parser() -> argparse.ArgumentParser:
                        description="Writes orientation.npz (and calibration.json when it is estimated).")
     p.add_argument("session", metavar="SESSION", help=session_help)
     p.add_argument("--calibration", metavar="FILE", default=None, help="calibration.json to use instead of estimating one")
+    p.add_argument("--no-field", action="store_true",
+                   help="with --calibration: no nav-field perturbation d_k (the C++-only smoother of earlier versions)")
     _common(p, default_out, data_dir=True)
     _keyframes(p)
 

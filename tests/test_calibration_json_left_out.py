@@ -112,14 +112,12 @@ def test_calibrate_write_read_smooth_sees_the_solve_rows(tmp_path, monkeypatch):
     np.testing.assert_array_equal(q_file, q_mem)
 
 
-@pytest.mark.xfail(strict=True, reason="smooth_fixed's start (orientation_init.complementary_keyframes) pulls a "
-                   "keyframe without a field sample toward the nearest keyframe's field, in that keyframe's body frame: "
-                   "wrong after rotation; 51° here, BROAD 36 with window_trial_verdict 79° (patch in helper B's report: "
-                   "borrow_field=False from cpp_smoother); remove this marker with the fix")
 def test_smooth_fixed_through_long_left_out_stretches():
     """Rows left out (NaN after Calibration.corrected) for 8 s of every 14 s between 20 and 100 s of a simulated
     rotating session (37 % of the rows), the true calibration held fixed: the smoothed orientation stays near the
-    one without gaps (0.117° RMS; gyro-only heading across 8 s adds little) instead of leaving the basin."""
+    one without gaps (0.117° RMS; gyro-only heading across 8 s adds little) instead of leaving the basin (51° when
+    smooth_fixed's start pulled a keyframe without a field sample toward the nearest keyframe's field, in that
+    keyframe's body frame: orientation_init.complementary_keyframes(borrow_field=False) since session 15)."""
     from imugraph.graphs.cpp_smoother import smooth_fixed
     from imugraph.evaluate import orientation_error
     from imugraph.sim.scenario import distorted_session

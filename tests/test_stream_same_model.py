@@ -24,7 +24,7 @@ def streamed():
 
 
 def test_default_stream_equals_smooth_fixed_of_the_same_model(streamed):
-    """Within 0.05° of smooth_fixed with the start calibration, d_k and the raw factor form, and much closer than
+    """Within 0.005° of smooth_fixed with the start calibration, d_k and the raw factor form, and much closer than
     smooth_fixed without d_k (the model difference the old comparison measured)."""
     session, cal, opts, r, sm = streamed
     assert r.counts["failed_updates"] == 0
@@ -35,5 +35,5 @@ def test_default_stream_equals_smooth_fixed_of_the_same_model(streamed):
     gap_same = rms_between(r.smoothed, smooth_fixed(session, cal, mag_model="raw", **same), None, RATE)
     gap_plain = rms_between(r.smoothed, smooth_fixed(session, cal, keyframe_hz=opts.keyframe_hz), None, RATE)
     print(f"same model {gap_same:.4f}°, smooth_fixed without d_k {gap_plain:.4f}°")
-    assert gap_same < 0.05
+    assert gap_same < 0.005     # the end solve on exact factors (stream_calstate.pinned_mag_factor); linearised once: 0.0126°
     assert gap_same < 0.5 * gap_plain

@@ -139,7 +139,7 @@ def smooth_fixed(session: Session, cal: Calibration, keyframe_hz: float = 5.0, h
     mag_avg = mag / np.maximum(n_mag, 1)[:, None]
     tau = cal.coverage.get("noise_correlation", {}) if isinstance(cal.coverage, dict) else {}
     scale = float(np.cbrt(abs(np.linalg.det(cal.D))))
-    nRk0 = complementary_keyframes(pre, session.acc, m_cal)
+    nRk0 = complementary_keyframes(pre, session.acc, m_cal, borrow_field=False)   # no far keyframe's field in gaps
     params = gtsam.LevenbergMarquardtParams()
     params.setRelativeErrorTol(1e-7)
     params.setMaxIterations(int(max_iterations))

@@ -66,7 +66,7 @@ from imugraph.calibration.result import Calibration
 from imugraph.factors.theta import THETA_DIM, pack_theta, unpack_theta
 
 __all__ = ["CAL_KEY", "PIN_REL", "WhitenessSums", "cal_mag_factor", "cal_mag_jacobians", "calibration_of", "data_estimate",
-           "weak_sigmas", "theta_of"]
+           "pinned_mag_factor", "weak_sigmas", "theta_of"]
 
 CAL_KEY = keys.CALIB
 PIN_REL = 1e-4        # σ of the pin on θ, relative to the weak prior's σ (eq. 3)
@@ -204,6 +204,41 @@ def cal_mag_factor(pose_k: int, pose: gtsam.Pose3, field_k: int | None, d: np.nd
     jf = gtsam.JacobianFactor(*blocks, -sw * r, _UNIT3)
     rows = None if gated else (inv_sig[:, None] * J_th, inv_sig * (e - J_th @ theta))
     return gtsam.LinearContainerFactor(jf, lin), rows
+
+
+def pinned_mag_factor(pose_k: int, field_k: int | None, offset_key: int | None, theta0: np.ndarray, kRb: np.ndarray,
+                      y: np.ndarray, sig_y: np.ndarray, huber_k: float | None):
+    """Eq. (1) at the pinned θ₀, exact (a CustomFactor on pose_k, d_k — None: none — and a window's Δo_w): the
+    end-of-stream graph's magnetometer factor, e = D M_k R_kᵀ(n + d_k) + o (+ Δo_w) − ȳ_k, Σ = diag(σ_y²)/n_k, Huber;
+    Jacobians eq. (2) without the θ block. None without a valid sample."""
+    ok = np.all(np.isfinite(y), axis=1)
+    n = int(ok.sum())
+    if n == 0:
+        return None
+    D, o, dip = unpack_theta(theta0)
+    n_vec = np.array([math.cos(dip), 0.0, -math.sin(dip)])
+    DM, b = D @ (kRb[ok].sum(axis=0).T / n), y[ok].sum(axis=0) / n - o
+    keys_ = [pose_k] + ([field_k] if field_k is not None else []) + ([offset_key] if offset_key is not None else [])
+
+    def error(this, values, H):
+        Rt = values.atPose3(pose_k).rotation().matrix().T
+        v = Rt @ (n_vec + (values.atVector(field_k) if field_k is not None else 0.0))
+        e = DM @ v - b + (values.atVector(offset_key) if offset_key is not None else 0.0)
+        if H is not None:
+            Jp = np.zeros((3, 6))
+            Jp[:, :3] = DM @ np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+            H[0] = Jp
+            i = 1
+            if field_k is not None:
+                H[i], i = DM @ Rt, i + 1
+            if offset_key is not None:
+                H[i] = np.eye(3)
+        return e
+
+    model = gtsam.noiseModel.Diagonal.Sigmas(np.asarray(sig_y, float) / math.sqrt(n))
+    if huber_k:
+        model = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(float(huber_k)), model)
+    return gtsam.CustomFactor(model, keys_, error)
 
 
 class WhitenessSums:

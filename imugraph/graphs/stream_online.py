@@ -95,6 +95,7 @@ class OnlineCalibrationMixin:
         self._streamed_cal = None            # latest streamed calibration (eq. 4)
         self._white = WhitenessSums()        # eq. (6)
         self._gated = 0                      # keyframes without information on θ (calib_gate)
+        self._mag_okey: dict = {}            # keyframe → its window's offset key Δo_w (disturb_offsets)
         self._prior_mean = None              # of Λ_w: θ₀ (None), or the batch's weak prior centre (_init_disturb)
 
     # ------------------------------------------------------------------ disturbances, the weak prior
@@ -273,7 +274,10 @@ class OnlineCalibrationMixin:
         """iSAM2's factors; with online calibration (and history) the magnetometer factors rebuilt with the
         final calibration."""
         factors = self._solver.getFactorsUnsafe()
-        if self._online is None or not self.opt.keep_history or not self._mag_index:
+        # θ pinned (calib_states): the factors were linearised once when their interval closed (at the filtered
+        # pose, d_k and θ_lin); re-issued exact at θ₀ (stream_calstate.pinned_mag_factor) — BROAD, 17 trials:
+        # smoothed vs smooth_fixed of the same model 0.148° → see docs/stream.md "One model, two solvers"
+        if (self._online is None and not self._calstate) or not self.opt.keep_history or not self._mag_index:
             return factors
         from imugraph.geometry import quat_to_rotmat
 
@@ -295,6 +299,11 @@ class OnlineCalibrationMixin:
         graph state, the factor carries no information on θ (a disturbance window: gated as by calib_gate); with
         disturb_offsets and a window (`_win_now`) instead on (pose_k, d_k, θ, Δo_w) (stream_offsets), its key and prior
         added through into = (graph, values, stamps, now) when new."""
+        if self._calstate and exact:     # the end-of-stream graph: exact at the pin θ₀, d_k and Δo_w free
+            from imugraph.graphs.stream_calstate import pinned_mag_factor
+
+            return pinned_mag_factor(pose_key(k), field_key(k) if self._field else None, self._mag_okey.get(k),
+                                     self._theta0, kRb, y, self._sig_y, self.opt.huber_k)
         if self._calstate:       # on (pose_k, d_k, θ), linearised once (stream_calstate eq. 1–2)
             offs = self._offsets
             win = self._win_now if (no_theta and offs is not None) else None
@@ -310,6 +319,7 @@ class OnlineCalibrationMixin:
             if win is not None:
                 if f is not None:
                     offs.added(win, info["offset"], info["n"], info["r2"], *into)
+                    self._mag_okey[k] = okey          # for the exact re-issue at the end (_final_graph)
             elif rows is not None:
                 self._white.add(*rows)
                 if offs is not None:
@@ -333,7 +343,7 @@ class OnlineCalibrationMixin:
         """The end-of-stream Levenberg–Marquardt (iSAM2). With the field perturbation the graph holds Python
         CustomFactors, which gtsam's C++ optimizer would call with a copy of every Values (O(K²),
         GTSAM_NOTES.md): then the Python-driven loop of imugraph.graphs.solver, keyframes in time order."""
-        if not self._field:
+        if not self._field and not (self._calstate and self.opt.keep_history and self._mag_index):   # no CustomFactor
             return gtsam.LevenbergMarquardtOptimizer(graph, values, gtsam.LevenbergMarquardtParams()).optimize()
         from imugraph.graphs.solver import chain_ordering, optimize
 
