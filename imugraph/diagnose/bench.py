@@ -106,6 +106,12 @@ def model_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--timing-rules", action=argparse.BooleanOptionalAction, default=None,
                    help="time_offset's rules T5–T7 (field remainder out, log-score significance, rotation check; "
                         "DiagnoseOptions.timing_rules; default on)")
+    p.add_argument("--gyro-delay-model", action=argparse.BooleanOptionalAction, default=None,
+                   help="S15: time_offset's extended model of a gyro delay (T8)–(T10) (DiagnoseOptions."
+                        "gyro_delay_model; default off)")
+    p.add_argument("--magnet-ramps", action=argparse.BooleanOptionalAction, default=None,
+                   help="S15: magnetic_disturbance's field with fitted ramps at the window edges (R1) "
+                        "(DiagnoseOptions.magnet_ramps; default off)")
     p.add_argument("--drift-basis", choices=("legendre", "spline"), default=None,
                    help="gyro_bias_drift's basis (DiagnoseOptions.drift_basis; default legendre)")
 
@@ -119,7 +125,9 @@ def diagnose_options(args: argparse.Namespace, **fields):
     o = DiagnoseOptions(joint_gyro=getattr(args, "joint_gyro", None),
                         subsample_lag=getattr(args, "subsample_lag", None),
                         timing_rules=getattr(args, "timing_rules", None),
-                        drift_basis=getattr(args, "drift_basis", None), **fields)   # None: the defaults
+                        drift_basis=getattr(args, "drift_basis", None),
+                        gyro_delay_model=getattr(args, "gyro_delay_model", None),
+                        magnet_ramps=getattr(args, "magnet_ramps", None), **fields)   # None: the defaults
     score = getattr(args, "score", "cost") or "cost"
     att = replace(o.attribution, own_score="" if score == "gap" else score)
     if getattr(args, "joint_refit", None) is not None:

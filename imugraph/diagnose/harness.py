@@ -88,8 +88,9 @@ def run_case(session: Session, truth_name: str, truth: dict, case_id: str, diagn
             "gap": d.get("gap"), "seconds": seconds, "iou": None,
             "ranking": [e.get("name") for e in d.get("effects", [])][:3],
             "host": session.name.split("+")[0],
-            "won": None if won is None else {k: won.get(k) for k in ("channel", "gap_before", "gap_after",
-                                                                     "support_fraction")},
+            "won": None if won is None else {**{k: won.get(k) for k in ("channel", "gap_before", "gap_after",
+                                                                        "support_fraction")},
+                                             "significance": (won.get("params") or {}).get("significance")},
             "host_excess": None if truth_name != NONE else _host_excess(d),
             "loglik": None if won is None else {k: won.get(k) for k in ("loglik_base_per_channel",
                                                                         "loglik_ext_per_channel")},
@@ -140,6 +141,20 @@ def injected_part_logscore_shrink(case: dict, hosts: dict) -> Optional[float]:
     added = sum(float(base[c]) - float(host[c]) for c in chans)
     left = sum(float(ext[c]) - float(host[c]) for c in chans)
     return float(1.0 - max(0.0, left) / added) if added > 0 else None
+
+
+def criterion_shrink(case: dict, host_ll: dict) -> Optional[float]:
+    """The shrink in the units of the criterion that made the verdict significant (S15, docs/diagnose.md
+    §S15; reported BESIDE the (A1) shrink, which it does not replace): for an effect judged by the held-out
+    log score (time_offset (T6): a delay's residual τ ḣ is motion-locked and small beside a hand's linear
+    acceleration, so (G1)'s shape and colour barely change, while the proper score sees it) the log-score
+    shrink of the injected part (A5, `injected_part_logscore_shrink`); for every other correct verdict the
+    reported shrink ((A1), or (J6) for a jointly fitted gyro effect). None for a miss."""
+    if not case.get("correct"):
+        return None
+    if (case.get("won") or {}).get("significance") == "log_score":
+        return injected_part_logscore_shrink(case, host_ll)
+    return case.get("shrink")
 
 
 def injected_part_shrink(case: dict, hosts: dict) -> Optional[float]:
@@ -243,6 +258,7 @@ def summarise(cases: list, names: list, seconds: float = float("nan")) -> dict:
     part = [injected_part_shrink(c, hosts) for c in injected]
     host_ll = {c.get("host"): c.get("host_loglik") for c in clean if c.get("host_loglik")}
     part_ll = [injected_part_logscore_shrink(c, host_ll) for c in injected]
+    by_criterion = [criterion_shrink(c, host_ll) for c in injected]
 
     def stats(v):
         v = [x for x in v if x is not None and np.isfinite(x)]
@@ -255,6 +271,7 @@ def summarise(cases: list, names: list, seconds: float = float("nan")) -> dict:
             "n_clean": len(clean), "clean_flagged": int(sum(not c["correct"] for c in clean)),
             "iou": stats(ious), "shrink": stats(shrinks), "true_effect_shrink": stats(true_shrinks),
             "injected_part_shrink": stats(part), "injected_part_logscore_shrink": stats(part_ll),
+            "criterion_shrink": stats(by_criterion),
             "seconds": seconds}
 
 
@@ -286,7 +303,9 @@ def format_report(report: dict) -> str:
                        ("injected_part_shrink", "gap shrink of the injected part (correct verdicts, net of "
                                                 "the clean host's own gap)"),
                        ("injected_part_logscore_shrink", "log-score (A4) shrink of the injected part (correct "
-                                                         "global verdicts, net of the clean host's own score)")):
+                                                         "global verdicts, net of the clean host's own score)"),
+                       ("criterion_shrink", "shrink by the verdict's own criterion (correct verdicts: (A5) for "
+                                            "an effect judged by the log score, else the shrink above)")):
         s = report.get(key, {"n": 0})
         if s["n"]:
             lines.append(f"{label}: median {s['median']:.2f}, mean {s['mean']:.2f}, min {s['min']:.2f} (n = {s['n']})")

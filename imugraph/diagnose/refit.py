@@ -89,6 +89,7 @@ def refit_effect(effect, real: Fit, rounds: int = 2, window=None) -> tuple[Fit, 
             info["converged"] = True          # y_r ≈ y_{r−1}: fit_base would return θ_{r−1} again
             break
         cur = fit_simulation(replace_session(real.session, **new), cur)
+        cur.info["mag_delay_s"] = real.info.get("mag_delay_s", 0.0)   # θ_r's data: the recording's τ_m (B3)
         prev = new
     info["window"] = window
     info["changed"] = cur is not real

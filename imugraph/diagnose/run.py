@@ -46,6 +46,12 @@ class DiagnoseOptions:
         drift_basis: gyro_bias_drift's basis, "legendre" (the cubic (D1)) or "spline" (knots every 10 s
             (D2), effects/gyro_bias_drift.py, docs/diagnose.md §4 S14-B); None: the module's `BASIS`
             (default "legendre").
+        gyro_delay_model: S15 (docs/diagnose.md §S15): time_offset's extended model of a gyro delay (T8)–(T10)
+            — the refit changes the gyro data only, keeps the base model's field lag against the corrected
+            gyro, and finds the alternation's fixed point by the secant method; None: the module flag
+            `time_offset.GYRO_DELAY_MODEL` (default False).
+        magnet_ramps: S15: magnetic_disturbance's window field with fitted linear ramps at its edges (R1)
+            instead of a step; None: the module flag `magnetic_disturbance.RAMPS` (default False).
     """
 
     keyframe_hz: float = 5.0
@@ -56,6 +62,8 @@ class DiagnoseOptions:
     subsample_lag: bool | None = None
     timing_rules: bool | None = None
     drift_basis: str | None = None
+    gyro_delay_model: bool | None = None
+    magnet_ramps: bool | None = None
     gap: GapOptions = field(default_factory=GapOptions)
     attribution: AttributionOptions = field(default_factory=AttributionOptions)
 
@@ -132,11 +140,17 @@ def model_switches(options: DiagnoseOptions):
     from imugraph.diagnose.effects import joint
     from imugraph.diagnose.effects import gyro_bias_drift as dmod
     from imugraph.diagnose.effects import time_offset as tmod
+    from imugraph.diagnose.effects import magnetic_disturbance as mmod
 
     old = (joint.ENABLED, fitmod.SUBSAMPLE_LAG)
     old_t = (tmod.MAG_REMAINDER_OUT, tmod.LOG_SCORE_SIGNIFICANCE, tmod.ROTATION_CHECK)
     old_d = dmod.BASIS
+    old_s15 = (tmod.GYRO_DELAY_MODEL, mmod.RAMPS)
     try:
+        if options.gyro_delay_model is not None:
+            tmod.GYRO_DELAY_MODEL = bool(options.gyro_delay_model)
+        if options.magnet_ramps is not None:
+            mmod.RAMPS = bool(options.magnet_ramps)
         if options.drift_basis is not None:
             if options.drift_basis not in ("legendre", "spline"):
                 from imugraph.errors import SessionError
@@ -154,6 +168,7 @@ def model_switches(options: DiagnoseOptions):
         joint.ENABLED, fitmod.SUBSAMPLE_LAG = old
         tmod.MAG_REMAINDER_OUT, tmod.LOG_SCORE_SIGNIFICANCE, tmod.ROTATION_CHECK = old_t
         dmod.BASIS = old_d
+        tmod.GYRO_DELAY_MODEL, mmod.RAMPS = old_s15
 
 
 def diagnose(session: Session, options: DiagnoseOptions = DiagnoseOptions(), effects: dict | None = None,

@@ -22,6 +22,10 @@ ramps at their edges out), the base model is refitted to them, and the field is 
 that fit. (`MagneticCorrection.corrected`, which leaves the windows' samples out, is no longer used by the
 diagnosis.)
 
+Ramped edges (S15, opt-in `RAMPS` / `DiagnoseOptions.magnet_ramps`; effects/edge_ramps.py (R1)–(R2)): the
+window's field switched on and off by linear ramps of fitted width instead of a step (a magnet brought by
+hand); the windows' t_start/t_end are then the ramps' centres (docs/diagnose.md §S15).
+
 Relevance (`size`): the window's extra field ≥ 10 % of |m| (M2). The heading comes from the horizontal
 field |m| cos(dip), so at BROAD's dip (≈ 69°) 10 % of |m| can turn it by up to asin(0.1 / cos 69°) ≈ 16°
 (not "~6°", which holds at dip 0). A heading-based threshold, sin 6° · cos(dip) (3.7 % of |m| on BROAD),
@@ -49,6 +53,7 @@ RANGES = {"field_uT": (10.0, 60.0), "window_frac": (0.15, 0.4), "ramp_s": (0.2, 
 MAX_WINDOWS = 3
 PAD_S = 1.0                  # windows widened by this for the refit (the ramps of a magnet brought by hand)
 RELEVANT_FRACTION = 0.10     # relevance: extra field ≥ 10 % of |m| (M2)
+RAMPS = False                # S15 (R1): the window's field with fitted linear ramps at its edges (opt-in)
 
 
 class MagneticCorrection(Correction):
@@ -136,35 +141,32 @@ class MagneticDisturbance(Effect):
         use = train & valid
         bRn = np.transpose(fit.nRb, (0, 2, 1))
         D = np.asarray(fit.calibration.D, float)
-        masks = [(t >= a) & (t <= b) for a, b in windows]
-        masks = [m for m in masks if np.any(m & use)]
-        windows = [w for w, m in zip(windows, [(t >= a) & (t <= b) for a, b in windows]) if np.any(m & use)]
-        n_col = 12 + 6 * len(masks)
-        J = np.zeros((fit.n, 3, n_col))
-        J[:, :, 0:3] = np.eye(3)                                              # δo
-        b_n = bRn @ fit.calibration.n_mag
-        for a in range(3):
-            J[:, a, 3 + 3 * a:6 + 3 * a] = b_n                                # δD row a · bRn n_mag
-        for i, m in enumerate(masks):
-            c = 12 + 6 * i
-            J[m, :, c:c + 3] = np.eye(3)                                      # Δo_w
-            J[m, :, c + 3:c + 6] = D @ bRn[m]                                 # D bRn Δn_w
-        w = 1.0 / np.asarray(fit.sigma["mag"], float)
-        A = (J[use] * w[None, :, None]).reshape(-1, n_col)
-        y = (r[use] * w).reshape(-1)
-        ridge = 1e-6 * np.eye(n_col)                                          # Δo vs Δn without rotation
-        theta = np.linalg.solve(A.T @ A + ridge * max(1.0, np.trace(A.T @ A) / n_col), A.T @ y)
-        delta = np.einsum("nij,j->ni", J, theta)
-        d_window = np.einsum("nij,j->ni", J[:, :, 12:], theta[12:])                  # Δo_w + D bRn Δn_w
+        steps = [((t >= a) & (t <= b)).astype(float) for a, b in windows]
+        keep = [i for i, e in enumerate(steps) if np.any((e > 0) & use)]
+        windows, env = [windows[i] for i in keep], [steps[i] for i in keep]
+        edges = [None] * len(windows)
+        theta, delta, d_window = _solve_fields(fit, r, use, bRn, D, env)
+        if RAMPS and windows:                         # S15 (R1): the edges located as ramps (edge_ramps.py)
+            from imugraph.diagnose.effects.edge_ramps import envelope as ramp_envelope, locate_ramps
+
+            # located on the residual with the step model's δo, δD removed (the window's field kept): the
+            # base fit's residual alone carries the offset and scale the magnet pulled (test_diagnose_s15)
+            edges = locate_ramps(t, r - (delta - d_window), fit.sigma["mag"], windows)
+            env = [ramp_envelope(t, e) for e in edges]
+            windows = [(e["start"][0], e["end"][0]) for e in edges]           # the ramps' centres
+            theta, delta, d_window = _solve_fields(fit, r, use, bRn, D, env)
+        n_col = len(theta)
         res = {c: fit.residuals[c].copy() for c in fit.residuals}
         res["mag"] = r - delta
         corr = self.correction(
             self.name, {"offset_change": theta[:3].tolist(),
                         "D_change": theta[3:12].reshape(3, 3).tolist(),
                         "windows": [{"t_start": a, "t_end": b, "body_offset": theta[12 + 6 * i:15 + 6 * i].tolist(),
-                                     "nav_field": theta[15 + 6 * i:18 + 6 * i].tolist()}
+                                     "nav_field": theta[15 + 6 * i:18 + 6 * i].tolist(),
+                                     **({} if edges[i] is None else {"ramp_start_s": edges[i]["start"][1],
+                                                                     "ramp_end_s": edges[i]["end"][1]})}
                                     for i, (a, b) in enumerate(windows)]},
-            n_params=n_col + 2 * len(windows),
+            n_params=n_col + 2 * len(windows) + 2 * sum(e is not None for e in edges),
             t_start=windows[0][0] if windows else None, t_end=windows[0][1] if windows else None,
             channel=self.channel, deltas={"mag": delta, "window": d_window})
         corr.deltas["noise_scale"] = noise_scale(fit, res, train, ["mag"])
@@ -217,6 +219,32 @@ class MagneticDisturbance(Effect):
             if t[b] - t[a] >= STEP_MIN_S:          # an edge refined onto the other: no window left
                 out.append((float(t[a]), float(t[b])))
         return sorted(out, key=lambda w: -(w[1] - w[0]))
+
+
+def _solve_fields(fit, r, use, bRn, D, env: list) -> tuple:
+    """Least squares of (M1) on the samples `use`: δo, δD and per window (envelope e_w: 1 inside, 0 outside,
+    ramps (R1) at the edges) e_w·Δo_w + e_w·D bRn Δn_w. Returns (θ, δ (N, 3) the whole change, the windows'
+    field (N, 3))."""
+    n_col = 12 + 6 * len(env)
+    J = np.zeros((fit.n, 3, n_col))
+    J[:, :, 0:3] = np.eye(3)                                              # δo
+    b_n = bRn @ fit.calibration.n_mag
+    for a in range(3):
+        J[:, a, 3 + 3 * a:6 + 3 * a] = b_n                                # δD row a · bRn n_mag
+    for i, e_w in enumerate(env):
+        m = e_w > 0
+        c = 12 + 6 * i
+        e = e_w[m][:, None, None]                                         # 1 in the window; ramps (R1)
+        J[m, :, c:c + 3] = e * np.eye(3)                                  # Δo_w
+        J[m, :, c + 3:c + 6] = e * (D @ bRn[m])                           # D bRn Δn_w
+    w = 1.0 / np.asarray(fit.sigma["mag"], float)
+    A = (J[use] * w[None, :, None]).reshape(-1, n_col)
+    y = (r[use] * w).reshape(-1)
+    ridge = 1e-6 * np.eye(n_col)                                          # Δo vs Δn without rotation
+    theta = np.linalg.solve(A.T @ A + ridge * max(1.0, np.trace(A.T @ A) / n_col), A.T @ y)
+    delta = np.einsum("nij,j->ni", J, theta)
+    d_window = np.einsum("nij,j->ni", J[:, :, 12:], theta[12:])                  # Δo_w + D bRn Δn_w
+    return theta, delta, d_window
 
 
 STEP_BLOCK_S = 0.25          # block length of the step search (longer for long recordings: ≤ STEP_MAX_BLOCKS)

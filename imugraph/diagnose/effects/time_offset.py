@@ -54,6 +54,12 @@ MAX_DELAY_S = 0.1            # search range of the gyro-referenced delay (T2), �
 MAG_REMAINDER_OUT = True     # (T5): a magnetometer shift within ½ sample is the base model's, not a candidate
 LOG_SCORE_SIGNIFICANCE = True    # (T6): significant by the held-out log score's sign test (A4'')
 ROTATION_CHECK = True        # (T7): a gyro-referenced delay only where rotation is most of the channel's change
+# S15 (opt-in, `DiagnoseOptions.gyro_delay_model`; docs/diagnose.md §S15): the extended model of a GYRO delay
+# (T8) changes the gyro data only in the refit (the base `Correction.corrected` also moved acc and mag by the
+# keyframes-fixed trajectory change h(R̂) − h(R'), pulling the data back to the old trajectory), and (T9)
+# keeps the base model's magnetometer lag τ_m as measured against the gyro: with the gyro's delay τ removed
+# the field lags the corrected gyro by τ_m + τ, re-aligned by whole samples (`field_after_gyro_shift`).
+GYRO_DELAY_MODEL = False
 
 
 def injection_range_s(rate_hz: float) -> tuple[float, float]:
@@ -178,6 +184,22 @@ def _first_order_floor(fit, r0: dict, J: dict, train: np.ndarray, channels) -> f
     return min(q0, 2.0 * q_min - q0)
 
 
+def field_after_gyro_shift(fit, tau: float):
+    """(T9) The field of `fit.session` re-aligned to a gyro corrected by τ (y'_g(t) = y_g(t + τ)), or None
+    when no whole-sample change is needed. The base model's τ_m (`fit.info["mag_delay_s"]`, B3) is the
+    field's lag behind the RECORDED gyro; a gyro late by τ_g and a field late by τ_0 give τ_m = τ_0 − τ_g,
+    so against the corrected gyro the field lags by τ_m + τ. The session's field was shifted by
+    n_0 = round(τ_m/Δt) rows; it needs n_1 = round((τ_m + τ)/Δt): `undelay_magnetometer` by n_1 − n_0 rows
+    (whole samples, as the base model; rows shifted in from beyond the ends are NaN)."""
+    from imugraph.calibration.alignment import undelay_magnetometer
+
+    s = fit.session
+    dt = float(np.median(s.dt))
+    tau_m = float(fit.info.get("mag_delay_s", 0.0) or 0.0)
+    extra = int(np.round((tau_m + tau) / dt)) - int(np.round(tau_m / dt))
+    return None if extra == 0 else undelay_magnetometer(s.t, s.mag, extra * dt)
+
+
 class TimeOffsetCorrection(Correction):
     def raw_residuals(self, fit) -> dict:
         c, tau = self.params["channel"], self.params["tau_s"]
@@ -185,8 +207,25 @@ class TimeOffsetCorrection(Correction):
         y = getattr(s, c)
         y_new = shift_signal(s.t, y, -tau)                                           # y'(t) = y(t + τ)
         if c == "gyr":
-            return gyro_exact(fit, np.nan_to_num(y_new - y))
+            out = gyro_exact(fit, np.nan_to_num(y_new - y))
+            mag = field_after_gyro_shift(fit, tau) if GYRO_DELAY_MODEL else None       # (T9)
+            if mag is not None:
+                out["mag"] = out["mag"] + (mag - s.mag)      # h_mag does not depend on the data: y changes only
+            return out
         return fit.residuals_with(**{c: y_new})
+
+    def corrected(self, fit) -> dict:
+        """The data with the delay removed, for the refit. (T8) a gyro delay: the gyro shifted, acc as recorded
+        and the field re-aligned (T9) — not the base rule's y + (r' − r) for acc and mag, which for a gyro
+        change is the keyframes-fixed trajectory's change, not the effect's."""
+        if not (GYRO_DELAY_MODEL and self.params["channel"] == "gyr"):
+            return super().corrected(fit)
+        s = fit.session
+        out = {"gyr": shift_signal(s.t, s.gyr, -self.params["tau_s"])}
+        mag = field_after_gyro_shift(fit, self.params["tau_s"])
+        if mag is not None:
+            out["mag"] = mag
+        return out
 
 
 class TimeOffset(Effect):
@@ -256,6 +295,54 @@ class TimeOffset(Effect):
             corr.params["significance"] = "log_score"                                  # (T6)
         return corr
 
+
+    def refit(self, real, rounds: int = 2, window=None):
+        """Full refit (docs/diagnose.md §3 (F1)). Default: the alternation of imugraph.diagnose.refit. With
+        GYRO_DELAY_MODEL (S15, (T10)): the alternation's map g(τ) = τ fitted against θ(τ) (θ(τ): the base
+        model refitted to the data with τ removed) converges linearly and slowly (sim00 + 5.9 ms gyro delay,
+        τ over rounds 2.3, 3.7, 4.6, 5.2 ms), so its fixed point τ = g(τ) is found by the secant method on
+        f(τ) = g(τ) − τ from τ_0 = 0 (the base fit), rounds + 1 refits of the base model:
+
+            τ_{r+1} = τ_r − f(τ_r) (τ_r − τ_{r−1}) / (f(τ_r) − f(τ_{r−1}))                          (T10)
+
+        (the first step τ_1 = g(0), as the alternation; a step at most 4 |f(τ_r)|; the plain step g(τ_r)
+        when the fitted channel changes between rounds). Only when the first round's candidate is the gyro:
+        an acc or mag delay keeps the plain alternation (with the secant, BROAD 04 + an injected gyro scale, harness
+        case 010, converged to an accelerometer lead of −9.7 ms, 2.8 samples, preferred by the log score in
+        every fold: the hand-held accelerometer's apparent lead, docs/diagnose.md §4 S14-A, made the verdict).
+        Returns (θ* on the original data, info)."""
+        from imugraph.diagnose.refit import on_session, refit_effect
+        from imugraph.diagnose.fit import fit_simulation
+
+        if not GYRO_DELAY_MODEL:
+            return refit_effect(self, real, rounds, window)
+        train = np.ones(real.n, bool)
+        cur, tau_in, pts, info = real, 0.0, [], {"rounds": []}
+        for _ in range(rounds + 1):
+            view = real if cur is real else on_session(cur, real.session)
+            corr = self.fit(view, train)
+            ch, g = corr.params["channel"], float(corr.params["tau_s"])
+            if cur is real and ch != "gyr":       # (T8)–(T10) are a GYRO delay's model: acc/mag as before
+                return refit_effect(self, real, rounds, window)
+            info["rounds"].append({"params": dict(corr.params), "tau_in_s": tau_in, "t_start": None, "t_end": None})
+            pts.append((ch, tau_in, g))
+            nxt = g
+            if len(pts) >= 2 and pts[-2][0] == ch:                                          # (T10)
+                (_, a0, g0), (_, a1, g1) = pts[-2], pts[-1]
+                f0, f1 = g0 - a0, g1 - a1
+                if f1 != f0 and a1 != a0:
+                    step = -f1 * (a1 - a0) / (f1 - f0)
+                    nxt = a1 + float(np.clip(step, -4 * abs(f1), 4 * abs(f1)))
+            if abs(nxt - tau_in) < 0.05 / real.session.rate:   # a twentieth of a sample: θ(τ_in) stands
+                info["converged"] = True
+                break
+            new = TimeOffsetCorrection(self.name, {"channel": ch, "tau_s": nxt}, 2, channel=ch).corrected(view)
+            cur = fit_simulation(replace_session(real.session, **new), cur)
+            cur.info["mag_delay_s"] = real.info.get("mag_delay_s", 0.0)
+            tau_in = nxt
+        info["window"] = None
+        info["changed"] = cur is not real
+        return on_session(cur, real.session), info
 
     def size(self, corr, fit) -> dict:
         """|τ| in samples (relevance: ≥ 1 sample period; a shorter delay is below the time resolution)."""
