@@ -22,7 +22,7 @@ ramps at their edges out), the base model is refitted to them, and the field is 
 that fit. (`MagneticCorrection.corrected`, which leaves the windows' samples out, is no longer used by the
 diagnosis.)
 
-Ramped edges (S15, opt-in `RAMPS` / `DiagnoseOptions.magnet_ramps`; effects/edge_ramps.py (R1)–(R2)): the
+Ramped edges (S15, default `RAMPS` / `DiagnoseOptions.magnet_ramps`; effects/edge_ramps.py (R1)–(R2)): the
 window's field switched on and off by linear ramps of fitted width instead of a step (a magnet brought by
 hand); the windows' t_start/t_end are then the ramps' centres (docs/diagnose.md §S15).
 
@@ -53,7 +53,7 @@ RANGES = {"field_uT": (10.0, 60.0), "window_frac": (0.15, 0.4), "ramp_s": (0.2, 
 MAX_WINDOWS = 3
 PAD_S = 1.0                  # windows widened by this for the refit (the ramps of a magnet brought by hand)
 RELEVANT_FRACTION = 0.10     # relevance: extra field ≥ 10 % of |m| (M2)
-RAMPS = False                # S15 (R1): the window's field with fitted linear ramps at its edges (opt-in)
+RAMPS = True                 # S15 (R1): the window's field with fitted linear ramps at its edges (default since S15)
 
 
 class MagneticCorrection(Correction):

@@ -54,12 +54,12 @@ MAX_DELAY_S = 0.1            # search range of the gyro-referenced delay (T2), �
 MAG_REMAINDER_OUT = True     # (T5): a magnetometer shift within ½ sample is the base model's, not a candidate
 LOG_SCORE_SIGNIFICANCE = True    # (T6): significant by the held-out log score's sign test (A4'')
 ROTATION_CHECK = True        # (T7): a gyro-referenced delay only where rotation is most of the channel's change
-# S15 (opt-in, `DiagnoseOptions.gyro_delay_model`; docs/diagnose.md §S15): the extended model of a GYRO delay
+# S15 (default since S15, `DiagnoseOptions.gyro_delay_model`; docs/diagnose.md §S15): the extended model of a GYRO delay
 # (T8) changes the gyro data only in the refit (the base `Correction.corrected` also moved acc and mag by the
 # keyframes-fixed trajectory change h(R̂) − h(R'), pulling the data back to the old trajectory), and (T9)
 # keeps the base model's magnetometer lag τ_m as measured against the gyro: with the gyro's delay τ removed
 # the field lags the corrected gyro by τ_m + τ, re-aligned by whole samples (`field_after_gyro_shift`).
-GYRO_DELAY_MODEL = False
+GYRO_DELAY_MODEL = True
 
 
 def injection_range_s(rate_hz: float) -> tuple[float, float]:
