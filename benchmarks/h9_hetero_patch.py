@@ -52,6 +52,7 @@ def install() -> None:
     fv.ar2_residuals = ar2_residuals
     vbm.ar2_residuals = ar2_residuals
     vbm.VelocityBlock._ar2_factors = _ar2_factors
+    vbm.VelocityBlock.SUPPORTS_HETERO_Q = True      # velocity_hetero.interval_intensity checks this before any solve
 
 
 if __name__ == "__main__":

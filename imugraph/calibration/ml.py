@@ -123,8 +123,8 @@ def calibrate(session: Session, options: Options | None = None, initial=None,
     vel_state = {"v": None, "s": None, "sigma": opt.velocity_sigma, "tau": opt.velocity_tau, "g": None,
                  "rest": rest_mask, "ar2": None, "kappa_a": opt.acc_rate_error}
     if opt.estimate_velocity_process == "hetero_ar2":   # motion intensity per interval (velocity_hetero.py)
-        from imugraph.calibration.velocity_hetero import interval_intensity
-        vel_state["intensity"] = interval_intensity(session.acc, g, skf, len(kf))
+        from imugraph.calibration.velocity_hetero import calibration_intensity
+        vel_state["intensity"] = calibration_intensity(session.acc, g, skf, len(kf))
     windows = detect_windows(session.t, m_cal0) if opt.disturbance_windows else []
     mag_state = {"y": session.mag, "w": apply_windows(windows, session.mag)[1] if windows else None}
 

@@ -57,6 +57,16 @@ def innovation_scale(q) -> np.ndarray | None:
     return getattr(q, "h", None)
 
 
+def calibration_intensity(acc: np.ndarray, g: float, sample_kf: np.ndarray, n_keyframes: int) -> np.ndarray:
+    """interval_intensity for ml.calibrate, refusing before any solve when the graph cannot whiten per step."""
+    from imugraph.graphs.velocity_block import VelocityBlock
+
+    if not getattr(VelocityBlock, "SUPPORTS_HETERO_Q", False):
+        raise ValueError("Options.estimate_velocity_process: found 'hetero_ar2', expected a mode the graph supports "
+                         "('hetero_ar2' needs the graph patch of benchmarks/h9_hetero_patch.install(); not adopted)")
+    return interval_intensity(acc, g, sample_kf, n_keyframes)
+
+
 def interval_intensity(acc: np.ndarray, g: float, sample_kf: np.ndarray, n_keyframes: int) -> np.ndarray:
     """u_k (K−1,) of eq. (1): mean over the samples of keyframe interval k of | |b_acc| − g |, m/s² (the square
     instead: BROAD 02 0.403°, 07 0.574° with λ held ≤ 10; λ ran to the grid's edge without the cap)."""

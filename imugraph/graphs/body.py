@@ -325,8 +325,7 @@ def optimize_with_mag_noise(pb: BodyProblem) -> tuple[gtsam.Values, list, gtsam.
         pb.mag_active = False                         # first pass: inertial sensors and the body model only
         x, info = optimize(pb, full_graph(pb), x)
         passes.append(info)
-        pb.mag_dirs = {n: _mag_direction(pb, n, pb.init) for n in pb.names}
-        pb.mag_sigmas = mag_noise(pb, x, pb.opts.mag_sigma)
+        pb.mag_sigmas = mag_noise(pb, x, pb.opts.mag_sigma)   # pb.mag_dirs: set by factors_at(k=0), N-pose
         pb.mag_active = True
     while True:
         graph = full_graph(pb)
@@ -336,10 +335,11 @@ def optimize_with_mag_noise(pb: BodyProblem) -> tuple[gtsam.Values, list, gtsam.
         if rounds <= 0:
             return x, passes, graph
         sigmas = mag_noise(pb, x, pb.opts.mag_sigma)   # re-estimated at the solution with magnetometers
-        changed = max(abs(np.log(sigmas[n] / pb.mag_sigmas[n])) for n in pb.names)
-        pb.mag_sigmas = sigmas
+        finite = [n for n in pb.names if np.isfinite(sigmas[n]) and np.isfinite(pb.mag_sigmas[n])]
+        changed = max((abs(np.log(sigmas[n] / pb.mag_sigmas[n])) for n in finite), default=0.0)
         if changed < np.log(1.1):
-            return x, passes, graph
+            return x, passes, graph                    # pb.mag_sigmas: the σ this solution used
+        pb.mag_sigmas = sigmas
 
 
 def solve_body_batch(session, opts: BodyOptions = BodyOptions()) -> BodyResult:
