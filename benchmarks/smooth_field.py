@@ -4,7 +4,7 @@
 Per trial: RMS error against the optical truth over `movement` (best heading offset and time shift, as every BROAD
 score: imugraph.evaluate.orientation_error) and the CPU time of each smooth (time.process_time, the load of a shared
 machine does not inflate it much; the wall time is printed too), for
-    plain      smooth_fixed(s, cal, keyframe_hz)                                  (today's `smooth --calibration`)
+    plain      smooth_fixed(s, cal, keyframe_hz)                                  (`smooth --calibration --no-field`)
     field      + field_sigma=(0.015, 0.003, 0.015), field_tau=1 s                  (calibration.ml.Options' defaults)
     field_raw  + mag_model="raw" (the stream's θ-state factor form)
 Calibrations: --cache DIR with cal_NN.pkl ("full": benchmarks/stream_vs_batch.py --cache writes them), else
@@ -27,8 +27,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from benchmarks.common import broad_trials, load_broad_trial, print_table, trial_number  # noqa: E402
 from benchmarks.output import write_json  # noqa: E402
+from imugraph.calibration.options import Options  # noqa: E402
 
-FIELD = {"field_sigma": (0.015, 0.003, 0.015), "field_tau": 1.0}
+FIELD = {"field_sigma": Options().field_sigma, "field_tau": Options().field_tau}   # what the CLI passes
 CONFIGS = {"plain": {}, "field": FIELD, "field_raw": {**FIELD, "mag_model": "raw"}}
 
 

@@ -141,6 +141,9 @@ def run_smooth(args: argparse.Namespace) -> int:
         0 on success (errors are raised as ImugraphError and reported by `imugraph.cli.main`).
     """
     progress = common.Progress(args.quiet)
+    if getattr(args, "no_field", False) and not args.calibration:
+        from imugraph.errors import ImugraphError
+        raise ImugraphError("--no-field: found without --calibration; expected together with --calibration FILE")
     # read the calibration first: a bad --calibration fails before any long work
     cal = _read_calibration(args.calibration) if args.calibration else None
     path = common.resolve_session_path(args.session, args.data_dir)
@@ -157,8 +160,8 @@ def run_smooth(args: argparse.Namespace) -> int:
         progress.say(f"smoothing with the calibration in {args.calibration}")
         # the batch model's nav-field perturbation d_k (Options.field_sigma/field_tau, as calibrate and stream):
         # BROAD 17 trials 0.801° → 0.662° mean vs truth, 0.66 s CPU mean (benchmarks/smooth_field.py all)
-        field = {} if getattr(args, "no_field", False) else {"field_sigma": Options().field_sigma,
-                                                            "field_tau": Options().field_tau}
+        opt = Options()
+        field = {} if getattr(args, "no_field", False) else {"field_sigma": opt.field_sigma, "field_tau": opt.field_tau}
         quat = smooth_fixed(session, cal, keyframe_hz=args.keyframe_hz, **field)
         source = f"from {args.calibration}"
     common.write_orientation(out, session.t, quat, progress)

@@ -33,6 +33,7 @@ import gtsam
 import numpy as np
 
 from imugraph.factors.field import field_key
+from imugraph.geometry import skew
 from imugraph.graphs.cpp_velocity import pose_key
 from imugraph.graphs.solver import cached_state, keyframe_vectors
 
@@ -53,13 +54,6 @@ def keyframe_poses(values: gtsam.Values, K: int) -> np.ndarray:
     """(K, 3, 3) rotations of the Pose3 keys X(0..K−1) (the only Pose3 values of the smoother's graph)."""
     return cached_state(values, ("pose3", K), lambda v: gtsam.utilities.extractPose3(v)[:K, :9].reshape(K, 3, 3))
 
-
-def skew(v: np.ndarray) -> np.ndarray:
-    """(m, 3) → (m, 3, 3) cross-product matrices [v]×."""
-    S = np.zeros(v.shape[:-1] + (3, 3))
-    S[..., 0, 1], S[..., 0, 2], S[..., 1, 2] = -v[..., 2], v[..., 1], -v[..., 0]
-    S[..., 1, 0], S[..., 2, 0], S[..., 2, 1] = v[..., 2], -v[..., 1], v[..., 0]
-    return S
 
 
 class FieldMagBlock:
@@ -166,6 +160,7 @@ def lm_solve(graph: gtsam.NonlinearFactorGraph, block: FieldMagBlock, values: gt
     for _ in range(int(max_iterations)):
         gfg = graph.linearize(x)
         gfg.push_back(block.linearize(x))
+        rejected = 0
         while True:
             sys_ = gtsam.GaussianFactorGraph()
             sys_.push_back(gfg)
@@ -178,12 +173,14 @@ def lm_solve(graph: gtsam.NonlinearFactorGraph, block: FieldMagBlock, values: gt
             if new_cost <= cost:
                 break
             lam *= 10.0
+            rejected += 1
             if lam > 1e8:
                 return x                    # no descent: at a minimum within numerical precision
         cur = gtsam.utilities.extractPose3(x_new)[:K, :9].reshape(K, 3, 3)
         moved = float(np.arccos(np.clip((np.einsum("kij,kij->k", prev, cur).min() - 1.0) / 2.0, -1.0, 1.0)))
         decrease = cost - new_cost
         x, cost, prev, lam = x_new, new_cost, cur, max(lam / 10.0, 1e-12)
-        if moved < rotation_tol or decrease <= relative_tol * max(cost, 1e-300):
+        # a step shortened by rejected (damped) tries is not convergence: only an undamped small step stops
+        if (moved < rotation_tol and rejected == 0) or decrease <= relative_tol * max(cost, 1e-300):
             break
     return x

@@ -64,6 +64,7 @@ import numpy as np
 from imugraph import keys
 from imugraph.calibration.result import Calibration
 from imugraph.factors.theta import THETA_DIM, pack_theta, unpack_theta
+from imugraph.geometry import skew
 
 __all__ = ["CAL_KEY", "PIN_REL", "WhitenessSums", "cal_mag_factor", "cal_mag_jacobians", "calibration_of", "data_estimate",
            "pinned_mag_factor", "weak_sigmas", "theta_of"]
@@ -226,7 +227,7 @@ def pinned_mag_factor(pose_k: int, field_k: int | None, offset_key: int | None, 
         e = DM @ v - b + (values.atVector(offset_key) if offset_key is not None else 0.0)
         if H is not None:
             Jp = np.zeros((3, 6))
-            Jp[:, :3] = DM @ np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+            Jp[:, :3] = DM @ skew(v)
             H[0] = Jp
             i = 1
             if field_k is not None:

@@ -271,12 +271,12 @@ class OnlineCalibrationMixin:
                           and np.all(np.asarray(std["o"]) <= np.asarray(s0.get("o", np.inf))))
 
     def _final_graph(self) -> gtsam.NonlinearFactorGraph:
-        """iSAM2's factors; with online calibration (and history) the magnetometer factors rebuilt with the
-        final calibration."""
+        """iSAM2's factors; with history, the magnetometer factors rebuilt exact: with the final calibration
+        (online refit), or at the pinned θ₀ on (pose_k, d_k, Δo_w) when θ is a graph state (calib_states)."""
         factors = self._solver.getFactorsUnsafe()
         # θ pinned (calib_states): the factors were linearised once when their interval closed (at the filtered
         # pose, d_k and θ_lin); re-issued exact at θ₀ (stream_calstate.pinned_mag_factor) — BROAD, 17 trials:
-        # smoothed vs smooth_fixed of the same model 0.148° → see docs/stream.md "One model, two solvers"
+        # smoothed vs smooth_fixed of the same model 0.148° → 0.035° mean (BROAD 17, docs/stream.md "One model, two solvers")
         if (self._online is None and not self._calstate) or not self.opt.keep_history or not self._mag_index:
             return factors
         from imugraph.geometry import quat_to_rotmat
