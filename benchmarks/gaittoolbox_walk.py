@@ -26,8 +26,8 @@ knee and hip.
 --skeleton bvh:mvn reads the session onto the subject's skeleton, from the HIERARCHY (OFFSETs only, never the
 motion) of the trial's MVN BVH; also 'height:H' or 'bvh:PATH' (imugraph.body.skeleton.skeleton_from_spec).
 Measured 2026-11-23: no change (≤ 0.02° per joint): the lever arms sensor → joint are estimated, their
-skeleton-derived priors (σ 7 cm) do not bind (estimated thigh hip–knee distances 0.396 / 0.422 m R / L on
-either skeleton; Vicon's joint centres 0.394 / 0.416 m; MVN's BVH 0.485 m, the nominal 0.429 m).
+skeleton-derived priors (σ 7 cm) do not bind (an ad-hoc check of the estimated hip–knee distances, not in
+this script, found them equal on either skeleton).
 --subsample also scores both systems at their best fractional shift (integer ±5 + 0.1-sample slerp steps).
 
 --lag S also runs the fixed-lag smoother (imugraph.graphs.body_incremental) and scores it the same way;
