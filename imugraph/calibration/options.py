@@ -123,7 +123,7 @@ class Options:
     #   calibration.json (`left_out`). Gates (benchmarks/b_window_gates.py): EXPLAINED 2.5–3.5 and TRIAL_GAIN
     #   0.4–0.5 change no verdict; TRIAL_GAIN ≥ 0.55 puts 36's windows (gain 0.535–0.662) on trial, they pass
     #   (1.01–1.19 ≪ 3) and 36 returns to 1.10–1.21°, never worse than off; ends 32's cycling rounds (3.78 → 1.73 s
-    #   CPU); smooth_fixed starts without borrowing a far keyframe's field in the gaps it leaves (orientation_init
+    #   CPU: benchmarks/speed.py 16,32,34,36 --repeat 3 --opt window_trial_verdict=True); smooth_fixed starts without borrowing a far keyframe's field in the gaps it leaves (orientation_init
     #   borrow_field=False: 36 from 79° to 1.15°). Still OFF: on a SHORT recording it fails — BROAD 34's first 67 s
     #   (the stream's bootstrap, magnet windows 44.6–67.5 s) calibrate to a garbage D (‖D‖ ≈ 100, o ≈ (−69, 39, −21))
     #   with all four windows left out, and the stream's filtered error goes 3.29° → 24.27° (session 15)
@@ -215,10 +215,11 @@ class Options:
     velocity_prior_strength: float = 300.0  # ν_0 of estimate_velocity_process="map_ar2": the settings' process
     #   (velocity_sigma, velocity_tau) as an inverse-gamma prior on the AR(2) innovation variance q worth ν_0
     #   pseudo-innovations (calibration/velocity_ar2.py) instead of the hard floor of "bounded_ar2". H9, all 17
-    #   (benchmarks/h9_velocity_trace.py --opt …): "map_ar2" at 300: mean 0.666° → 0.662° (02 0.473 → 0.438°, 01
+    #   (benchmarks/h9_velocity_trace.py --opt estimate_velocity_process="'map_ar2'" --opt velocity_prior_strength=300|3000): "map_ar2" at 300: mean 0.666° → 0.662° (02 0.473 → 0.438°, 01
     #   −0.025°, 04 −0.031°, 32 −0.050°; 07 0.506 → 0.563°, 26 +0.039°); at 3000: 02 0.563°, 07 0.507°. A BROAD trial
     #   holds 2–3 thousand innovations, so the prior blends ML and floor; no ν_0 frees 02 and keeps 07. Off
     velocity_em_inner: int = 1        # EM steps of an AR(2) velocity process per ML round at the round's
     #   orientations (E-step by a banded solve of the velocity chain, no graph solve: calibration/velocity_em.py);
-    #   1: one step per round (the rounds' solves are the E-steps). 30 with "free_ar2" (H9, all 17): rounds
+    #   1 (default, as before): one step per round (the rounds' solves are the E-steps). 30 with "free_ar2" (H9, all 17;
+    #   h9_velocity_trace.py --opt estimate_velocity_process="'free_ar2'" --opt velocity_em_inner=30): rounds
     #   02 7 → 5, 07 7 → 4, CPU mean 1.81 → 1.82 s (load ≈ 4), mean 0.650° → 0.652° (06 +0.037°). Off
