@@ -108,10 +108,10 @@ def model_arguments(p: argparse.ArgumentParser) -> None:
                         "DiagnoseOptions.timing_rules; default on)")
     p.add_argument("--gyro-delay-model", action=argparse.BooleanOptionalAction, default=None,
                    help="S15: time_offset's extended model of a gyro delay (T8)–(T10) (DiagnoseOptions."
-                        "gyro_delay_model; default off)")
+                        "gyro_delay_model; default on)")
     p.add_argument("--magnet-ramps", action=argparse.BooleanOptionalAction, default=None,
                    help="S15: magnetic_disturbance's field with fitted ramps at the window edges (R1) "
-                        "(DiagnoseOptions.magnet_ramps; default off)")
+                        "(DiagnoseOptions.magnet_ramps; default on)")
     p.add_argument("--drift-basis", choices=("legendre", "spline"), default=None,
                    help="gyro_bias_drift's basis (DiagnoseOptions.drift_basis; default legendre)")
 

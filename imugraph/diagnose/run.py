@@ -49,9 +49,9 @@ class DiagnoseOptions:
         gyro_delay_model: S15 (docs/diagnose.md §S15): time_offset's extended model of a gyro delay (T8)–(T10)
             — the refit changes the gyro data only, keeps the base model's field lag against the corrected
             gyro, and finds the alternation's fixed point by the secant method; None: the module flag
-            `time_offset.GYRO_DELAY_MODEL` (default False).
+            `time_offset.GYRO_DELAY_MODEL` (default True since session 15).
         magnet_ramps: S15: magnetic_disturbance's window field with fitted linear ramps at its edges (R1)
-            instead of a step; None: the module flag `magnetic_disturbance.RAMPS` (default False).
+            instead of a step; None: the module flag `magnetic_disturbance.RAMPS` (default True since session 15).
     """
 
     keyframe_hz: float = 5.0
