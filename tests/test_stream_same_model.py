@@ -37,3 +37,31 @@ def test_default_stream_equals_smooth_fixed_of_the_same_model(streamed):
     print(f"same model {gap_same:.4f}°, smooth_fixed without d_k {gap_plain:.4f}°")
     assert gap_same < 0.005     # the end solve on exact factors (stream_calstate.pinned_mag_factor); linearised once: 0.0126°
     assert gap_same < 0.5 * gap_plain
+
+
+def test_same_model_with_disturbance_windows():
+    """The same comparison on a session whose start calibration holds an attached magnet that comes off at 14 s
+    (tests/test_stream_offsets.py's scenario, full iSAM2): the detector's windows get their own offset Δo_w, the
+    end graph re-issues those keyframes' factors on (pose_k, d_k, Δo_w) (stream_calstate.pinned_mag_factor's offset
+    branch), and smooth_fixed given the stream's final Δo_w (mag_offsets) agrees to < 0.01°."""
+    from dataclasses import replace
+
+    session, truth = distorted_session(3, 42.0, 50.0)
+    cal_true = truth.to_calibration()
+    scale = float(np.cbrt(abs(np.linalg.det(cal_true.D))))
+    delta = scale * np.array([0.3, -0.25, 0.35])
+    mag = session.mag.copy()
+    mag[session.t < session.t[0] + 14.0] += delta
+    s = session.with_mag(mag)
+    start = replace(cal_true, o=cal_true.o + delta)
+    opts = StreamOptions(lag_s=None)
+    r, sm = stream_with_recorder(s, opts, 10.0, start, 0)
+    assert r.counts["failed_updates"] == 0
+    K = sm._k + 1
+    off = stream_offsets(sm, K)
+    windowed = np.all(np.isfinite(off), axis=1) & np.any(off != 0.0, axis=1)
+    assert windowed.sum() >= 5                                            # the offset branch is exercised
+    same = dict(keyframe_hz=opts.keyframe_hz, field_sigma=opts.field_sigma, field_tau=opts.field_tau, mag_offsets=off)
+    gap_same = rms_between(r.smoothed, smooth_fixed(s, start, mag_model="raw", **same), None, 50.0)
+    print(f"windowed keyframes {windowed.sum()}, same model {gap_same:.4f}°")
+    assert gap_same < 0.01
