@@ -36,9 +36,9 @@ constant heading offset between the two; also the errors against the optical tru
 TRIALS: comma-separated BROAD trial numbers or "all" (default). --config: "default" = StreamOptions() as it
 is in the code, "states" = StreamOptions(calib_states=True, disturb_detect=True), "states_nofield" = the
 latter with field_sigma=None (the stream graph is then smooth_fixed's: attributes a gap to model or solver),
-"fixed_nofield" = online_calibration=False, field_sigma=None (only the solver differs), "default_exact" = the default
-with the end-of-stream Levenberg–Marquardt on exact magnetometer factors (`exact_raw_factor`: the stream's, which are
-linearised once when their interval closes, re-issued at the pinned θ₀; what a stream patch would do). bench_out/NAME (default
+"fixed_nofield" = online_calibration=False, field_sigma=None (only the solver differs). (Session 15's "default_exact",
+the end solve on exact magnetometer factors, is the stream's own behaviour since: stream_calstate.pinned_mag_factor.)
+bench_out/NAME (default
 stream_vs_batch.json) is rewritten with every row so far after each trial: an interrupted run keeps what it did.
 --cache DIR: cal_NN.pkl read when present, written when computed here (the format of stream_speed.py --cache).
 """
@@ -51,7 +51,6 @@ import sys
 import time
 from pathlib import Path
 
-import gtsam
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
@@ -63,11 +62,7 @@ CONFIGS = {"default": {}, "states": {"calib_states": True, "disturb_detect": Tru
            # attribution: the same without the nav-field perturbation d_k, i.e. exactly smooth_fixed's graph
            "states_nofield": {"calib_states": True, "disturb_detect": True, "field_sigma": None},
            # the solver alone: start calibration held fixed, no field perturbation (README's earlier 0.06° on 01)
-           "fixed_nofield": {"online_calibration": False, "field_sigma": None},
-           # the default with the end-of-stream Levenberg–Marquardt on EXACT magnetometer factors (re-issued at the
-           # pinned θ₀, on (pose_k, d_k, Δo_w)) instead of those linearised once when each interval closed
-           "default_exact": {}}
-EXACT_FINAL = {"default_exact"}
+           "fixed_nofield": {"online_calibration": False, "field_sigma": None}}
 
 
 def rms_between(q_a: np.ndarray, q_b: np.ndarray, mask: np.ndarray | None, rate: float,
@@ -129,64 +124,10 @@ class _Recorder:
                 super().__init__(*a, **kw)
                 _Recorder.last, _Recorder.smoother = {}, self
 
-            def _final_graph(self):
-                if not (_Recorder.exact and self._calstate and self._mag_index and self.opt.keep_history):
-                    return super()._final_graph()
-                factors = self._solver.getFactorsUnsafe()
-                old = set(self._mag_index.values())
-                graph = gtsam.NonlinearFactorGraph()
-                for i in range(factors.size()):
-                    if i not in old and factors.exists(i):
-                        graph.add(factors.at(i))
-                for k in self._mag_index:
-                    f = exact_raw_factor(self, k)
-                    if f is not None:
-                        graph.add(f)
-                return graph
-
         return Recording
 
     last: dict = {}
     smoother = None
-    exact = False
-
-
-def exact_raw_factor(sm, k: int):
-    """Keyframe k's magnetometer factor of the stream (stream_calstate eq. 1) at the pinned θ₀, exact (a CustomFactor
-    on pose_k, d_k and, in a window, Δo_w): e = D M_k R_kᵀ(n + d_k) + o (+ Δo_w) − ȳ_k, Σ = diag(σ_y²)/n_k, Huber."""
-    from imugraph.factors.theta import unpack_theta
-    from imugraph.geometry import quat_to_rotmat
-    from imugraph.graphs.cpp_velocity import pose_key, robust
-    from imugraph.graphs.stream_field import field_key
-    from imugraph.graphs.stream_offsets import offset_key
-
-    win, has = _Recorder.last.get(k, (None, False))
-    kRb, y = quat_to_rotmat(sm._hist_kRb[k]), sm._hist_y[k]
-    ok = np.all(np.isfinite(y), axis=1)
-    if not has or not ok.any():
-        return None
-    D, o, dip = unpack_theta(sm._theta0)
-    n_vec = np.array([np.cos(dip), 0.0, -np.sin(dip)])
-    DM, b = D @ kRb[ok].sum(axis=0).T / ok.sum(), y[ok].mean(axis=0) - o
-    okey = offset_key(sm._offsets.index[win]) if (win is not None and sm._offsets is not None
-                                                  and win in sm._offsets.index) else None
-    pk, fk = pose_key(k), field_key(k)
-    keys_ = [pk, fk] + ([okey] if okey is not None else [])
-
-    def error(this, values, H):
-        Rt = values.atPose3(pk).rotation().matrix().T
-        v = Rt @ (n_vec + values.atVector(fk))
-        e = DM @ v - b + (values.atVector(okey) if okey is not None else 0.0)
-        if H is not None:
-            Jp = np.zeros((3, 6))
-            Jp[:, :3] = DM @ np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
-            H[0], H[1] = Jp, DM @ Rt
-            if okey is not None:
-                H[2] = np.eye(3)
-        return e
-
-    mdl = robust(gtsam.noiseModel.Diagonal.Sigmas(sm._sig_y / np.sqrt(ok.sum())), sm.opt.huber_k)
-    return gtsam.CustomFactor(mdl, keys_, error)
 
 
 def stream_offsets(sm, K: int) -> np.ndarray:
@@ -205,17 +146,16 @@ def stream_offsets(sm, K: int) -> np.ndarray:
     return off
 
 
-def stream_with_recorder(s, opts, bootstrap_s, boot, n_boot, exact: bool = False):
+def stream_with_recorder(s, opts, bootstrap_s, boot, n_boot):
     """stream_session with the recording StreamSmoother (the benchmark's only access to the end state)."""
     import imugraph.graphs.stream_run as sr
 
     real = sr.StreamSmoother
     sr.StreamSmoother = _Recorder.smoother_class()
-    _Recorder.exact = exact
     try:
         return sr.stream_session(s, None, opts, bootstrap_s, bootstrap=(boot, n_boot)), _Recorder.smoother
     finally:
-        sr.StreamSmoother, _Recorder.exact = real, False
+        sr.StreamSmoother = real
 
 
 def same_model(s, opts, r, sm, boot, kf: float) -> dict:
@@ -260,7 +200,7 @@ def run_trial(path: Path, configs: list[str], cache: str | None, bootstrap_s: fl
     for cfg in configs:
         opts = StreamOptions(lag_s=None, **CONFIGS[cfg])
         t0 = time.perf_counter()
-        r, sm = stream_with_recorder(s, opts, bootstrap_s, boot, n_boot, exact=cfg in EXACT_FINAL)
+        r, sm = stream_with_recorder(s, opts, bootstrap_s, boot, n_boot)
         stream_s = time.perf_counter() - t0
         q_end = smooth_fixed(s, r.calibration, keyframe_hz=kf)
         same = same_model(s, opts, r, sm, boot, kf)
