@@ -190,6 +190,14 @@ def pop_opts(argv: list[str]) -> tuple[list[str], list[str]]:
     return opts, rest
 
 
+def pop_value(argv: list[str], flag: str, default: str) -> tuple[str, list[str]]:
+    """Take `flag VALUE` out of argv: (VALUE or default, the rest of argv)."""
+    if flag in argv:
+        i = argv.index(flag)
+        return argv[i + 1], argv[:i] + argv[i + 2:]
+    return default, argv
+
+
 def iter_broad(select: set[str] | None = None):
     """(two-digit trial number, session, movement mask) of every BROAD trial, or of those in select."""
     for path in broad_trials():

@@ -16,7 +16,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from benchmarks.common import error_parts, iter_broad  # noqa: E402
+from benchmarks.common import error_parts, iter_broad, pop_value  # noqa: E402
 from imugraph.calibration import field_select, ml  # noqa: E402
 
 
@@ -34,11 +34,8 @@ class VelocityCandidate:
 
 
 def main(argv: list[str]) -> int:
-    variants = ["bounded_ar2", "free_ar2"]
-    if "--variants" in argv:
-        i = argv.index("--variants")
-        variants = argv[i + 1].split(",")
-        argv = argv[:i] + argv[i + 2:]
+    variants, argv = pop_value(argv, "--variants", "bounded_ar2,free_ar2")
+    variants = variants.split(",")
     select = set(argv[0].split(",")) if argv else None
     cands = tuple(VelocityCandidate(m) for m in variants)
     for num, s, mask in iter_broad(select):

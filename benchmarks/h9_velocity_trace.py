@@ -17,7 +17,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from benchmarks.common import error_parts, iter_broad, parse_options, pop_opts  # noqa: E402
+from benchmarks.common import error_parts, iter_broad, parse_options, pop_opts, pop_value  # noqa: E402
 from benchmarks.b1_try import vqf_cached  # noqa: E402
 from benchmarks.h4_decompose import CACHE  # noqa: E402
 from imugraph.calibration.ml import calibrate  # noqa: E402
@@ -28,11 +28,7 @@ def main(argv: list[str]) -> int:
         from benchmarks.h9_hetero_patch import install
         install()
     opts, argv = pop_opts(argv)
-    tag = "default"
-    if "--tag" in argv:
-        i = argv.index("--tag")
-        tag = argv[i + 1]
-        argv = argv[:i] + argv[i + 2:]
+    tag, argv = pop_value(argv, "--tag", "default")
     options = parse_options(opts)
     select = set(argv[0].split(",")) if argv else None
     CACHE.mkdir(parents=True, exist_ok=True)
