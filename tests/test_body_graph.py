@@ -198,6 +198,7 @@ def test_fixed_lag_with_magnetometers_carries_bootstrap_field_model():
     res = solve_body_incremental(replace(sess, sensors=sensors), BodyOptions(use_mag=True), lag_s=1.0,
                                  bootstrap_s=5.0)
     assert res.info["failed_updates"] == 0
+    assert res.info["mag_sigmas"][bad] > 1.8 * BodyOptions().mag_sigma      # the distorted sensor down-weighted
     assert max(joint_errors(sess, res).values()) < 2.0
 
 

@@ -242,6 +242,8 @@ def solve_body_incremental(session, opts: BodyOptions = BodyOptions(), lag_s: fl
             "first_failure": first_failure,
             "realtime_factor": dur / max(float(np.sum(update_s)), 1e-12), "npose": pb.npose_method,
             "bootstrap": boot}
+    if pb.mag_sigmas:
+        info["mag_sigmas"] = dict(pb.mag_sigmas)  # (B5') the σ the stream's magnetometer factors used
     info["filtered"] = filtered_result(pb, records)
     if lag_s is None and fixed_place is None:
         return make_result(pb, est, info)
