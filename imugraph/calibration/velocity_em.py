@@ -50,7 +50,8 @@ def _params(vel_state: dict) -> tuple | None:
 def em_at_orientations(vel_state: dict, block, nRk: np.ndarray, step, iters: int, tol: float = 1e-3) -> float:
     """`step(vel_state, block)` (one EM M-step of the AR(2) process from vel_state["s"], returning its change)
     repeated with E-step (1) in between, at most `iters` times or until the change < tol. vel_state["s"] ends
-    at the posterior means under the final process (the next round's start). Returns the change of the process
+    at the posterior means under the process before the last M-step (the E-step precedes each M-step; the next
+    round's solve gives the means under the final one). Returns the change of the process
     over the whole call (|Δa_1|, |Δa_2|, |Δ ln q|; the first step's own change when there was no AR(2) before)."""
     if iters <= 1 or block.B is not None:
         return step(vel_state, block)
