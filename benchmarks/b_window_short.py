@@ -1,4 +1,4 @@
-"""Why Options.window_trial_verdict is not the default: BROAD 34's first 19 286 samples (67 s, the stream's bootstrap
+"""Why Options.window_trial_verdict was not the default: BROAD 34's first 19 286 samples (67 s, the stream's bootstrap
 window; magnet windows 44.6–67.5 s) calibrated with the option off and on; prints per ML round the cost and which
 windows are modelled, and the singular values of D and o at the end.
 
@@ -8,6 +8,10 @@ Measured (session 15): off — the windows are modelled from round 2–3, D's si
 four windows are never put on trial and left out, and the ≈ 44 s before the magnet do not identify D: it drifts to
 singular values ≈ 76, 45, 4.7 while the cost falls (the coverage check judges the whole recording, before windows
 are left out).
+
+Fixed (rounds.identified_without_windows): the coverage check on the rows kept when every window is
+left out (coverage.mag_spread_of_rows: 0.011 here, < MAG_MIN_SPREAD 0.05; 32 0.083, 36 0.147) sends such
+windows to the σ_mag verdict (fit_offsets): on — identical to off, D's singular values 50.97, 50.30, 48.83.
 """
 
 import sys

@@ -198,3 +198,14 @@ def check_coverage(session: Session, nRb: np.ndarray | None = None,
                                + "; ".join(cov["problems"])
                                + "; expected rotation about all three axes")
     return cov
+
+
+def mag_spread_of_rows(session: Session, used: np.ndarray, gyro_bias: np.ndarray | None = None) -> float:
+    """Smallest `mag_spread` eigenvalue of the magnetometer rows `used` (N,) bool (e.g. outside the disturbance
+    windows a solve leaves out), picked at every CELL_DEG of rotation as `rotation_coverage` picks them; 0 when
+    fewer than 3 rows. `rotation_coverage` judges the whole recording; this judges the rows a solve keeps
+    (BROAD 34's first 67 s: 0.155 whole, 0.011 without its magnet windows, < MAG_MIN_SPREAD = 0.05)."""
+    _, angle_deg = integrated_rotation(session, gyro_bias)
+    mag = np.asarray(session.mag, float)
+    rows = np.asarray(used, bool) & np.all(np.isfinite(mag), axis=1)
+    return float(_point_spread(mag[pick_by_rotation(angle_deg, rows)])[0]) if rows.any() else 0.0
