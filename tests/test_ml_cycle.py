@@ -96,7 +96,7 @@ def test_unexplained_window_stays_left_out_and_rounds_converge(field):
     8 rounds, the window ends "modelled", 7.45° RMS). Σm from the undisturbed samples only (noise_skip_excluded):
     the simulated 1 % of the field per axis."""
     s, truth = _nav_frame_disturbance()
-    est = calibrate(s, Options(**{field: True}))
+    est = calibrate(s, Options(**{"window_trial_verdict": False, field: True}))
     wins = est.info["disturbance_windows"]
     assert len(wins) >= 1 and not any(w["modelled"] for w in wins)
     assert est.calibration.converged and est.calibration.iterations < Options().max_outer
@@ -120,7 +120,7 @@ def _broad_32():
 
 def test_broad_32_rounds_converge_with_solved_samples_noise():
     s = _broad_32()
-    est = calibrate(s, Options(noise_skip_excluded=True), allow_weak=True)
+    est = calibrate(s, Options(noise_skip_excluded=True, window_trial_verdict=False), allow_weak=True)
     assert est.calibration.converged and est.calibration.iterations < Options().max_outer
     assert np.all(np.asarray(est.calibration.noise["mag"]) < 1.0)      # µT: the magnet's 58 µT kept out
     assert not est.info["disturbance_windows"][0]["modelled"]
@@ -157,7 +157,7 @@ def test_fit_offsets_keeps_the_first_verdict_and_refits_the_offset():
 
 def test_broad_32_rounds_converge_with_frozen_window_decision():
     s = _broad_32()
-    est = calibrate(s, Options(freeze_window_decision=True), allow_weak=True)
+    est = calibrate(s, Options(freeze_window_decision=True, window_trial_verdict=False), allow_weak=True)
     assert est.calibration.converged and est.calibration.iterations < Options().max_outer
     verdicts = {tuple(w["modelled"] for w in h["windows"]) for h in est.info["history"]}
     assert verdicts == {(False,)}                    # one window, never modelled (residual 5.5 µT ≫ 3 × 0.7 µT)

@@ -115,7 +115,7 @@ class Options:
     #   simulated ATTACHED magnet (tests/test_disturbance.py, 3 × the field for 30 s) is then judged unexplained at
     #   its first fit and left out (0.30 → 0.39°; noise_skip_excluded alike): the ≤ 3 σ_mag test is passed there only
     #   thanks to the leak. Both need a verdict judged from a solve with the window modelled (not done)
-    window_trial_verdict: bool = False  # each disturbance window's verdict judged on a solve WITH it modelled,
+    window_trial_verdict: bool = True   # each disturbance window's verdict judged on a solve WITH it modelled,
     #   once: a window whose offset reduces its residual is modelled for one round ("on trial"), then kept
     #   modelled for good if its residual RMS ≤ 3 × the undisturbed samples' residual RMS of that same solve
     #   (not σ_mag), else left out for good (disturbance.fit_offsets_on_trial, rounds.fit_windows). BROAD (all 17):
@@ -123,10 +123,11 @@ class Options:
     #   calibration.json (`left_out`). Gates (benchmarks/b_window_gates.py): EXPLAINED 2.5–3.5 and TRIAL_GAIN
     #   0.4–0.5 change no verdict; TRIAL_GAIN ≥ 0.55 puts 36's windows (gain 0.535–0.662) on trial, they pass
     #   (1.01–1.19 ≪ 3) and 36 returns to 1.10–1.21°, never worse than off; ends 32's cycling rounds (3.78 → 1.73 s
-    #   CPU: benchmarks/speed.py 16,32,34,36 --repeat 3 --opt window_trial_verdict=True); smooth_fixed starts without borrowing a far keyframe's field in the gaps it leaves (orientation_init
-    #   borrow_field=False: 36 from 79° to 1.15°). Still OFF: on a SHORT recording it fails — BROAD 34's first 67 s
-    #   (the stream's bootstrap, magnet windows 44.6–67.5 s) calibrate to a garbage D (‖D‖ ≈ 100, o ≈ (−69, 39, −21))
-    #   with all four windows left out, and the stream's filtered error goes 3.29° → 24.27° (session 15)
+    #   CPU: benchmarks/speed.py 16,32,34,36 --repeat 3 --opt window_trial_verdict=True); smooth_fixed starts
+    #   without borrowing a far keyframe's field in the gaps it leaves (orientation_init borrow_field=False: 36
+    #   from 79° to 1.15°). Default since session 15. On a short recording whose rows outside the windows do not
+    #   identify D (BROAD 34's first 67 s: spread 0.011 < 0.05) the windows keep the σ_mag verdict
+    #   (rounds.identified_without_windows; before: D's singular values 76, 45, 4.7 and the stream on 34 24.27°)
     heading_only_orientation: bool = False  # final orientations with the field as heading only
     #                                        (graphs.heading_block): BROAD mean 1.13° vs 1.06° joint, off
     field_sigma: float | tuple | None = (0.015, 0.003, 0.015)  # σ_d per nav axis (x along the horizontal
