@@ -39,7 +39,9 @@ def windows(q, s, mask, win_s: float = 20.0) -> list[tuple[float, float, float]]
     return out
 
 
-def main(argv: list[str]) -> int:
+def calibrated_trials(argv: list[str]):
+    """Parse `[TRIALS] [--tag T] [--opt FIELD=VALUE ...]` and yield, per BROAD trial, (tag, number, session, movement
+    mask, calibrate's estimate, its CPU s, offline VQF's quaternions (cached)); shared with h9_velocity_trace."""
     opts, argv = pop_opts(argv)
     tag, argv = pop_value(argv, "--tag", "default")
     options = parse_options(opts)
@@ -49,7 +51,11 @@ def main(argv: list[str]) -> int:
         t0 = time.process_time()
         est = calibrate(s, options, allow_weak=True)
         cpu = time.process_time() - t0
-        qv = vqf_cached(num, s, CACHE)
+        yield tag, num, s, mask, est, cpu, vqf_cached(num, s, CACHE)
+
+
+def main(argv: list[str]) -> int:
+    for tag, num, s, mask, est, cpu, qv in calibrated_trials(argv):
         a, b = error_parts(est.quat, s, mask), error_parts(qv, s, mask)
         sa, sb = (orientation_error(q, s.quat, mask, s.rate).shift_samples for q in (est.quat, qv))
         gate = est.info.get("gyro_map_gate", {})

@@ -10,33 +10,21 @@ and per ML round the AR(2) coefficients (a_1, a_2, q), √γ_0 (σ_v) and τ_v; 
 from __future__ import annotations
 
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from benchmarks.common import error_parts, iter_broad, parse_options, pop_opts, pop_value  # noqa: E402
-from benchmarks.b1_try import vqf_cached  # noqa: E402
-from benchmarks.h4_decompose import CACHE  # noqa: E402
-from imugraph.calibration.ml import calibrate  # noqa: E402
+from benchmarks.common import error_parts  # noqa: E402
+from benchmarks.h4_decompose import CACHE, calibrated_trials  # noqa: E402
 
 
 def main(argv: list[str]) -> int:
     if any("hetero_ar2" in a for a in argv):     # the graph-side patch it needs (benchmarks/h9_hetero_patch.py)
         from benchmarks.h9_hetero_patch import install
         install()
-    opts, argv = pop_opts(argv)
-    tag, argv = pop_value(argv, "--tag", "default")
-    options = parse_options(opts)
-    select = set(argv[0].split(",")) if argv else None
-    CACHE.mkdir(parents=True, exist_ok=True)
-    for num, s, mask in iter_broad(select):
-        t0 = time.process_time()
-        est = calibrate(s, options, allow_weak=True)
-        cpu = time.process_time() - t0
-        qv = vqf_cached(num, s, CACHE)
+    for tag, num, s, mask, est, cpu, qv in calibrated_trials(argv):
         a, b = error_parts(est.quat, s, mask), error_parts(qv, s, mask)
         print(f"{num} [{tag}] ours {a[0]:.3f} (incl {a[1]:.3f} head {a[2]:.3f})  offVQF {b[0]:.3f} "
               f"(incl {b[1]:.3f} head {b[2]:.3f})  {cpu:.2f} s CPU, {len(est.info['history'])} rounds", flush=True)
