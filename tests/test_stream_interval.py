@@ -7,6 +7,7 @@ import pytest
 
 from imugraph import keys
 from imugraph.errors import SessionError
+from imugraph.factors.gaps import GAP_ACC_WALK, GAP_RATE_WALK
 from imugraph.factors.gyro import preintegrate
 from imugraph.factors.velocity import velocity_increments
 from imugraph.graphs.cpp_velocity import gauss_markov_factors
@@ -39,7 +40,9 @@ def test_interval_preintegration_is_the_batch_one(seed):
     kf, skf = np.array([0, n]), np.r_[np.zeros(n, int), 1]
     pre = preintegrate(w, dt, kf, skf, b, sg, kappa)
     dv, sig_dv = velocity_increments(pre.kRb, skf, a, dt, 2, sa, kappa_a)
-    kRb, dR, cov, dt_k, dv2, sig2, q = interval_preintegration(t, w[:n], a[:n], b, sg, kappa, sa, kappa_a)
+    # the stream is told the nominal rate; the batch takes it as the median step (gaps eq. G1 on seed 1's gap)
+    gap = (1.0 / np.median(dt), GAP_RATE_WALK, GAP_ACC_WALK)
+    kRb, dR, cov, dt_k, dv2, sig2, q = interval_preintegration(t, w[:n], a[:n], b, sg, kappa, sa, kappa_a, gap)
     assert np.allclose(kRb, pre.kRb[:n], atol=1e-12) and np.allclose(dR, pre.delta_R[0], atol=1e-12)
     assert np.allclose(cov, pre.cov[0], rtol=1e-10, atol=1e-18)
     assert dt_k == pytest.approx(pre.dt[0], abs=1e-15)

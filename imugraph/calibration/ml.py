@@ -106,7 +106,7 @@ def calibrate(session: Session, options: Options | None = None, initial=None,
     theta0 = pack_theta(init.D, init.o, init.dip_rad)
     bias = np.asarray(init.gyro_bias, float)
     stride = stride_for(session, opt.keyframe_hz)
-    kf, skf = keyframe_layout(session.n, stride)
+    kf, skf = keyframe_layout(session.n, stride, session.dt)
     m_cal0 = np.linalg.solve(init.D, (session.mag - init.o).T).T
     nRk = None
     theta = theta0

@@ -23,6 +23,7 @@ from dataclasses import dataclass
 import gtsam
 import numpy as np
 
+from imugraph.factors.gaps import GAP_RATE_WALK, gap_variance, has_gap, keyframe_gap_step
 from imugraph.geometry import skew
 
 
@@ -73,10 +74,21 @@ _SKEW_POS = [3, 7, 2]              # (1,0) (2,1) (0,2),
 _SKEW_SRC = [2, 0, 1]              # and the θ component each holds
 
 
-def keyframe_layout(n: int, stride: int) -> tuple[np.ndarray, np.ndarray]:
+def keyframe_layout(n: int, stride: int, dt: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Keyframe sample indices (K,) every `stride` samples (the last sample is always one), and the
-    keyframe each sample is attached to (N,): sample i belongs to the last keyframe at or before it."""
-    kf_samples = np.arange(0, n, max(1, int(stride)))
+    keyframe each sample is attached to (N,): sample i belongs to the last keyframe at or before it.
+
+    dt: (N,) time steps; where given, the first sample after a gap longer than gaps.KEYFRAME_GAP_S (samples
+    that never arrived) starts a keyframe and the grid restarts there, so no interval holds such a gap inside —
+    a sample after it would be placed by the held rate's rotation (gaps eq. G1), off by tens of degrees over
+    ½ s of motion; between keyframes the gap is one inflated preintegrated factor instead."""
+    stride = max(1, int(stride))
+    if dt is not None and has_gap(np.asarray(dt)[:-1], float(np.median(dt))):
+        ends = np.flatnonzero(np.asarray(dt)[:-1] > keyframe_gap_step(float(np.median(dt)))) + 1
+        bounds = np.r_[0, ends, n]
+        kf_samples = np.concatenate([np.arange(a, b, stride) for a, b in zip(bounds[:-1], bounds[1:])])
+    else:
+        kf_samples = np.arange(0, n, stride)
     if kf_samples[-1] != n - 1:
         kf_samples = np.append(kf_samples, n - 1)
     sample_kf = np.searchsorted(kf_samples, np.arange(n), side="right") - 1
@@ -95,6 +107,8 @@ class Preintegration:
         bias_hat: (K−1, 3) bias used for each keyframe interval.
         steps: with keep_steps, per sample (N, 3, 3) kRb_j Exp(θ_j) J_r(θ_j) Δt_j, the summand of the bias and
             gyro-map Jacobians (calibration.gyro_map.map_jacobian); None otherwise.
+        gap_end: (K−1,) bool, the interval's last step is a gap (samples that never arrived, gaps eq. G1: the
+            layout puts every gap there); None: no gap.
     """
 
     kf_samples: np.ndarray
@@ -106,6 +120,7 @@ class Preintegration:
     dt: np.ndarray
     bias_hat: np.ndarray
     steps: np.ndarray | None = None
+    gap_end: np.ndarray | None = None
 
 
 def preintegrate(b_gyr: np.ndarray, dt: np.ndarray, kf_samples: np.ndarray, sample_kf: np.ndarray,
@@ -129,6 +144,8 @@ def preintegrate(b_gyr: np.ndarray, dt: np.ndarray, kf_samples: np.ndarray, samp
     theta = (b_gyr - bias_rows) * dt[:, None]                 # (N,3) rotation increment of sample i
     rate2 = np.sum((b_gyr - bias_rows) ** 2, axis=1, keepdims=True)
     var_step = ((np.asarray(sigma_gyr, float) ** 2)[None, :] + rate_error**2 * rate2) * (dt**2)[:, None]
+    if np.any(sigma_gyr) and has_gap(dt, float(np.median(dt))):     # samples that never arrived: gaps eq. (G1)
+        var_step = var_step + gap_variance(dt, float(np.median(dt)), GAP_RATE_WALK)[:, None]
     lengths = np.diff(np.append(kf_samples, n))               # samples attached to each keyframe
     L = int(lengths.max())
     # every keyframe interval laid out over L positions; positions past its end get the identity step
@@ -173,8 +190,11 @@ def preintegrate(b_gyr: np.ndarray, dt: np.ndarray, kf_samples: np.ndarray, samp
             steps[idx.T[valid.T]] = P_at[valid.T]
     # Interval k integrated the increments of samples s_k .. s_{k+1}−1: exactly keyframe k → k+1.
     kf_dt = np.add.reduceat(dt, kf_samples)[:-1]
+    gap_end = None
+    if has_gap(dt, float(np.median(dt))):        # the step into each next keyframe
+        gap_end = dt[kf_samples[1:] - 1] > 1.5 * float(np.median(dt))
     return Preintegration(kf_samples, sample_kf, kRb, R[:-1], dRdb[:-1], cov[:-1], kf_dt,
-                          np.array(bias_rows[kf_samples[:-1]]), steps)
+                          np.array(bias_rows[kf_samples[:-1]]), steps, gap_end)
 
 
 def ahrs_factors(pre: Preintegration, key_rot, key_bias, sigma_gyr: np.ndarray) -> list:

@@ -119,7 +119,7 @@ def smooth_fixed(session: Session, cal: Calibration, keyframe_hz: float = 5.0, h
         from imugraph.calibration.acc_timing import with_lead
         session = with_lead(session, acc_lead_samples)
     stride = max(1, int(round(session.rate / keyframe_hz)))
-    kf, skf = keyframe_layout(session.n, stride)
+    kf, skf = keyframe_layout(session.n, stride, session.dt)
     if len(kf) < 2:
         raise SessionError(name, "samples", str(session.n), f"at least {stride + 1}")
     sig_g = np.asarray(cal.noise.get("gyr", np.full(3, 0.005)), float)

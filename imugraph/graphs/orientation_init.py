@@ -95,6 +95,10 @@ def sample_orientations(nRk: np.ndarray, pre: Preintegration) -> np.ndarray:
         slerp(fwd, bwd, u) = R_k ΔR_{k,j} Exp(u ΔR_{k,j}ᵀ ε_k) = R_k Exp(u ε_k) ΔR_{k,j}
 
     (R Exp(v) Rᵀ = Exp(R v)): one log per keyframe, one exp and two products per sample.
+
+    An interval that ends in a gap (pre.gap_end) keeps u = 0: its closing error is the gap's (variance q²τ³/3,
+    imugraph.factors.gaps, ≥ 10³ times the measured samples' for τ ≥ 0.1 s), so the samples before the gap keep the
+    forward rotation instead of a share of tens of degrees.
     """
     k = pre.sample_kf
     K = len(nRk)
@@ -107,4 +111,7 @@ def sample_orientations(nRk: np.ndarray, pre: Preintegration) -> np.ndarray:
     s_k = pre.kf_samples[k]
     span = np.maximum(pre.kf_samples[k_next] - s_k, 1)
     u = np.where(k < K - 1, (np.arange(len(k)) - s_k) / span, 0.0)
+    gap_end = getattr(pre, "gap_end", None)
+    if gap_end is not None and np.any(gap_end):
+        u = np.where(np.r_[gap_end, False][k], 0.0, u)
     return rotmat_to_quat(nRk[k] @ expmap(u[:, None] * eps[k]) @ pre.kRb)

@@ -48,6 +48,7 @@ import numpy as np
 from imugraph import keys
 from imugraph.calibration.result import Calibration
 from imugraph.errors import SessionError
+from imugraph.factors.gaps import keyframe_gap_step
 from imugraph.graphs.cpp_velocity import G_KEY, imu_bias_key, pose_key, super_sample_pim
 from imugraph.graphs.stream_interval import (NAN3 as _NAN3, Q_ID, ArrivalMixin,
                                              interval_preintegration, lead_interval, qmul,
@@ -89,6 +90,7 @@ class StreamSmoother(OnlineCalibrationMixin, KeyframeStartMixin, ArrivalMixin, S
                                '"chain", "incremental" or "batch"')
         self.rate, self.opt = float(rate), options
         self.stride = max(1, int(round(rate / options.keyframe_hz)))
+        self._gap_step = keyframe_gap_step(1.0 / rate)    # a longer gap closes the interval (keyframe_layout)
         self._mid = self.stride // 2 + 1 if self.stride >= 2 else 0     # see _between_keyframes
         self._chain = options.lag_s is not None and options.fixed_lag_solver == "chain"
         self._maintained = not self._chain   # the chain lag's `maintain` ran in the open interval
@@ -137,6 +139,7 @@ class StreamSmoother(OnlineCalibrationMixin, KeyframeStartMixin, ArrivalMixin, S
         self._q_open = Q_ID                  # gyro-integrated kRb of the newest sample in keyframe k (floats)
         self._q_nk = None                    # latest estimate of keyframe k's nRb as floats (w, x, y, z)
         self._hist_kRb, self._hist_dR, self._hist_t = [], [], []   # per closed interval: kRb (n,3,3), ΔR, t
+        self._hist_gap = []                  # per closed interval: it ends in a gap (Preintegration.gap_end)
         self._smoothed_kf: dict = {}         # fixed lag: keyframe → last estimate inside the window
         self._b_gyr_est = None               # latest gyro-bias estimate (None: the calibration's)
         self._b_now = tuple(float(v) for v in self._b_hat)     # the same as floats, for the filtered output
@@ -177,8 +180,8 @@ class StreamSmoother(OnlineCalibrationMixin, KeyframeStartMixin, ArrivalMixin, S
         if self._t0 is None:
             self._t0 = t
             self._kf_t.append(t)
-        elif len(buf) >= self.stride:
-            self._close(t)                    # this sample is keyframe k+1
+        elif len(buf) >= self.stride or t - buf[-1][0] > self._gap_step:
+            self._close(t)                    # this sample is keyframe k+1 (after a gap too: keyframe_layout)
             self._t_last = t
             self._buf = [row]
             self._q_open = Q_ID
@@ -262,7 +265,8 @@ class StreamSmoother(OnlineCalibrationMixin, KeyframeStartMixin, ArrivalMixin, S
         # the batch path's preintegration (factors.gyro.preintegrate, factors.velocity.velocity_increments)
         # of this one interval, equal to it (stream_interval)
         kRb, delta_R, cov, dt_k, dv, sig_dv, q_kRb = interval_preintegration(
-            t, w, a, self._b_hat, self._sig_g, self.opt.gyro_rate_error, self._sig_acc, self.opt.acc_rate_error)
+            t, w, a, self._b_hat, self._sig_g, self.opt.gyro_rate_error, self._sig_acc, self.opt.acc_rate_error,
+            (self.rate, self.opt.gap_rate_walk, self.opt.gap_acc_walk))
         # disturbance windows (Calibration.corrected; delay 0: a copy) only where one overlaps this interval
         hit = any(ts <= t[-2] and te >= t[0] for ts, te in self._windows)
         y = self._cal0.corrected(t[:-1], m_raw) if hit else m_raw
@@ -310,6 +314,7 @@ class StreamSmoother(OnlineCalibrationMixin, KeyframeStartMixin, ArrivalMixin, S
         if self.opt.keep_history:
             self._hist_kRb.append(q_kRb)
             self._hist_dR.append(delta_R)
+            self._hist_gap.append(bool(steps[-1] > 1.5 / self.rate))
             self._hist_t.append(t[:-1])
             if self.opt.lag_s is None:
                 self._hist_y.append(y)

@@ -31,6 +31,8 @@ import math
 import gtsam
 import numpy as np
 
+from imugraph.factors.gaps import gap_variance, has_gap
+
 
 
 Q_ID = (1.0, 0.0, 0.0, 0.0)
@@ -125,9 +127,12 @@ def chain(t: np.ndarray, w: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 
 def interval_preintegration(t: np.ndarray, w: np.ndarray, a: np.ndarray, b_hat: np.ndarray, sigma_gyr: np.ndarray,
-                            kappa: float, sigma_acc: np.ndarray, kappa_a: float):
+                            kappa: float, sigma_acc: np.ndarray, kappa_a: float, gap: tuple | None = None):
     """One keyframe interval: samples at t[:n] with rates w (n, 3), specific forces a (n, 3); the next
     keyframe at t[n].
+
+    gap = (rate, q_ω, q_a): steps longer than 1.5/rate hold samples that never arrived, trusted as
+    `imugraph.factors.gaps` eq. (G1) says: V_j += q_ω² τ_j³/3 · I, σ_Δv² += q_a² τ_j³/3 (as the batch path).
 
     Returns:
         kRb (n, 3, 3) = R_j, delta_R (3, 3) = R_n, cov (3, 3) of eq. (2), dt = t[n] − t[0], dv (3,) and
@@ -150,6 +155,10 @@ def interval_preintegration(t: np.ndarray, w: np.ndarray, a: np.ndarray, b_hat: 
     var_dv = (sum(x * x for x in sa) / len(sa)) * float(dt2.sum())                       # eq. (3), the two terms
     if kappa_a:
         var_dv += kappa_a**2 * float(np.einsum("ji,ji,j->", a, a, dt2))
+    if gap is not None and has_gap(dt, 1.0 / gap[0]):          # gaps eq. (G1), on the steps with missing samples
+        # isotropic, so Σ_j R_{j+1} V_j Rᵀ_{j+1} of eq. (2) is Σ_j V_j
+        cov = cov + float(gap_variance(dt, 1.0 / gap[0], gap[1]).sum()) * np.eye(3)
+        var_dv += float(gap_variance(dt, 1.0 / gap[0], gap[2]).sum())
     qk = q[:-1]
     qk = np.where(qk[:, :1] < 0, -qk, qk)
     return kRb, Rn, 0.5 * (cov + cov.T), float(t[-1] - t[0]), dv, float(np.sqrt(max(var_dv, 1e-12))), qk

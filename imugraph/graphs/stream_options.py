@@ -10,6 +10,7 @@ import numpy as np
 
 from imugraph.calibration.disturbance import PAD_S
 from imugraph.errors import SessionError
+from imugraph.factors.gaps import GAP_ACC_WALK, GAP_RATE_WALK
 
 
 @dataclass(frozen=True)
@@ -104,6 +105,11 @@ class StreamOptions:
     velocity_tau: float | None = None
     acc_lead_samples: float | None = None
     acc_rate_error: float = 0.01
+    # samples that never arrived (a step > 1.5 nominal steps): the held rate and specific force are trusted as a
+    # random walk of these densities over the missing time (imugraph.factors.gaps eq. G1, as the batch path);
+    # 0: trusted like measured time. No effect on a stream without gaps.
+    gap_rate_walk: float = GAP_RATE_WALK
+    gap_acc_walk: float = GAP_ACC_WALK
     acc_huber_k: float | None = 2.0
     acc_bias_sigma: float = 1e-4
     bias_segment_s: float = 5.0

@@ -48,7 +48,8 @@ class StreamOutputMixin:
         kRb = quat_to_rotmat(np.vstack(self._hist_kRb + [np.array([[1.0, 0.0, 0.0, 0.0]])]))
         kf_samples = np.r_[0, np.cumsum(lengths[:-1])]
         sample_kf = np.repeat(np.arange(len(lengths)), lengths)
-        pre = Preintegration(kf_samples, sample_kf, kRb, np.array(self._hist_dR), None, None, None, None)
+        pre = Preintegration(kf_samples, sample_kf, kRb, np.array(self._hist_dR), None, None, None, None,
+                             gap_end=np.array(self._hist_gap, bool))
         return sample_orientations(nRk, pre)
 
     def times(self) -> np.ndarray:
