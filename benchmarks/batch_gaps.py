@@ -1,0 +1,91 @@
+"""Issue 2/3: batch calibration + smoothing (`imugraph calibrate`) of BROAD trials with samples that never
+arrived — the held-sample gap model (imugraph.factors.gaps) against trusting the missing time like measured time.
+
+Per trial: the clean recording, then the same recording with N_DROPS drops of DROP_S seconds removed (seeded
+positions after the first 30 s, as benchmarks/stream_arrival.py), each calibrated and smoothed from scratch
+(allow_weak, as broad_published.py); with `--ablate`, a third run with the gap model switched off (no gap
+variance, no keyframe at a gap, the old per-sample blend). Scored against opt_quat over `movement` on the
+samples each run has (imugraph.evaluate.orientation_error: best constant heading and time shift).
+
+    OPENBLAS_NUM_THREADS=1 .venv/bin/python benchmarks/batch_gaps.py [TRIALS] [--ablate] [--seed N]   # default 01,06,34
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import sys
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from benchmarks.common import broad_trials, load_broad_trial, print_table, trial_number  # noqa: E402
+from benchmarks.output import write_json  # noqa: E402
+from benchmarks.stream_arrival import DROP_S, N_DROPS, arrivals  # noqa: E402
+from imugraph.calibration.ml import Options, calibrate  # noqa: E402
+from imugraph.evaluate import orientation_error  # noqa: E402
+
+START_S = 30.0     # drops only after the first 30 s (as the stream benchmark's bootstrap window)
+
+
+def dropped(s, seed: int):
+    """The session without N_DROPS seeded runs of DROP_S s (arrival order from stream_arrival, drops only)."""
+    start = int(np.searchsorted(s.t, s.t[0] + START_S))
+    order, _ = arrivals(s.n, s.rate, start, np.random.default_rng(seed), frozenset({"drop"}))
+    keep = np.zeros(s.n, bool)
+    keep[order] = True
+    return dataclasses.replace(s, t=s.t[keep], gyr=s.gyr[keep], acc=s.acc[keep], mag=s.mag[keep],
+                               quat=s.quat[keep], movement=s.movement[keep]), int((~keep).sum())
+
+
+def score(s, session) -> float:
+    est = calibrate(session, Options(), allow_weak=True)
+    q = np.tile([1.0, 0.0, 0.0, 0.0], (s.n, 1))
+    have = np.zeros(s.n, bool)
+    idx = np.searchsorted(s.t, est.t)
+    q[idx], have[idx] = est.quat, True
+    return orientation_error(q, s.quat, s.movement & have, s.rate).rms_deg
+
+
+def gap_model_off():
+    """Switch the gap model off (the behaviour before session 16): patched where it is used."""
+    import imugraph.factors.gyro as gyro
+    import imugraph.factors.velocity as velocity
+
+    gyro.has_gap = velocity.has_gap = lambda dt, nominal_dt: False
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("trials", nargs="?", default="01,06,34", help="BROAD trial numbers, comma separated")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--ablate", action="store_true", help="also run with the gap model off (last, same process)")
+    a = ap.parse_args(argv)
+    want = {int(x) for x in a.trials.split(",")}
+    paths = [p for p in broad_trials() if trial_number(p) in want]
+    if not paths:
+        print(f"no BROAD trial {a.trials} in the data folder", file=sys.stderr)
+        return 2
+    rows = []
+    for p in paths:
+        s = load_broad_trial(p)
+        gapped, n_missing = dropped(s, a.seed)
+        rows.append({"trial": f"{trial_number(p):02d}", "missing": n_missing, "clean_deg": score(s, s),
+                     "drops_deg": score(s, gapped)})
+        print(f"trial {trial_number(p):02d} done", file=sys.stderr, flush=True)
+    if a.ablate:
+        gap_model_off()
+        for row, p in zip(rows, paths):
+            s = load_broad_trial(p)
+            row["drops_no_gap_model_deg"] = score(s, dropped(s, a.seed)[0])
+    cols = ["trial", "missing", "clean_deg", "drops_deg"] + (["drops_no_gap_model_deg"] if a.ablate else [])
+    print_table(rows, cols)
+    print(f"{N_DROPS} drops of {DROP_S:g} s per trial, seed {a.seed}")
+    write_json("batch_gaps.json", {"seed": a.seed, "rows": rows})
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
