@@ -30,10 +30,10 @@ from imugraph.evaluate import orientation_error  # noqa: E402
 START_S = 30.0     # drops only after the first 30 s (as the stream benchmark's bootstrap window)
 
 
-def dropped(s, seed: int):
+def dropped(s, seed: int, drop_s: float = DROP_S):
     """The session without N_DROPS seeded runs of DROP_S s (arrival order from stream_arrival, drops only)."""
     start = int(np.searchsorted(s.t, s.t[0] + START_S))
-    order, _ = arrivals(s.n, s.rate, start, np.random.default_rng(seed), frozenset({"drop"}))
+    order, _ = arrivals(s.n, s.rate, start, np.random.default_rng(seed), frozenset({"drop"}), drop_s)
     keep = np.zeros(s.n, bool)
     keep[order] = True
     return dataclasses.replace(s, t=s.t[keep], gyr=s.gyr[keep], acc=s.acc[keep], mag=s.mag[keep],
@@ -61,6 +61,7 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("trials", nargs="?", default="01,06,34", help="BROAD trial numbers, comma separated")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--drop-s", type=float, default=DROP_S, help="length of each of the three drops, s")
     ap.add_argument("--ablate", action="store_true", help="also run with the gap model off (last, same process)")
     a = ap.parse_args(argv)
     want = {int(x) for x in a.trials.split(",")}
@@ -71,7 +72,7 @@ def main(argv=None) -> int:
     rows = []
     for p in paths:
         s = load_broad_trial(p)
-        gapped, n_missing = dropped(s, a.seed)
+        gapped, n_missing = dropped(s, a.seed, a.drop_s)
         rows.append({"trial": f"{trial_number(p):02d}", "missing": n_missing, "clean_deg": score(s, s),
                      "drops_deg": score(s, gapped)})
         print(f"trial {trial_number(p):02d} done", file=sys.stderr, flush=True)
@@ -79,11 +80,11 @@ def main(argv=None) -> int:
         gap_model_off()
         for row, p in zip(rows, paths):
             s = load_broad_trial(p)
-            row["drops_no_gap_model_deg"] = score(s, dropped(s, a.seed)[0])
+            row["drops_no_gap_model_deg"] = score(s, dropped(s, a.seed, a.drop_s)[0])
     cols = ["trial", "missing", "clean_deg", "drops_deg"] + (["drops_no_gap_model_deg"] if a.ablate else [])
     print_table(rows, cols)
-    print(f"{N_DROPS} drops of {DROP_S:g} s per trial, seed {a.seed}")
-    write_json("batch_gaps.json", {"seed": a.seed, "rows": rows})
+    print(f"{N_DROPS} drops of {a.drop_s:g} s per trial, seed {a.seed}")
+    write_json("batch_gaps.json", {"seed": a.seed, "drop_s": a.drop_s, "rows": rows})
     return 0
 
 

@@ -39,11 +39,11 @@ N_DROPS = 3
 
 
 def arrivals(n: int, rate: float, start: int, rng: np.random.Generator,
-             kinds: frozenset = frozenset({"swap", "dup", "drop"})) -> tuple[list[int], dict]:
+             kinds: frozenset = frozenset({"swap", "dup", "drop"}), drop_s: float = DROP_S) -> tuple[list[int], dict]:
     """Arrival order of sample indices ≥ start (the bootstrap's rows are streamed clean, as a device that
     buffered its first seconds), and what was injected. Swaps and duplicates are kept apart from each other and
     from the drops, so every injected event is one countable event."""
-    drop_len = int(round(DROP_S * rate))
+    drop_len = int(round(drop_s * rate))
     starts = np.sort(rng.choice(np.arange(start + 1000, n - 1000 - drop_len), N_DROPS, replace=False))
     dropped = set()
     for s0 in starts if "drop" in kinds else []:
@@ -98,14 +98,14 @@ def score(q: np.ndarray, s) -> float:
     return orientation_error(q, s.quat, s.movement & ok, s.rate).rms_deg
 
 
-def run_trial(path: Path, seed: int, kinds: frozenset) -> list[dict]:
+def run_trial(path: Path, seed: int, kinds: frozenset, drop_s: float = DROP_S) -> list[dict]:
     s = load_broad_trial(path)
     name = f"{trial_number(path):02d}"
     cal, n_boot = bootstrap_calibration(s, BOOTSTRAP_S)
     rng = np.random.default_rng(seed)
     mag4 = s.mag.copy()
     mag4[np.arange(s.n) % 4 != 0] = np.nan
-    order, injected = arrivals(s.n, s.rate, n_boot, rng, kinds)
+    order, injected = arrivals(s.n, s.rate, n_boot, rng, kinds, drop_s)
     invalid_at = set(int(j) for j in rng.choice(np.arange(n_boot, len(order)), int(0.001 * (len(order) - n_boot)),
                                                 replace=False)) if "invalid" in kinds else set()
     injected["invalid"] = len(invalid_at)
@@ -122,7 +122,7 @@ def run_trial(path: Path, seed: int, kinds: frozenset) -> list[dict]:
                      "mag_samples": c.get("mag_samples"),
                      "injected": "" if label != "arrival" else
                      f"swap {injected['swaps']} dup {injected['duplicates']} inv {injected['invalid']} "
-                     f"drop {injected['drops']}×{int(round(DROP_S * s.rate))}"})
+                     f"drop {injected['drops']}×{int(round(drop_s * s.rate))}"})
         print(f"trial {name} {label} done", file=sys.stderr, flush=True)
     return rows
 
@@ -131,6 +131,7 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("trials", nargs="?", default="01,06,34", help="BROAD trial numbers, comma separated")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--drop-s", type=float, default=DROP_S, help="length of each of the three drops, s")
     ap.add_argument("--kinds", default="swap,dup,invalid,drop",
                     help="arrival problems injected in the `arrival` run (comma separated subset)")
     a = ap.parse_args(argv)
@@ -139,11 +140,11 @@ def main(argv=None) -> int:
     if not paths:
         print(f"no BROAD trial {a.trials} in the data folder", file=sys.stderr)
         return 2
-    rows = [row for p in paths for row in run_trial(p, a.seed, frozenset(a.kinds.split(",")))]
+    rows = [row for p in paths for row in run_trial(p, a.seed, frozenset(a.kinds.split(",")), a.drop_s)]
     cols = ["trial", "run", "filtered_deg", "smoothed_deg", "failed", "dup", "late_ins", "late_drop", "invalid",
             "gaps", "missing", "mag_samples", "injected"]
     print_table(rows, cols)
-    write_json("stream_arrival.json", {"seed": a.seed, "rows": rows})
+    write_json("stream_arrival.json", {"seed": a.seed, "drop_s": a.drop_s, "kinds": a.kinds, "rows": rows})
     return 0
 
 
