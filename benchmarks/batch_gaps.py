@@ -12,7 +12,6 @@ samples each run has (imugraph.evaluate.orientation_error: best constant heading
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import sys
 from pathlib import Path
@@ -21,9 +20,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from benchmarks.common import broad_trials, load_broad_trial, print_table, trial_number  # noqa: E402
+from benchmarks.common import load_broad_trial, print_table, trial_number  # noqa: E402
 from benchmarks.output import write_json  # noqa: E402
-from benchmarks.stream_arrival import DROP_S, N_DROPS, arrivals  # noqa: E402
+from benchmarks.stream_arrival import DROP_S, N_DROPS, arrivals, drop_arguments, trial_paths  # noqa: E402
 from imugraph.calibration.ml import Options, calibrate  # noqa: E402
 from imugraph.evaluate import orientation_error  # noqa: E402
 
@@ -58,16 +57,11 @@ def gap_model_off():
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("trials", nargs="?", default="01,06,34", help="BROAD trial numbers, comma separated")
-    ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--drop-s", type=float, default=DROP_S, help="length of each of the three drops, s")
+    ap = drop_arguments(__doc__)
     ap.add_argument("--ablate", action="store_true", help="also run with the gap model off (last, same process)")
     a = ap.parse_args(argv)
-    want = {int(x) for x in a.trials.split(",")}
-    paths = [p for p in broad_trials() if trial_number(p) in want]
+    paths = trial_paths(a.trials)
     if not paths:
-        print(f"no BROAD trial {a.trials} in the data folder", file=sys.stderr)
         return 2
     rows = []
     for p in paths:

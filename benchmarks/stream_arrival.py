@@ -127,18 +127,31 @@ def run_trial(path: Path, seed: int, kinds: frozenset, drop_s: float = DROP_S) -
     return rows
 
 
-def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+def drop_arguments(doc: str) -> argparse.ArgumentParser:
+    """The arguments this benchmark shares with batch_gaps.py: trials, --seed, --drop-s."""
+    ap = argparse.ArgumentParser(description=doc.split("\n\n")[0])
     ap.add_argument("trials", nargs="?", default="01,06,34", help="BROAD trial numbers, comma separated")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--drop-s", type=float, default=DROP_S, help="length of each of the three drops, s")
+    return ap
+
+
+def trial_paths(trials: str) -> list[Path]:
+    """The BROAD trials named (e.g. "01,06,34"), with a message on stderr when none is in the data folder."""
+    want = {int(x) for x in trials.split(",")}
+    paths = [p for p in broad_trials() if trial_number(p) in want]
+    if not paths:
+        print(f"no BROAD trial {trials} in the data folder", file=sys.stderr)
+    return paths
+
+
+def main(argv=None) -> int:
+    ap = drop_arguments(__doc__)
     ap.add_argument("--kinds", default="swap,dup,invalid,drop",
                     help="arrival problems injected in the `arrival` run (comma separated subset)")
     a = ap.parse_args(argv)
-    want = {int(x) for x in a.trials.split(",")}
-    paths = [p for p in broad_trials() if trial_number(p) in want]
+    paths = trial_paths(a.trials)
     if not paths:
-        print(f"no BROAD trial {a.trials} in the data folder", file=sys.stderr)
         return 2
     rows = [row for p in paths for row in run_trial(p, a.seed, frozenset(a.kinds.split(",")), a.drop_s)]
     cols = ["trial", "run", "filtered_deg", "smoothed_deg", "failed", "dup", "late_ins", "late_drop", "invalid",
