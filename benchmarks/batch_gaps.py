@@ -23,8 +23,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from benchmarks.common import load_broad_trial, print_table, trial_number  # noqa: E402
 from benchmarks.output import write_json  # noqa: E402
 from benchmarks.stream_arrival import DROP_S, N_DROPS, arrivals, drop_arguments, trial_paths  # noqa: E402
+from benchmarks.stream_arrival import score as arrival_score  # noqa: E402
 from imugraph.calibration.ml import Options, calibrate  # noqa: E402
-from imugraph.evaluate import orientation_error  # noqa: E402
 
 START_S = 30.0     # drops only after the first 30 s (as the stream benchmark's bootstrap window)
 
@@ -41,11 +41,9 @@ def dropped(s, seed: int, drop_s: float = DROP_S):
 
 def score(s, session) -> float:
     est = calibrate(session, Options(), allow_weak=True)
-    q = np.tile([1.0, 0.0, 0.0, 0.0], (s.n, 1))
-    have = np.zeros(s.n, bool)
-    idx = np.searchsorted(s.t, est.t)
-    q[idx], have[idx] = est.quat, True
-    return orientation_error(q, s.quat, s.movement & have, s.rate).rms_deg
+    q = np.full((s.n, 4), np.nan)
+    q[np.searchsorted(s.t, est.t)] = est.quat
+    return arrival_score(q, s)
 
 
 def gap_model_off():

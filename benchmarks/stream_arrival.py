@@ -93,9 +93,13 @@ def stream(s, cal, n_boot: int, order: list[int], mag: np.ndarray, invalid_at: s
 
 
 def score(q: np.ndarray, s) -> float:
+    """RMS error over `movement` on the rows the run delivered. Rows it did not deliver are left out of the
+    score and filled with their nearest earlier delivered row, so that the best-time-shift search (±3 samples,
+    sub-sample steps) reads a neighbour there, not a placeholder."""
     ok = np.isfinite(q[:, 0])
-    q = np.where(ok[:, None], q, [1.0, 0.0, 0.0, 0.0])
-    return orientation_error(q, s.quat, s.movement & ok, s.rate).rms_deg
+    idx = np.maximum.accumulate(np.where(ok, np.arange(len(q)), 0))
+    idx[:np.argmax(ok)] = np.argmax(ok)                        # rows before the first delivered one
+    return orientation_error(q[idx], s.quat, s.movement & ok, s.rate).rms_deg
 
 
 def run_trial(path: Path, seed: int, kinds: frozenset, drop_s: float = DROP_S) -> list[dict]:
