@@ -5,7 +5,8 @@ Per trial: the clean recording, then the same recording with N_DROPS drops of DR
 positions after the first 30 s, as benchmarks/stream_arrival.py), each calibrated and smoothed from scratch
 (allow_weak, as broad_published.py); with `--ablate`, a third run with the gap model switched off (no gap
 variance, no keyframe at a gap, the old per-sample blend). Scored against opt_quat over `movement` on the
-samples each run has (imugraph.evaluate.orientation_error: best constant heading and time shift).
+samples each run has (imugraph.evaluate.orientation_error: best constant heading and time shift). `q_emp`: the
+recording's own rate-walk density at 0.25 s (the model's fixed q_ω is 3 rad/s^1.5).
 
     OPENBLAS_NUM_THREADS=1 .venv/bin/python benchmarks/batch_gaps.py [TRIALS] [--ablate] [--seed N]   # default 01,06,34
 """
@@ -46,6 +47,16 @@ def score(s, session) -> float:
     return arrival_score(q, s)
 
 
+def empirical_rate_walk(s, h: float = 0.25) -> float:
+    """The recording's own q_ω: the rate held over h seconds is off by e = ∫₀^h ω dt − ω(0) h; for a random walk
+    of density q, E[e²] = q² h³ / 3 per axis (gaps eq. G1), so q̂ = √(3 mean(e²) / h³) over every start sample."""
+    T = 1.0 / s.rate
+    m = int(round(h / T))
+    integral = np.vstack([np.zeros(3), np.cumsum(s.gyr * T, axis=0)])
+    e = integral[m:] - integral[:-m] - s.gyr[:len(integral) - m] * (m * T)
+    return float(np.sqrt(3.0 * np.mean(e**2) / (m * T) ** 3))
+
+
 def gap_model_off():
     """Switch the gap model off (the behaviour before session 16): patched where it is used."""
     import imugraph.factors.gyro as gyro
@@ -66,14 +77,14 @@ def main(argv=None) -> int:
         s = load_broad_trial(p)
         gapped, n_missing = dropped(s, a.seed, a.drop_s)
         rows.append({"trial": f"{trial_number(p):02d}", "missing": n_missing, "clean_deg": score(s, s),
-                     "drops_deg": score(s, gapped)})
+                     "drops_deg": score(s, gapped), "q_emp": empirical_rate_walk(s)})
         print(f"trial {trial_number(p):02d} done", file=sys.stderr, flush=True)
     if a.ablate:
         gap_model_off()
         for row, p in zip(rows, paths):
             s = load_broad_trial(p)
             row["drops_no_gap_model_deg"] = score(s, dropped(s, a.seed, a.drop_s)[0])
-    cols = ["trial", "missing", "clean_deg", "drops_deg"] + (["drops_no_gap_model_deg"] if a.ablate else [])
+    cols = ["trial", "missing", "clean_deg", "drops_deg"] + (["drops_no_gap_model_deg"] if a.ablate else []) + ["q_emp"]
     print_table(rows, cols)
     print(f"{N_DROPS} drops of {a.drop_s:g} s per trial, seed {a.seed}")
     write_json("batch_gaps.json", {"seed": a.seed, "drop_s": a.drop_s, "rows": rows})
