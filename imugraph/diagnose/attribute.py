@@ -111,8 +111,8 @@ def _weighted(values: list, weights: list) -> float:
 def fold_gaps(real, sim, folds: list, gap_opt: GapOptions = GapOptions()) -> list:
     """Per fold: channel → (G1) of the base residuals on the held-out samples (None for empty folds)."""
     rate = real.session.rate
-    return [gap(real.residuals, sim.residuals, real.sigma, rate, f, gap_opt) if f.sum() >= 10 else None
-            for f in folds]
+    return [gap(real.residuals, sim.residuals, real.sigma, rate, f, gap_opt, fits=(real, sim))
+            if f.sum() >= 10 else None for f in folds]
 
 
 SUPPORT_PAD_S = 1.0        # a claimed window is scored with this margin (ramps, edge error)
@@ -145,7 +145,7 @@ def null_gaps(null, sim, sigma: dict, folds: list, gap_opt: GapOptions = GapOpti
     for f in folds:
         if f.sum() < 10:
             continue
-        g = gap(null.residuals, sim.residuals, sigma, rate, f, gap_opt)
+        g = gap(null.residuals, sim.residuals, sigma, rate, f, gap_opt, fits=(null, sim))
         for c in CHANNELS:
             out[c] += g[c] * float(f.sum()) / total
     return out
@@ -194,7 +194,7 @@ def evaluate_effect(effect, real, sim, null_gap: dict, folds: list, opt: Attribu
             own_ll.add_costs(corr.deltas["heldout"]["ll"])
         r_after = corr.residuals(real) if ext is None else rescale(raw, real, ~fold)
         a = gap({c: r_after.get(c, real.residuals[c]) for c in CHANNELS}, sim.residuals, real.sigma, rate,
-                test, gap_opt)
+                test, gap_opt, fits=(fitted, sim))                # (G1'): the trajectory of the residuals
         for c in CHANNELS:
             before[c].append(b[c])
             after[c].append(a[c])

@@ -112,6 +112,12 @@ def model_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--magnet-ramps", action=argparse.BooleanOptionalAction, default=None,
                    help="S15: magnetic_disturbance's field with fitted ramps at the window edges (R1) "
                         "(DiagnoseOptions.magnet_ramps; default on)")
+    p.add_argument("--cross-gap", type=float, default=None, metavar="W",
+                   help="S16: weight w_x of the gap's cross-channel term (G1'), the correlation of the acc and "
+                        "mag residuals with the model's motion derivative (GapOptions.cross_weight; default 0: off)")
+    p.add_argument("--cross-form", choices=("corr", "cov"), default=None,
+                   help="S16: the cross-channel term as a correlation (G4) or a covariance in whitened units (G4') "
+                        "(GapOptions.cross_form; default corr)")
     p.add_argument("--drift-basis", choices=("legendre", "spline"), default=None,
                    help="gyro_bias_drift's basis (DiagnoseOptions.drift_basis; default legendre)")
 
@@ -128,6 +134,10 @@ def diagnose_options(args: argparse.Namespace, **fields):
                         drift_basis=getattr(args, "drift_basis", None),
                         gyro_delay_model=getattr(args, "gyro_delay_model", None),
                         magnet_ramps=getattr(args, "magnet_ramps", None), **fields)   # None: the defaults
+    if getattr(args, "cross_gap", None) is not None:                        # S16 (G1')
+        o = replace(o, gap=replace(o.gap, cross_weight=float(args.cross_gap)))
+    if getattr(args, "cross_form", None) is not None:
+        o = replace(o, gap=replace(o.gap, cross_form=str(args.cross_form)))
     score = getattr(args, "score", "cost") or "cost"
     att = replace(o.attribution, own_score="" if score == "gap" else score)
     if getattr(args, "joint_refit", None) is not None:

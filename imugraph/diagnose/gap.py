@@ -13,6 +13,23 @@ lags: log-spaced from one sample to `max_lag_s` (0.5 s). The first term sees bia
 (heavy tails, outliers, bimodality); the second sees colour (slowly varying or oscillating errors) that
 the model's white noise does not have. For data drawn from the model both terms are sampling noise,
 → 0 as S grows. Localisation evaluates (G1) in sliding windows (gap-vs-time curve per channel).
+
+Cross-channel term (S16, opt-in: `GapOptions.cross_weight` > 0, default 0 = (G1) as above). (G1) looks at
+each channel's marginal distribution and its own colour, so a channel that is consistent on its own but
+not WITH the gyro — a delay, y_c(t) = h_c(t − τ) ≈ h_c(t) − τ ḣ_c — is nearly invisible there (S15 (c):
+an 18 ms gyro delay adds 2 % to the acc gap of a hand-held crop). For acc and mag the model's prediction
+h_c = R̂ᵀv (v fixed in the nav frame: gravity, the field) turns with the body, ḣ_c = h_c × ω̂ (ω̂ the
+fitted body rate), and the term compares the correlation of each axis' whitened residual with it:
+
+    x_c,axis = Σ_S z̃_axis ũ_axis / √(Σ_S z̃²_axis Σ_S ũ²_axis),   u = (h_c − o_c) × ω̂  (z̃, ũ centred on S)  (G4)
+    gap_c += w_x · (1/3) Σ_axis |x_real,c,axis − x_sim,c,axis|                                        (G1')
+
+    x'_c,axis = Σ_S z̃_axis ũ_axis / √(Σ_S ũ²_axis · |S|)       (cross_form="cov": not divided by std(z))  (G4')
+
+For data from the model the residual is white noise independent of the motion, x ≈ 0 ± 1/√|S| (the
+simulation's own x is subtracted: the fit's keyframes absorb a little of it alike). The gyro channel has
+no such term (its residual is the keyframe mismatch rate, itself a cross-channel quantity). Applied to
+the whole-recording and fold gaps (attribution), not to the localisation curve.
 """
 
 from __future__ import annotations
@@ -41,6 +58,8 @@ class GapOptions:
         spread_k: a window must also exceed median + k·1.4826·MAD of the recording's own curve (the gap
             is located where it is concentrated, not everywhere a misspecified model is off).
         min_duration_s: shortest location reported, s.
+        cross_weight: w_x of the cross-channel term (G1') (S16; 0 = off, the default: (G1) alone).
+        cross_form: "corr" (G4) or "cov" (G4'): the correlation, or the covariance in whitened units.
     """
 
     max_lag_s: float = 0.5
@@ -53,6 +72,8 @@ class GapOptions:
     null_margin: float = 1.25
     spread_k: float = 3.0
     min_duration_s: float = 2.0
+    cross_weight: float = 0.0
+    cross_form: str = "corr"
 
 
 def lag_grid(rate: float, opt: GapOptions) -> np.ndarray:
@@ -104,9 +125,49 @@ def autocorrelation(x: np.ndarray, mask: np.ndarray, lags: np.ndarray) -> np.nda
     return out
 
 
+def motion_correlation(z: np.ndarray, u: np.ndarray, mask: np.ndarray, form: str = "corr") -> np.ndarray:
+    """(G4) per-axis correlation (3,) of whitened residuals z (N, 3) with the model derivative u (N, 3)
+    over the samples in mask where both are finite (zeros where undefined). form="cov": (G4'), the
+    covariance with u scaled to unit std, in z's own (whitened) units — not divided by std(z), so a misfit
+    independent of the motion (vibration, a hand's acceleration) neither dilutes it nor, once removed by a
+    correction, raises it."""
+    ok = mask & np.all(np.isfinite(z), axis=1) & np.all(np.isfinite(u), axis=1)
+    if ok.sum() < 10:
+        return np.zeros(z.shape[1])
+    zc = z[ok] - z[ok].mean(axis=0)
+    uc = u[ok] - u[ok].mean(axis=0)
+    if form == "cov":                                                   # (G4') Σ z̃ũ / √(Σ ũ² · |S|)
+        den = np.sqrt(np.sum(uc**2, axis=0) * ok.sum())
+    else:
+        den = np.sqrt(np.sum(zc**2, axis=0) * np.sum(uc**2, axis=0))
+    return np.where(den > 0, np.sum(zc * uc, axis=0) / np.where(den > 0, den, 1.0), 0.0)
+
+
+_DERIV_CACHE: dict = {}
+
+
+def motion_derivatives(fit) -> dict:
+    """channel → (N, 3) ḣ_c = (h_c − o_c) × ω̂ of a fitted base model (acc, mag; (G4)): the change of the
+    body-frame prediction of a nav-fixed vector as the body turns. Cached per Fit object."""
+    key = id(fit)
+    hit = _DERIV_CACHE.get(key)
+    if hit is not None and hit[0] is fit:
+        return hit[1]
+    pred = fit.predicted()
+    w = fit.b_omega
+    out = {"acc": np.cross(pred["acc"], w),
+           "mag": np.cross(pred["mag"] - np.asarray(fit.calibration.o, float), w)}
+    if len(_DERIV_CACHE) >= 32:
+        _DERIV_CACHE.pop(next(iter(_DERIV_CACHE)))
+    _DERIV_CACHE[key] = (fit, out)
+    return out
+
+
 def channel_gap(z_real: np.ndarray, z_sim: np.ndarray, mask: np.ndarray, lags: np.ndarray,
-                opt: GapOptions = GapOptions(), parts: bool = False):
-    """(G1) gap of one channel between whitened residuals z_real, z_sim (N, 3) over the samples in mask.
+                opt: GapOptions = GapOptions(), parts: bool = False, u_real: np.ndarray | None = None,
+                u_sim: np.ndarray | None = None):
+    """(G1) gap of one channel between whitened residuals z_real, z_sim (N, 3) over the samples in mask;
+    with opt.cross_weight > 0 and the model derivatives u_real, u_sim (N, 3) given, plus (G1').
 
     Returns the gap (float), or with parts=True the tuple (gap, distribution term, whiteness term)."""
     ok_r = mask & np.all(np.isfinite(z_real), axis=1)
@@ -119,6 +180,9 @@ def channel_gap(z_real: np.ndarray, z_sim: np.ndarray, mask: np.ndarray, lags: n
     rho = np.abs(autocorrelation(z_real, mask, lags) - rho_sim)
     white = float(np.mean(rho))
     g = float(dist + opt.whiteness_weight * white)
+    if opt.cross_weight > 0 and u_real is not None and u_sim is not None:                       # (G1')
+        g += opt.cross_weight * float(np.mean(np.abs(motion_correlation(z_real, u_real, mask, opt.cross_form)
+                                                     - motion_correlation(z_sim, u_sim, mask, opt.cross_form))))
     return (g, float(dist), white) if parts else g
 
 
@@ -148,14 +212,19 @@ def whiten(residuals: dict, sigma: dict) -> dict:
 
 
 def gap(real: dict, sim: dict, sigma: dict, rate: float, mask: np.ndarray | None = None,
-        opt: GapOptions = GapOptions()) -> dict:
+        opt: GapOptions = GapOptions(), fits: tuple | None = None) -> dict:
     """channel → (G1) between raw residual dicts `real` and `sim` (N, 3 each), whitened by `sigma`,
-    over the samples in `mask` (default all)."""
+    over the samples in `mask` (default all). fits: (fit of `real`'s trajectory, fit of `sim`) for the
+    cross-channel term (G1') when opt.cross_weight > 0 (ignored otherwise)."""
     n = next(iter(real.values())).shape[0]
     mask = np.ones(n, bool) if mask is None else mask
     lags = lag_grid(rate, opt)
     zr, zs = whiten(real, sigma), whiten(sim, sigma)
-    return {c: channel_gap(zr[c], zs[c], mask, lags, opt) for c in CHANNELS if c in zr and c in zs}
+    ur = us = {}
+    if opt.cross_weight > 0 and fits is not None and fits[0] is not None and fits[1] is not None:
+        ur, us = motion_derivatives(fits[0]), motion_derivatives(fits[1])
+    return {c: channel_gap(zr[c], zs[c], mask, lags, opt, u_real=ur.get(c), u_sim=us.get(c))
+            for c in CHANNELS if c in zr and c in zs}
 
 
 @dataclass

@@ -126,7 +126,7 @@ def null_fold_gap(null: Fit, sim: Fit, sigma: dict, folds: list, gap_opt: GapOpt
     out = {c: 0.0 for c in CHANNELS}
     total = sum(float(f.sum()) for f in folds) or 1.0
     for f in folds:
-        g = gap(null.residuals, sim.residuals, sigma, rate, f, gap_opt)
+        g = gap(null.residuals, sim.residuals, sigma, rate, f, gap_opt, fits=(null, sim))
         for c in CHANNELS:
             out[c] += g[c] * float(f.sum()) / total
     return out
@@ -203,8 +203,8 @@ def _diagnose(session: Session, options: DiagnoseOptions, effects: dict | None, 
     timing["fit_simulations"] = time.perf_counter() - t1
     t2 = time.perf_counter()
     gap_opt = options.gap
-    g_real = gap(real.residuals, sim.residuals, real.sigma, session.rate, None, gap_opt)
-    g_null = gap(null.residuals, sim.residuals, real.sigma, session.rate, None, gap_opt)
+    g_real = gap(real.residuals, sim.residuals, real.sigma, session.rate, None, gap_opt, fits=(real, sim))
+    g_null = gap(null.residuals, sim.residuals, real.sigma, session.rate, None, gap_opt, fits=(null, sim))
     curve_real = gap_curve(real.residuals, sim.residuals, real.sigma, session.t, gap_opt)
     curve_null = gap_curve(null.residuals, sim.residuals, real.sigma, session.t, gap_opt)
     curve, locations = localise(session.t, curve_real, curve_null, gap_opt)
