@@ -72,10 +72,11 @@ def arrivals(n: int, rate: float, start: int, rng: np.random.Generator,
     return out, {"swaps": len(swaps), "duplicates": len(dups), "dropped": len(dropped), "drops": N_DROPS if dropped else 0}
 
 
-def stream(s, cal, n_boot: int, order: list[int], mag: np.ndarray, invalid_at: set[int]) -> dict:
-    """Push the samples in `order` into a default StreamSmoother set up as `stream_session` does."""
+def stream(s, cal, n_boot: int, order: list[int], mag: np.ndarray, invalid_at: set[int],
+           options: StreamOptions | None = None) -> dict:
+    """Push the samples in `order` into a StreamSmoother (default: 2 s lag) set up as `stream_session` does."""
     g0 = float(np.median(np.linalg.norm(s.acc[:n_boot], axis=1)))
-    sm = StreamSmoother(cal, s.rate, StreamOptions(lag_s=2.0), g0=g0, weak_scale=weak_scale(s, n_boot),
+    sm = StreamSmoother(cal, s.rate, options or StreamOptions(lag_s=2.0), g0=g0, weak_scale=weak_scale(s, n_boot),
                         start_window_s=float(s.t[n_boot - 1] - s.t[0]))
     filtered = np.full((s.n, 4), np.nan)
     bad_gyr = [float("nan"), 0.0, 0.0]
@@ -102,7 +103,7 @@ def score(q: np.ndarray, s) -> float:
     return orientation_error(q[idx], s.quat, s.movement & ok, s.rate).rms_deg
 
 
-def run_trial(path: Path, seed: int, kinds: frozenset, drop_s: float = DROP_S) -> list[dict]:
+def run_trial(path: Path, seed: int, kinds: frozenset, drop_s: float = DROP_S, gap_walk: tuple | None = None) -> list[dict]:
     s = load_broad_trial(path)
     name = f"{trial_number(path):02d}"
     cal, n_boot = bootstrap_calibration(s, BOOTSTRAP_S)
@@ -117,7 +118,8 @@ def run_trial(path: Path, seed: int, kinds: frozenset, drop_s: float = DROP_S) -
             ("arrival", order, mag4, invalid_at)]
     rows = []
     for label, ordr, mag, inv in runs:
-        r = stream(s, cal, n_boot, ordr, mag, inv)
+        opts = None if gap_walk is None else StreamOptions(lag_s=2.0, gap_rate_walk=gap_walk[0], gap_acc_walk=gap_walk[1])
+        r = stream(s, cal, n_boot, ordr, mag, inv, opts)
         c = r["counts"]
         rows.append({"trial": name, "run": label, "filtered_deg": score(r["filtered"], s),
                      "smoothed_deg": score(r["smoothed"], s), "failed": c.get("failed_updates", 0),
@@ -151,17 +153,23 @@ def trial_paths(trials: str) -> list[Path]:
 
 def main(argv=None) -> int:
     ap = drop_arguments(__doc__)
+    ap.add_argument("--gap-walk", default=None, metavar="Q_W,Q_A",
+                    help="the stream's gap densities q_ω (rad/s^1.5), q_a (m/s^2.5) (default: factors.gaps'; 0,0: "
+                         "missing time trusted like measured time)")
     ap.add_argument("--kinds", default="swap,dup,invalid,drop",
                     help="arrival problems injected in the `arrival` run (comma separated subset)")
     a = ap.parse_args(argv)
     paths = trial_paths(a.trials)
     if not paths:
         return 2
-    rows = [row for p in paths for row in run_trial(p, a.seed, frozenset(a.kinds.split(",")), a.drop_s)]
+    rows = [row for p in paths for row in run_trial(p, a.seed, frozenset(a.kinds.split(",")), a.drop_s,
+                                                        None if a.gap_walk is None else
+                                                        tuple(float(x) for x in a.gap_walk.split(",")))]
     cols = ["trial", "run", "filtered_deg", "smoothed_deg", "failed", "dup", "late_ins", "late_drop", "invalid",
             "gaps", "missing", "mag_samples", "injected"]
     print_table(rows, cols)
-    write_json("stream_arrival.json", {"seed": a.seed, "drop_s": a.drop_s, "kinds": a.kinds, "rows": rows})
+    write_json("stream_arrival.json", {"seed": a.seed, "drop_s": a.drop_s, "kinds": a.kinds, "gap_walk": a.gap_walk,
+                                       "rows": rows})
     return 0
 
 
