@@ -20,7 +20,7 @@ calibration (see docs/stream.md). Wall times; the machine may be shared: compare
 
     .venv/bin/python benchmarks/stream_speed.py [TRIALS] [--lag 2 | --no-lag] [--no-batch] [--bootstrap-s 30]
         [--calibration online|fixed|both] [--lag-solver chain|incremental|batch] [--lag-only] [--no-cal-compare] [--[no-]calib-states]
-        [--[no-]disturb] [--weak-prior] [--[no-]offsets] [--cache DIR]   (defaults: StreamOptions')
+        [--[no-]disturb] [--weak-prior] [--[no-]offsets] [--cache DIR] [--opt KEY=VALUE ...]   (defaults: StreamOptions')
 
 TRIALS: comma-separated BROAD trial numbers, or "all" (the 17 trials; default 01). --no-lag / --no-batch skip
 the fixed-lag run / the batch smoother (time). Prints the per-trial table, then the means of the filtered
@@ -52,7 +52,8 @@ def _err(q, s):
 
 def run_trial(path: Path, lag: float | None, bootstrap_s: float, batch: bool = True, online=(True,),
               compare_cal: bool = True, lag_solver: str = "chain", lag_only: bool = False, calib_states: bool = True,
-              disturb: bool = True, weak_prior: bool = False, cache: str | None = None, offsets: bool = True) -> list[dict]:
+              disturb: bool = True, weak_prior: bool = False, cache: str | None = None, offsets: bool = True,
+              extra: dict | None = None) -> list[dict]:
     from imugraph.evaluate import orientation_error
     from imugraph.graphs.cpp_smoother import smooth_fixed
     from imugraph.graphs.stream import StreamOptions
@@ -92,7 +93,7 @@ def run_trial(path: Path, lag: float | None, bootstrap_s: float, batch: bool = T
         atomic_write_bytes(Path(cache) / f"cal_{name}.pkl", pickle.dumps(cached))
     for label, lag_s, on in runs:
         opts = StreamOptions(lag_s=lag_s, online_calibration=on, fixed_lag_solver=lag_solver, calib_states=calib_states,
-                             disturb_detect=disturb, calib_weak_prior=weak_prior, disturb_offsets=offsets)
+                             disturb_detect=disturb, calib_weak_prior=weak_prior, disturb_offsets=offsets, **(extra or {}))
         # the bootstrap computed above (not timed again); stream_session then learns the detector's σ_f over its
         # window and takes the weak prior's s from it, as when it bootstraps itself
         r = stream_session(s, None, opts, bootstrap_s, bootstrap=(cal, n_boot))
@@ -239,7 +240,11 @@ def main(argv=None) -> int:
                     "its own hard-iron offset, the reported hard iron the majority's (StreamOptions(disturb_offsets=True))")
     ap.add_argument("--cache", default=None, help="DIR: reuse / store each trial's bootstrap and whole-trial batch "
                     "calibration (cal_NN.pkl; the calibration code may have changed since they were computed)")
+    ap.add_argument("--opt", action="append", default=[], metavar="KEY=VALUE",
+                    help="a further StreamOptions field (Python literal), e.g. disturb_learn_sigma=False")
     a = ap.parse_args(argv)
+    import ast
+    extra = {k: ast.literal_eval(v) for k, v in (x.split("=", 1) for x in a.opt)}
     every = a.trials == "all"
     wanted = set() if every else {int(x) for x in a.trials.split(",")}
     paths = [p for p in broad_trials() if every or trial_number(p) in wanted]
@@ -251,7 +256,7 @@ def main(argv=None) -> int:
     for p in paths:
         online = {"online": (True,), "fixed": (False,), "both": (True, False)}[a.calibration]
         rows += run_trial(p, lag, a.bootstrap_s, not a.no_batch, online, not a.no_cal_compare, a.lag_solver, a.lag_only,
-                          a.calib_states, a.disturb, a.weak_prior, a.cache, a.offsets)
+                          a.calib_states, a.disturb, a.weak_prior, a.cache, a.offsets, extra)
         print(f"trial {trial_number(p):02d} done", file=sys.stderr, flush=True)
     cols = ["trial", "method", "rt_factor", "p50_ms", "p99_ms", "cpu_rt", "p99_cpu_ms", "max_cpu_ms", "p99_btw_cpu_ms",
             "max_btw_cpu_ms", "filtered_deg", "smoothed_deg", "vs_batch_deg", "E_max",

@@ -64,6 +64,24 @@ def test_floor_keeps_sustained_small_deviations_quiet():
     assert hits == [False, False, True, True, True]
 
 
+def test_without_learning_a_misfit_start_does_not_hide_a_disturbance():
+    """learn_sigma=False (StreamOptions.disturb_learn_sigma): a start calibration that misfits its own learning window
+    (BROAD 36: ±5.5–8 %; here ē = 0.08 there) no longer sets σ_f — with learning σ_f = 0.08 / √0.4549 = 0.119 and a
+    later 7 % deviation never alarms (z² = 0.35); without, σ_f stays at the floor 0.06 / √κ = 0.0233, z² = 9.0 > κ, g
+    grows by 2.37 per interval and the alarm rises at the 7th (16.6 > h)."""
+    def run(learn: bool):
+        det = DisturbanceDetector(np.eye(3), np.zeros(3), 0.01, 0.0, learn_s=2.0, learn_sigma=learn)
+        for k in range(20):
+            assert det.step(0.1 * k, 0.1 * (k + 1), _rows(0.08)) == (False, None)
+        return det, [det.step(2.0 + 0.1 * k, 2.1 + 0.1 * k, _rows(0.07))[0] for k in range(10)]
+
+    det, hits = run(True)
+    assert det.sigma_f == pytest.approx(0.08 / np.sqrt(0.454936), rel=1e-4) and not any(hits)
+    det, hits = run(False)
+    assert det.sigma_f == pytest.approx(0.06 / np.sqrt(KAPPA), rel=1e-5)
+    assert hits == [False] * 6 + [True] * 4
+
+
 def test_field_norm_sigma():
     """σ_d (x along the horizontal field, z up) projected on n̂ = (cos δ, 0, −sin δ)."""
     assert field_norm_sigma((0.015, 0.003, 0.015), 1.2) == pytest.approx(0.015)

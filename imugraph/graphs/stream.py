@@ -294,9 +294,12 @@ class StreamSmoother(OnlineCalibrationMixin, KeyframeStartMixin, ArrivalMixin, S
             values.insert(field_key(k + 1), np.exp(-dt_k / self.opt.field_tau) * self._d)
             stamps[field_key(k + 1)] = t_next - self._t0
         if ok.any() and not (flagged and self.opt.disturb_orient):
-            if self.opt.lag_s is None:               # for the final re-issue (iSAM2 keeps every factor)
+            f_mag = self._mag_factor(k, kRb, y, no_theta=flagged, into=(graph, values, stamps, t_next - self._t0))
+            if self.opt.lag_s is None:               # for the final re-issue (iSAM2 keeps every factor): the index
+                # once built — a new window's Δo_w prior goes into `graph` first (stream_offsets.added); indexed
+                # before, the re-issue replaced that prior and kept the linearised factor too (BROAD 30: 0.132°)
                 self._mag_index[k] = self._n_factors + graph.size()
-            graph.add(self._mag_factor(k, kRb, y, no_theta=flagged, into=(graph, values, stamps, t_next - self._t0)))
+            graph.add(f_mag)
         # prediction of keyframe k+1 from the latest estimate of keyframe k
         nRk = self._nRk.matrix()
         c = np.array([0.0, 0.0, -self._g]) * dt_k + nRk @ dv

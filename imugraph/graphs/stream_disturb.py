@@ -79,11 +79,12 @@ class DisturbanceDetector:
         merge_s: an alarm rising within this of the previous window's end continues that window (as the batch's
             MERGE_S: a body-fixed offset changes the norm with the orientation, so its z_k can dip for a moment).
         min_deviation: the floor's deviation (σ_f ≥ min_deviation / √κ); 0: no floor.
+        learn_sigma: False: σ_f is not learned (the learning window only holds the alarms back): sigma_f and the floor.
     """
 
     def __init__(self, D0: np.ndarray, o0: np.ndarray, sigma_f: float, sigma_n: float, p_alarm: float = 1e-4,
                  p_drift: float = 0.01, pad_s: float = PAD_S, max_lag_s: float = 2.0, learn_s: float = 0.0,
-                 merge_s: float = MERGE_S, min_deviation: float = MIN_THRESHOLD):
+                 merge_s: float = MERGE_S, min_deviation: float = MIN_THRESHOLD, learn_sigma: bool = True):
         self.D_inv = np.linalg.inv(np.asarray(D0, float))
         self.o = np.asarray(o0, float)
         self.kappa = float(chi2.ppf(1.0 - p_drift, 1))
@@ -96,7 +97,7 @@ class DisturbanceDetector:
         self.alarm = False
         self.t_rise = None          # start time of the current excursion of g above 0 (the change-point estimate)
         self.spans: list = []       # [onset, end] per window (s; end = last hot interval's end + pad_s, updated)
-        self.learn_s, self.t0 = float(learn_s), None
+        self.learn_s, self.t0, self.learn_sigma = float(learn_s), None, bool(learn_sigma)
         self._learn = array("d")    # ē_k² over the learning window (8 bytes per keyframe; freed after it)
 
     def mean_deviation(self, y: np.ndarray) -> tuple[float, int]:
@@ -126,7 +127,7 @@ class DisturbanceDetector:
         if self.t0 is None:
             self.t0 = t_start
         if t_start - self.t0 < self.learn_s:          # the learning window: σ_f², no alarm
-            if n:
+            if n and self.learn_sigma:
                 self._learn.append(e * e)
             return False, None
         if len(self._learn):                           # end of learning: σ_f² ≥ median ē_k² / (χ²₁ median)

@@ -115,7 +115,8 @@ class OnlineCalibrationMixin:
                 cal.D, cal.o, field_norm_sigma(opt.field_sigma, cal.dip_rad),
                 float(np.mean(self._sig_y)) / self._online_scale,
                 opt.disturb_p_alarm, opt.disturb_p_drift, opt.disturb_pad_s,
-                max(opt.lag_s or 0.0, opt.calib_delay_s), max(learn_s, opt.disturb_learn_s))
+                max(opt.lag_s or 0.0, opt.calib_delay_s), max(learn_s, opt.disturb_learn_s),
+                learn_sigma=opt.disturb_learn_sigma)
         weak = weak_prior(cal, weak_scale) if opt.calib_weak_prior and opt.online_calibration else None
         if weak is None:
             return

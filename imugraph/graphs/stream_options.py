@@ -141,6 +141,11 @@ class StreamOptions:
     disturb_p_drift: float = 0.01
     disturb_pad_s: float = PAD_S       # the batch's window padding (calibration.disturbance)
     disturb_learn_s: float = 10.0
+    # σ_f of stream_disturb eq. (1) learned over the bootstrap window (True, the robust RMS of ē_k about 0), or
+    # False: the floor only (the batch's MIN_THRESHOLD: a sustained 6 % deviation never accumulates). A start that
+    # misfits its own rows (BROAD 36: −5.5 % at rest, +8 % in motion) inflates the learned σ_f (0.08) past every
+    # later disturbance; benchmarks/a_cal_verdict.py, docs/stream.md "Task A".
+    disturb_learn_sigma: bool = True
     disturb_orient: bool = False
     disturb_offsets: bool = True
     calib_weak_prior: bool = False

@@ -11,7 +11,7 @@ how many rows that is).
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Callable, Optional
 
 import numpy as np
@@ -47,7 +47,8 @@ class StreamResult:
 
 
 def bootstrap_calibration(session: Session, bootstrap_s: float, keyframe_hz: float = 10.0,
-                          allow_weak: bool = True, grow: float = 1.5, gyro_map: bool | None = None) -> tuple[Calibration, int]:
+                          allow_weak: bool = True, grow: float = 1.5, gyro_map: bool | None = None,
+                          overrides: dict | None = None) -> tuple[Calibration, int]:
     """ML calibration of the first seconds of the stream: (calibration, number of samples used).
 
     Starts with `bootstrap_s` seconds and, while that window holds too little rotation to identify D and o
@@ -63,6 +64,7 @@ def bootstrap_calibration(session: Session, bootstrap_s: float, keyframe_hz: flo
 
     gyro_map: estimate the gyro scale/misalignment E (`calibration.ml.Options.gyro_map`; None: its default,
     as the batch path); the stream applies (I + E) to every incoming gyro sample (`StreamSmoother.push`).
+    overrides: further `calibration.ml.Options` fields (benchmarks: e.g. window_trial_verdict=False); None: defaults.
 
     Raises:
         SessionError: a bootstrap window shorter than 2 s of data.
@@ -81,6 +83,8 @@ def bootstrap_calibration(session: Session, bootstrap_s: float, keyframe_hz: flo
         last = n >= session.n
         try:
             opt = Options(keyframe_hz=keyframe_hz) if gyro_map is None else Options(keyframe_hz=keyframe_hz, gyro_map=gyro_map)
+            if overrides:
+                opt = replace(opt, **overrides)
             est = calibrate(session.slice(0, n), opt, allow_weak=last and allow_weak)
             if last or b_rest is None or np.max(np.abs(est.calibration.gyro_bias - b_rest)) <= BIAS_TOL:
                 return est.calibration, n
