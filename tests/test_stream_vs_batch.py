@@ -173,7 +173,11 @@ def test_real_arrival_problem_counted_and_harmless(broad, kind):
         assert st.late_dropped == len(late) and st.accepted == n - len(late)
         assert st.missing == st.gaps == len(late) and gap < 0.2       # as a 1-row gap each (0.050° measured)
     elif kind == "missing":
-        assert (st.gaps, st.missing, st.accepted) == (1, 50, n - 50) and gap < 0.2
+        # 0.175 s never arrive: the held rate is trusted as the gap model says (factors.gaps eq. G1), so the
+        # orientation after the gap leans on this crude calibration's field more than the clean run's does (0.74°
+        # from it, measured; 0.08° with the gap model off) — harmless where it counts: against the truth
+        assert (st.gaps, st.missing, st.accepted) == (1, 50, n - 50) and gap < 1.0
+        assert _truth(smoothed, t_kept, s) < _truth(clean[1], clean[2], s) + 0.2
     elif kind == "mag_quarter_rate":
         assert st.mag_samples == len(range(0, n, 4)) and st.accepted == n
         # 4× fewer field samples: not the clean run's result (0.29° from it, measured), but as accurate
