@@ -145,7 +145,8 @@ class StreamOptions:
     # False: the floor only (the batch's MIN_THRESHOLD: a sustained 6 % deviation never accumulates). A start that
     # misfits its own rows (BROAD 36: −5.5 % at rest, +8 % in motion) inflates the learned σ_f (0.08) past every
     # later disturbance; benchmarks/a_cal_verdict.py, docs/stream.md "Task A".
-    disturb_learn_sigma: bool = True
+    # (default False since session 16: 17/17 BROAD trials within 3 std of the batch, filtered mean 1.30 → 1.33°)
+    disturb_learn_sigma: bool = False
     disturb_orient: bool = False
     disturb_offsets: bool = True
     calib_weak_prior: bool = False
