@@ -329,7 +329,8 @@ def _velocity_model(opt: Options, vel: dict) -> VelocityModel | None:
     if opt.linear_acceleration != "velocity":
         return None
     return VelocityModel(vel["sigma"], vel["tau"], vel.get("kappa_a", opt.acc_rate_error), opt.acc_kernel, vel["s"],
-                         opt.acc_bias, rest=vel["rest"], ar2=vel.get("ar2"))
+                         opt.acc_bias, rest=vel["rest"], ar2=vel.get("ar2"),
+                         position=None if opt.position_sigma is None else (opt.position_sigma, opt.position_tau))
 
 
 def _heading_stage(session, opt, pre, values, noise, g_used, theta, bias, seg, mag_state, vel):

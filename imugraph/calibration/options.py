@@ -86,6 +86,16 @@ class Options:
     #   0.509°), 0.016–0.020 on 04/07/32 (±0.003°), at the floor on 02/15/16 (ML 0.000/0.007/0.000: 16's slow
     #   tilt is not a κ_a|f| error by this likelihood; the AR(2) process takes the vigorous motion). Cost ≈ 0.3 s
     #   CPU per round on a BROAD trial
+    position_sigma: float | None = None   # σ_p, m: keyframe positions integrating the velocities with a bounded
+    #   (stationary Gauss–Markov) prior, the sensor stays within reach (graphs/velocity_block.py (P1)); None: off.
+    #   Why (H11, benchmarks/h11_slow_drift.py): on BROAD 02/06 the smoothed velocities integrate to 4.9/18.6 m of
+    #   travel (optical 0.56/0.46 m); the slow tilt about north is that phantom velocity (ė_v,y = −g ε_x, corr 0.90/0.82)
+    #   and the magnetometer turns it into heading (ψ ≈ −tan δ ε_x, tan δ ≈ 2.7). BROAD, all 17 (h11_position.py
+    #   --variant "position_sigma=1.0" ...): mean 0.647° → 0.639°, inclination 02 0.293 → 0.249°, 06 0.345 → 0.286°,
+    #   but 06 0.557 → 0.591°, 07 0.506 → 0.550° (heading: the field's slow y deviation then goes to ψ); with
+    #   field_sigma=(0.015, 0.006, 0.015): 0.606°, behind offline VQF only 02 (0.370 vs 0.366°), 16 (0.377 vs
+    #   0.370°), 32 +0.017° (docs/results_issue2.md, session 16). Off: the σ_y setting was chosen on BROAD
+    position_tau: float = 30.0        # τ_p, s: the position prior's correlation time
     zero_velocity_at_rest: bool = False  # v = 0 ± 0.02 m/s at detected rest: BROAD 04 1.79 → 0.92°,
     #                                      but 01 1.59 → 1.99°, 30 1.11 → 2.01° (acc errors then tilt)
     acc_bias: bool = False            # a slowly varying accelerometer bias in the velocity state: off,

@@ -89,6 +89,7 @@ class VelocityModel:
     rest: np.ndarray | None = None    # (N,) samples at rest: keyframes whose interval rests get v = 0
     sigma_rest: float = 0.02          # m/s, std of that zero-velocity prior
     ar2: tuple | None = None          # (a_1, a_2, q): AR(2) process replacing (σ_v, τ_v) (calibration/velocity_ar2)
+    position: tuple | None = None     # (σ_p m, τ_p s): bounded keyframe positions (velocity_block (P1)); None: none
 
 
 @dataclass
@@ -206,13 +207,23 @@ def build_problem(pre: Preintegration, b_acc: np.ndarray, b_mag: np.ndarray, noi
             rest_kf = moving == 0
         vblock = VelocityBlock(dv, sig_dv, pre.dt, g, velocity.sigma_v, velocity.tau_v, velocity.kernel,
                                B, velocity.acc_bias_sigma0, velocity.acc_bias_rw, rest_kf, velocity.sigma_rest,
-                               velocity.ar2)
+                               velocity.ar2, position=velocity.position)
         if vblock.ar2 is not None:   # linear in the velocities: exact C++ factors, no Python per iteration
             graph.push_back(vblock.ar2_graph())
             vblock.ar2_in_graph = True
         v0 = np.zeros((K, vblock.state_dim)) if velocity.v0 is None else velocity.v0
         for k in range(K if fill else 0):
             values.insert(vk[k], np.asarray(v0[k], float))
+        if vblock.position is not None:     # bounded positions (velocity_block (P1)): linear, C++ factors
+            from imugraph.graphs.velocity_block import initial_positions, pos_key
+            graph.push_back(vblock.position_graph())
+            pk = state_keys(pos_key, K)
+            if not values.exists(pk[0]):    # a start without positions (first solve, or a previous one without)
+                p0 = initial_positions(keyframe_vectors(values, keys.vel, K), pre.dt)
+                for k in range(K):
+                    values.insert(pk[k], p0[k])
+            # robust weights held for this solve, from the previous solution (a first solve: none yet, all 1)
+            vblock.fixed_weights = (np.ones(K - 1) if fill else vblock.terms(*vblock._state(values))[2])
     fblock = None
     if field is not None and theta0 is not None:
         from imugraph.factors.field import field_key
@@ -226,6 +237,8 @@ def build_problem(pre: Preintegration, b_acc: np.ndarray, b_mag: np.ndarray, noi
         order.append(rk[k])
         if vblock is not None:
             order.append(vk[k])
+            if vblock.position is not None:
+                order.append(pk[k])
         if fblock is not None:
             order.append(fk[k])
         if gblock is not None and k < K - 1:

@@ -18,6 +18,20 @@ interval 0's rows, zero rows elsewhere — and one more factor per k = 1 … K�
 The zero rows are left out of the interval factors. The AR(2) terms are linear in the velocities, so
 `single_imu.build_problem` puts them into the nonlinear graph once per solve as C++ LinearContainerFactors
 (`ar2_graph`; GTSAM re-linearises them exactly), instead of K Python-built factors per LM iteration.
+
+A bounded position (`position` = (σ_p, τ_p), Options.position_sigma; H11): a velocity process alone bounds the
+velocity but not its integral, and on the BROAD rotation trials the smoothed velocities integrate to 5–19 m of
+travel where the optical position spans 0.5 m (benchmarks/h11_slow_drift.py): a slow tilt error ε leaks g·ε
+into the horizontal specific force and the chain carries it as a phantom velocity (ė_v,y = −g ε_x). The sensor
+stays within reach, so keyframe positions p_k (nav frame, m; key `pos_key`) integrate the velocities
+(Euler: its error against the true position, Σ(v_{k+1} − v_k)Δt/2, telescopes and stays ≤ |v|Δt/2) and get
+a stationary Gauss–Markov prior like the field perturbation's:
+
+    (p_{k+1} − p_k − v_k Δt_k) / σ_kin = 0 ± 1,    p_0 ~ N(0, σ_p² I),    p_{k+1} = φ_k p_k + w_k,
+    φ_k = exp(−Δt_k/τ_p),   w_k ~ N(0, σ_p² (1 − φ_k²) I)                                      (P1)
+
+A tilt error ε held for T seconds moves the position by ½ g ε T² (0.1° for 10 s: 8.6 m), so even a
+room-sized σ_p pins the slow tilt. All terms are linear: C++ factors added once per solve (`position_graph`).
 """
 
 from __future__ import annotations
@@ -31,6 +45,21 @@ from imugraph import keys
 from imugraph.factors.robust import QUADRATIC, Kernel
 from imugraph.factors.velocity import ar2_residuals, ar2_stationary, gauss_markov_axes, velocity_model
 from imugraph.graphs.solver import keyframe_rotations, keyframe_vectors, state_keys
+
+
+POSITION_KIN_SIGMA = 1e-3      # m: σ_kin of (P1), the Euler step held nearly exact (its error is bounded anyway)
+
+
+def pos_key(k: int) -> int:
+    """Key of keyframe k's position p_k (Vector3, nav frame, m; Options.position_sigma)."""
+    return gtsam.symbol("p", int(k))
+
+
+def initial_positions(v: np.ndarray, dt_k: np.ndarray) -> np.ndarray:
+    """(K, 3) Euler-integrated positions of velocities v (K, ≥3) with p_0 = 0, the start of the p_k keys."""
+    p = np.zeros((len(v), 3))
+    p[1:] = np.cumsum(np.asarray(v, float)[:-1, :3] * np.asarray(dt_k, float)[:, None], axis=0)
+    return p
 
 
 @dataclass
@@ -56,6 +85,12 @@ class VelocityBlock:
     ar2: tuple | None = None          # (a_1, a_2, q): AR(2) velocity process replacing (σ_v, τ_v); K ≥ 3
     ar2_in_graph: bool = False        # the AR(2) terms are C++ factors of the graph (`ar2_graph`): then neither
     #                                   `cost` nor `linearize` evaluates them in Python
+    position: tuple | None = None     # (σ_p m, τ_p s): keyframe positions with a bounded prior (P1), C++ factors
+    #                                   of the graph (`position_graph`); None: no position state
+    fixed_weights: np.ndarray | None = None   # (K−1,) robust weights of the increments held for a whole solve
+    #   (the ML rounds re-weight between solves); None: re-weighted at every linearisation (IRLS). Set with a
+    #   position state: its long-range coupling made the per-iteration re-weighting creep (BROAD 01, position_sigma
+    #   1.0, benchmarks/h11_position.py: 5.2 s CPU per-iteration, 1.7 s held, 0.707° both)
 
     @property
     def n_keyframes(self) -> int:
@@ -75,7 +110,7 @@ class VelocityBlock:
         b = None if self.B is None else s[:, 3:]
         e, J_R = velocity_model(nRk, v, self.dv, self.dt_k, self.g, b, self.B)
         r = e / self.sigma_dv[:, None]
-        w = self.kernel.weight(np.linalg.norm(r, axis=1))
+        w = self.kernel.weight(np.linalg.norm(r, axis=1)) if self.fixed_weights is None else self.fixed_weights
         phi, sigma_w = gauss_markov_axes(self.dt_k, self.sigma_v, self.tau_v)      # (K−1, 3) each
         if self.ar2 is not None:       # only v_1 | v_0 here (σ_w = ∞: zero rows); the rest: `_ar2_factors`
             gamma0, rho1 = ar2_stationary(*self.ar2)
@@ -96,8 +131,11 @@ class VelocityBlock:
     def cost_at(self, nRk: np.ndarray, s: np.ndarray, with_ar2: bool = True) -> float:
         """The block's cost at orientations nRk (K, 3, 3) and states s (K, d); with_ar2=False leaves out the
         AR(2) terms (when they are in the graph: `ar2_graph`)."""
-        r, _, _, _, _, gm, walk = self.terms(nRk, s)
-        total = self.kernel.rho(np.linalg.norm(r, axis=1)).sum() + 0.5 * np.sum(gm**2)
+        r, _, w, _, _, gm, walk = self.terms(nRk, s)
+        if self.fixed_weights is None:
+            total = self.kernel.rho(np.linalg.norm(r, axis=1)).sum() + 0.5 * np.sum(gm**2)
+        else:                                  # held weights: the weighted quadratic that `linearize` describes
+            total = 0.5 * np.sum(w * np.sum(r**2, axis=1)) + 0.5 * np.sum(gm**2)
         total += 0.5 * np.sum((s[0] / self._prior_sigma()) ** 2)
         if walk is not None:
             total += 0.5 * np.sum(walk**2)
@@ -174,6 +212,30 @@ class VelocityBlock:
         zero = gtsam.Values()
         for key in vk:
             zero.insert(key, np.zeros(self.state_dim))
+        return gtsam.LinearContainerFactor.ConvertLinearGraph(gfg, zero)
+
+    def position_graph(self, sigma_kin: float = POSITION_KIN_SIGMA) -> gtsam.NonlinearFactorGraph:
+        """The position terms (P1) as C++ nonlinear factors (exact: linear in p and v), as `ar2_graph`."""
+        sigma_p, tau_p = self.position
+        K, d = self.n_keyframes, self.state_dim
+        vk, pk = state_keys(keys.vel, K), state_keys(pos_key, K)
+        phi = np.exp(-self.dt_k / max(float(tau_p), 1e-9))
+        sigma_w = float(sigma_p) * np.sqrt(np.maximum(1.0 - phi**2, 1e-12))
+        gfg = gtsam.GaussianFactorGraph()
+        eye, unit3 = np.eye(3), gtsam.noiseModel.Unit.Create(3)
+        gfg.push_back(gtsam.JacobianFactor(pk[0], eye / float(sigma_p), np.zeros(3), unit3))
+        for k in range(K - 1):
+            A_v = np.zeros((3, d))
+            A_v[:, :3] = -eye * self.dt_k[k] / sigma_kin
+            gfg.push_back(gtsam.JacobianFactor(pk[k], -eye / sigma_kin, pk[k + 1], eye / sigma_kin, vk[k], A_v,
+                                               np.zeros(3), unit3))
+            gfg.push_back(gtsam.JacobianFactor(pk[k], -phi[k] * eye / sigma_w[k], pk[k + 1], eye / sigma_w[k],
+                                               np.zeros(3), unit3))
+        zero = gtsam.Values()
+        for key in vk:
+            zero.insert(key, np.zeros(d))
+        for key in pk:
+            zero.insert(key, np.zeros(3))
         return gtsam.LinearContainerFactor.ConvertLinearGraph(gfg, zero)
 
     def _ar2_factors(self, gfg: gtsam.GaussianFactorGraph, s: np.ndarray, vk: list) -> None:
