@@ -10,12 +10,20 @@ Targets: ≤ 2° per joint, ≤ 2 cm.
 
     .venv/bin/python benchmarks/body_sim_accuracy.py [--motions cmu131_01,cmu131_02,xsens] [--seeds 0]
         [--duration S] [--lower] [--mag both|off|on] [--lag S] [--tie] [--bias-walk SIGMA]
-        [--hinges knees] [--axial shanks|thighs|legs]
+        [--hinges knees] [--axial shanks|thighs|legs] [--unsensed SIGMA_DEG[,SIGMA_DEG…]]
+        [--unsensed-prior fixed|shared] [--unsensed-chains Head] [--unsensed-npose-sigma DEG]
+        [--unsensed-gain G]
 
 --duration limits the BVH time used (after the Xsens export's T-pose frame); --lower simulates the 7-sensor
 lower body only (quick runs); --tie makes the truth's unsensed segments (spine links, neck, toes) follow
 the estimator's ties instead of the BVH (isolates the estimator from that model error); --lag S also runs
-the fixed-lag smoother (imugraph.graphs.body_incremental). With several seeds a second table gives, per motion
+the fixed-lag smoother (imugraph.graphs.body_incremental); --unsensed σ models the unsensed links between two
+sensed segments (neck, lumbar spine) as estimated segments with σ (degrees) per joint on their shared relative
+rotation (BodyOptions.unsensed_sigma_rad, imugraph.graphs.body_chain; batch only); several comma-separated
+values, or "off" among them (the default model), each solve the same simulated session; --unsensed-prior and
+--unsensed-chains set BodyOptions.unsensed_prior and unsensed_chains (e.g. "Head": the neck only),
+--unsensed-npose-sigma BodyOptions.unsensed_npose_sigma_rad (in degrees), --unsensed-gain
+BodyOptions.unsensed_sigma_gain. With several seeds a second table gives, per motion
 and magnetometer setting, the worst joint and position over the seeds (`seed_summary`).
 Writes bench_out/body_sim_accuracy.json.
 """
@@ -54,24 +62,28 @@ def _solve(session, use_mag: bool, lag: float | None, opts_kw: dict | None = Non
 
 
 def run_case(name: str, seed: int, duration: float | None, lower: bool, mags: list[bool],
-             lags: list, tie: bool = False, bias_walk: float = 0.0, opts_kw: dict | None = None) -> list[dict]:
+             lags: list, tie: bool = False, bias_walk: float = 0.0, opts_kw: dict | None = None,
+             unsensed: tuple = (None,)) -> list[dict]:
     """Simulate one motion once, solve it with and/or without magnetometers, score; one record per solve
-    (opts_kw: extra BodyOptions fields, e.g. hinges and axial_segments)."""
+    (opts_kw: extra BodyOptions fields, e.g. hinges and axial_segments; unsensed: values of
+    BodyOptions.unsensed_sigma_rad in degrees, None = the default lumped model, one solve each)."""
     from imugraph.body.evaluate import score_against_truth
 
     skel, session, mask = simulated_session(name, seed, duration, lower, tie=tie, bias_walk=bias_walk)
     out = []
-    for use_mag, lag in ((m, g) for m in mags for g in lags):
-        label = f"{name} s{seed} {'mag' if use_mag else 'no-mag'}" + ("" if lag is None else f" lag {lag:g}")
+    for use_mag, lag, uns in ((m, g, u) for m in mags for g in lags for u in unsensed):
+        label = (f"{name} s{seed} {'mag' if use_mag else 'no-mag'}" + ("" if lag is None else f" lag {lag:g}")
+                 + ("" if uns is None else f" uns{uns:g}"))
+        kw = dict(opts_kw or {}, **({} if uns is None else {"unsensed_sigma_rad": float(np.deg2rad(uns))}))
         t0 = time.perf_counter()
         try:
-            result = _solve(session, use_mag, lag, opts_kw)
+            result = _solve(session, use_mag, lag, kw)
         except Exception as exc:              # record a solver failure, go on with the other cases
             print(f"  {label}: failed ({type(exc).__name__}: {str(exc)[:160]})")
             continue
         secs = time.perf_counter() - t0
         scores = score_against_truth(result, session.truth, skel, mask)
-        out.append({"label": label, "motion": name, "seed": seed, "use_mag": use_mag, "lag_s": lag,
+        out.append({"label": label, "motion": name, "seed": seed, "use_mag": use_mag, "lag_s": lag, "unsensed_deg": uns,
                     "realtime_factor": result.info.get("realtime_factor"), "samples": int(session.n),
                     "duration_s": float(session.t[-1]), "sensors": len(session.sensors), "seconds": secs,
                     "iterations": [p.get("iterations") for p in result.info.get("passes", [])],
@@ -87,15 +99,16 @@ def seed_summary(records: list[dict]) -> list[list]:
     joint), median of the per-seed worst joint, position RMS (max, median), worst single segment, targets met."""
     groups: dict = {}
     for r in records:
-        groups.setdefault((r["motion"], r["use_mag"], r["lag_s"]), []).append(r)
+        groups.setdefault((r["motion"], r["use_mag"], r["lag_s"], r.get("unsensed_deg")), []).append(r)
     rows = []
-    for (motion, mag, lag), rs in groups.items():
+    for (motion, mag, lag, uns), rs in groups.items():
         jm = [r["row"]["joint_max_deg"] for r in rs]
         pr = [r["row"]["pos_rms_cm"] for r in rs]
         pw = [r["row"]["pos_worst_cm"] for r in rs]
         w = int(np.argmax(jm))
         ok = max(jm) <= 2.0 and max(pr) <= 2.0
-        rows.append([f"{motion} {'mag' if mag else 'no-mag'}" + ("" if lag is None else f" lag {lag:g}"), len(rs),
+        rows.append([f"{motion} {'mag' if mag else 'no-mag'}" + ("" if lag is None else f" lag {lag:g}")
+                     + ("" if uns is None else f" uns{uns:g}"), len(rs),
                      max(jm), f"s{rs[w]['seed']} {rs[w]['row']['worst_joint']}", float(np.median(jm)), max(pr),
                      float(np.median(pr)), f"{max(pw):.2f} {rs[int(np.argmax(pw))]['row']['worst_segment']}",
                      "yes" if ok else "NO"])
@@ -119,6 +132,12 @@ def main(argv=None) -> int:
     ap.add_argument("--lag", type=float, default=None, help="also run the fixed-lag smoother with this lag, s")
     ap.add_argument("--hinges", default="", help="'knees' or comma-separated hinge child segments (BodyOptions.hinges)")
     ap.add_argument("--axial", default="", help="'shanks', 'thighs', 'legs' or segments (BodyOptions.axial_segments)")
+    ap.add_argument("--unsensed", default="off", help="σ in degrees (comma-separated; 'off': lumped joints) of "
+                    "BodyOptions.unsensed_sigma_rad")
+    ap.add_argument("--unsensed-prior", choices=("shared", "fixed"), default=None, help="BodyOptions.unsensed_prior")
+    ap.add_argument("--unsensed-chains", default="", help="comma-separated distal segments (BodyOptions.unsensed_chains)")
+    ap.add_argument("--unsensed-npose-sigma", type=float, default=None, help="unsensed_npose_sigma_rad in degrees")
+    ap.add_argument("--unsensed-gain", type=float, default=None, help="BodyOptions.unsensed_sigma_gain (rad per rad)")
     ap.add_argument("--out", default="body_sim_accuracy.json", help="file name in bench_out/")
     a = ap.parse_args(argv)
     legs = {"thighs": ("RightUpperLeg", "LeftUpperLeg"), "shanks": ("RightLowerLeg", "LeftLowerLeg"),
@@ -127,6 +146,15 @@ def main(argv=None) -> int:
     opts_kw = {k: legs.get(v, tuple(x for x in v.split(",") if x)) for k, v in
                (("hinges", a.hinges), ("axial_segments", a.axial)) if v}
     mags = {"both": [False, True], "off": [False], "on": [True]}[a.mag]
+    unsensed = tuple(None if v == "off" else float(v) for v in a.unsensed.split(","))
+    if a.unsensed_prior:
+        opts_kw["unsensed_prior"] = a.unsensed_prior
+    if a.unsensed_gain is not None:
+        opts_kw["unsensed_sigma_gain"] = a.unsensed_gain
+    if a.unsensed_npose_sigma is not None:
+        opts_kw["unsensed_npose_sigma_rad"] = float(np.deg2rad(a.unsensed_npose_sigma))
+    if a.unsensed_chains:
+        opts_kw["unsensed_chains"] = tuple(x for x in a.unsensed_chains.split(",") if x)
     records = []
     for name in a.motions.split(","):
         if not motion_path(name).exists():
@@ -134,7 +162,7 @@ def main(argv=None) -> int:
             continue
         for seed in (int(s) for s in a.seeds.split(",")):
             records += run_case(name, seed, a.duration, a.lower, mags, [None] + ([a.lag] if a.lag else []), a.tie,
-                                a.bias_walk, opts_kw)
+                                a.bias_walk, opts_kw, unsensed)
     if not records:
         print("no motion data found")
         return 1
@@ -148,7 +176,8 @@ def main(argv=None) -> int:
     print_table([[r["label"]] + [r["scores"]["joints"][j]["all"] if j in r["scores"]["joints"] else "" for j in joints]
                  for r in records], ["joint RMSE (°)"] + joints)
     payload = {"issue": "4a", "noise": NOISE, "rate_hz": 60.0, "lower_body": a.lower, "duration": a.duration,
-               "tie_unsensed": a.tie, "gyro_bias_walk": a.bias_walk, "options": {k: list(v) for k, v in opts_kw.items()},
+               "tie_unsensed": a.tie, "gyro_bias_walk": a.bias_walk, "options": {k: (list(v) if isinstance(v, tuple) else v) for k, v in opts_kw.items()},
+               "unsensed_deg": list(unsensed),
                "targets": {"joint_rmse_deg": 2.0, "position_cm": 2.0}, "peak_memory_mb": peak_memory_mb(),
                "command": "benchmarks/body_sim_accuracy.py " + " ".join(sys.argv[1:] if argv is None else argv),
                "over_seeds": [dict(zip(SEED_COLUMNS, row)) for row in summary],

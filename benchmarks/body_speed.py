@@ -16,6 +16,11 @@ rotation (deg), worst joint, and of segment origins relative to the pelvis (cm, 
     .venv/bin/python benchmarks/body_speed.py [--duration 60] [--modes batch,lag,isam2] [--keyframe-every 6]
                                               [--lag 1.0] [--update-every 5] [--lag-keyframe-every 6]
                                               [--lag-iterations 1] [--bootstrap-s auto] [--factorization QR]
+                                              [--unsensed SIGMA_DEG] [--unsensed-prior fixed] [--unsensed-chains Head]
+                                              [--unsensed-npose-sigma DEG] [--unsensed-gain G]
+
+--unsensed* set BodyOptions.unsensed_sigma_rad (given in degrees), unsensed_prior and unsensed_chains of the
+batch (imugraph.graphs.body_chain: a second batch pass; the fixed-lag smoother does not use them).
 
 Writes bench_out/body_speed.json (--out-name to change).
 """
@@ -99,6 +104,11 @@ def main(argv=None) -> int:
                     help="batch bootstrap of the incremental modes: 'auto' (until enough motion), seconds, or 0: none")
     ap.add_argument("--factorization", default=None, help="QR or CHOLESKY (default: Cholesky after a bootstrap)")
     ap.add_argument("--lag-iterations", type=int, default=1)
+    ap.add_argument("--unsensed", type=float, default=None, help="BodyOptions.unsensed_sigma_rad in degrees (batch)")
+    ap.add_argument("--unsensed-prior", default="shared", help="BodyOptions.unsensed_prior")
+    ap.add_argument("--unsensed-chains", default="", help="comma-separated distal segments (unsensed_chains)")
+    ap.add_argument("--unsensed-npose-sigma", type=float, default=None, help="unsensed_npose_sigma_rad in degrees")
+    ap.add_argument("--unsensed-gain", type=float, default=None, help="BodyOptions.unsensed_sigma_gain (rad per rad)")
     ap.add_argument("--out-name", default="body_speed.json", help="file name under bench_out/")
     a = ap.parse_args(argv)
     sess, skel, nom, psi0 = make_session(a.duration)
@@ -106,7 +116,13 @@ def main(argv=None) -> int:
            "keyframe_every": a.keyframe_every, "peak_rss_after_sim_mb": peak_rss_mb(), "runs": {}}
     print(f"{len(sess.sensors)} IMUs × {a.duration:.0f} s × 60 Hz ({sess.t.size} samples); "
           f"peak RSS after simulation {out['peak_rss_after_sim_mb']:.0f} MB", flush=True)
-    opts = BodyOptions(placements=nom, npose_heading_deg=psi0, keyframe_every=a.keyframe_every)
+    chain_kw = {} if a.unsensed is None else {
+        "unsensed_sigma_rad": float(np.deg2rad(a.unsensed)), "unsensed_prior": a.unsensed_prior,
+        "unsensed_chains": tuple(x for x in a.unsensed_chains.split(",") if x),
+        "unsensed_npose_sigma_rad": None if a.unsensed_npose_sigma is None else float(np.deg2rad(a.unsensed_npose_sigma)),
+        "unsensed_sigma_gain": a.unsensed_gain}
+    out["unsensed"] = {k: (list(v) if isinstance(v, tuple) else v) for k, v in chain_kw.items()}
+    opts = BodyOptions(placements=nom, npose_heading_deg=psi0, keyframe_every=a.keyframe_every, **chain_kw)
     for mode in a.modes.split(","):
         t0, c0 = time.perf_counter(), time.process_time()
         if mode == "batch":

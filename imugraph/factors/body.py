@@ -56,8 +56,10 @@ def lever_key(i: int) -> int:
 
 
 def key_dim(key: int) -> int:
-    """Tangent dimension of a body-graph key (from its character; a, o: imugraph.factors.body_axial)."""
-    return {"x": 6, "v": 3, "b": 6, "j": 3, "l": 3, "a": 1, "o": 1}[chr(gtsam.Symbol(key).chr())]
+    """Tangent dimension of a body-graph key (from its character; a, o: imugraph.factors.body_axial; u, q, n:
+    imugraph.graphs.body_chain)."""
+    dims = {"x": 6, "v": 3, "b": 6, "j": 3, "l": 3, "a": 1, "o": 1, "u": 6, "q": 3, "n": 3}
+    return dims[chr(gtsam.Symbol(key).chr())]
 
 
 def joint_factors(j_key: int, pose_P: int, lever_P: int, pose_C: int, lever_C: int,

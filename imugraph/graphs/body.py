@@ -63,7 +63,7 @@ import numpy as np
 
 from imugraph.errors import SessionError
 from imugraph.factors import body as bf
-from imugraph.graphs import body_axial
+from imugraph.graphs import body_axial, body_chain
 from imugraph.graphs.body_init import initial_orientations, initial_values, nominal_levers
 from imugraph.graphs.body_model import (BodyJoint, BodyOptions, bias_segments, body_joints,  # noqa: F401
                                         check_session, keyframes, npose_samples, sample_turn, sensor_setup)
@@ -90,6 +90,10 @@ class BodyProblem:
     mag_sigmas: dict | None = None     # per-sensor σ of the field direction (B5'; None: BodyOptions.mag_sigma)
     mag_active: bool = True            # False during the magnetometer-free first pass (mag_sigma_ml)
     bias_seg: np.ndarray | None = None  # (K,) bias segment of each keyframe (body_model.bias_segments)
+    chains: list | None = None         # unsensed links as segments (body_chain, second pass; None: lumped)
+    chain_place: dict | None = None    # first-pass placements {seg: (bRs, b_pos)} the chain factors use
+    chain_targets: dict | None = None  # first-pass ties per link (body_chain.tie_targets, unsensed_prior "fixed")
+    chain_angles: dict | None = None   # first-pass bend θ_k per link (body_chain.tie_angles, unsensed_sigma_gain)
 
     def bkey(self, s: int, k: int) -> int:
         """Bias key of sensor s used by the ImuFactor from keyframe k to k+1."""
@@ -216,11 +220,15 @@ def factors_at(pb: BodyProblem, k: int) -> gtsam.NonlinearFactorGraph:
         if pb.bkey(0, k) != pb.bkey(0, k - 1):
             g.push_back(bias_walk_factors(pb, k))
     lever_index = {(seg, j): i for i, (seg, j, _) in enumerate(pb.levers)}
+    chained = body_chain.chain_joints(pb)
     for j, jt in enumerate(pb.joints):
         P, C = pb.names.index(jt.parent), pb.names.index(jt.child)
-        for f in bf.joint_factors(bf.joint_key(j, k), bf.pose_key(P, k), bf.lever_key(lever_index[(jt.parent, j)]),
-                                  bf.pose_key(C, k), bf.lever_key(lever_index[(jt.child, j)]), _joint_model(pb, jt)):
+        fs = bf.joint_factors(bf.joint_key(j, k), bf.pose_key(P, k), bf.lever_key(lever_index[(jt.parent, j)]),
+                              bf.pose_key(C, k), bf.lever_key(lever_index[(jt.child, j)]), _joint_model(pb, jt))
+        for f in (fs[1:] if j in chained else fs):      # chained: the parent side is body_chain's (C1)–(C3)
             g.add(f)
+    if chained:
+        g.push_back(body_chain.chain_factors_at(pb, k, pb.chain_place))
     if o.use_mag and pb.mag_active:
         for s, name in enumerate(pb.names):
             m = pb.session.sensors[name].mag[pb.kf[k]]
@@ -342,6 +350,19 @@ def optimize_with_mag_noise(pb: BodyProblem) -> tuple[gtsam.Values, list, gtsam.
         pb.mag_sigmas = sigmas
 
 
+def chain_pass(pb: BodyProblem, x: gtsam.Values) -> tuple[gtsam.Values, dict, gtsam.NonlinearFactorGraph]:
+    """Second pass with the unsensed links as segments (body_chain), warm-started from the first pass `x`,
+    whose N-pose placements give the sensor-to-segment rotations of (C4)."""
+    from imugraph.graphs.body_output import estimate_placements
+    pb.chain_place = estimate_placements(pb, x)[0]
+    pb.chains = body_chain.make_chains(pb, pb.chain_place)
+    pb.chain_targets = body_chain.tie_targets(pb, x, pb.chain_place) if pb.opts.unsensed_prior == "fixed" else None
+    pb.chain_angles = body_chain.tie_angles(pb, x, pb.chain_place) if pb.opts.unsensed_sigma_gain is not None else None
+    graph = full_graph(pb)
+    x, info = optimize(pb, graph, body_chain.insert_initial(pb, x, pb.chain_place))
+    return x, info, graph
+
+
 def solve_body_batch(session, opts: BodyOptions = BodyOptions()) -> BodyResult:
     """Batch LM over the whole session: a `BodyResult` with all skeleton segments at every input sample."""
     from imugraph.graphs.body_output import estimate_placements, make_result
@@ -349,6 +370,9 @@ def solve_body_batch(session, opts: BodyOptions = BodyOptions()) -> BodyResult:
     pb = build_problem(session, opts)
     t_build = time.perf_counter() - t0
     x, passes, graph = optimize_with_mag_noise(pb)
+    if opts.unsensed_sigma_rad is not None and any(jt.lumped for jt in pb.joints):
+        x, info2, graph = chain_pass(pb, x)
+        passes.append(info2)
     if opts.hinges:
         pb.bRs_fixed = {n: p[0] for n, p in estimate_placements(pb, x)[0].items()}
         graph = full_graph(pb)

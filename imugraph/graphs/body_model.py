@@ -80,6 +80,19 @@ class BodyOptions:
             at small flexion the internal/external rotation and the ab/adduction of the joint. Knee in
             walking, biplane radiography of 39 knees on a treadmill (PMC7477710): range of motion IE 11.5°,
             AbAd 3.7°; a sinusoid of peak-to-peak r has σ = r/(2√2): 4.1° → 0.07 rad, 1.3° → 0.023 rad.
+        unsensed_sigma_rad: unsensed links between two sensed segments (neck, lumbar spine) as estimated
+            segments, the relative rotation shared among the chain's joints with this σ per joint
+            (imugraph.graphs.body_chain (C1)–(C4), a second batch pass); None: lumped joints and the ties (K2).
+        chain_offset_sigma_m: prior σ of the segment offsets along such a chain (C2, C3), m.
+        unsensed_prior: "shared" (C4: between the neighbours and the links, pulls the sensed segments too) or
+            "fixed" (C4': a prior on each link towards the first pass's ties, the sensed segments untouched).
+        unsensed_chains: the distal sensed segments (e.g. ("Head",): the neck) whose unsensed chain is modelled;
+            (): all chains between two sensed segments.
+        unsensed_npose_sigma_rad: with unsensed_prior "fixed", σ of (C4') at the N-pose keyframes (C5: there every
+            segment is aligned, which pins the constant part of a link's rotation that no sensor sees); None: σ.
+        unsensed_sigma_gain: with "fixed", σ of (C4') grows with the chain's bend θ_k between its sensed ends
+            (first pass): σ_k = unsensed_sigma_rad + gain·θ_k (C6: a straight chain stays on the tie, a bent one
+            may share its bend differently); None: constant σ.
     """
 
     keyframe_every: int = 6
@@ -118,6 +131,12 @@ class BodyOptions:
     axial_tau_s: float = 0.1
     axial_offset_sigma_rad: float = 0.17
     axial_hinge_sigmas_rad: tuple = (0.07, 0.023)
+    unsensed_sigma_rad: float | None = None
+    chain_offset_sigma_m: float = 0.01
+    unsensed_prior: str = "shared"
+    unsensed_chains: tuple = ()
+    unsensed_npose_sigma_rad: float | None = None
+    unsensed_sigma_gain: float | None = None
 
 
 # σ of the sensor's turn about the segment's long axis (soft-tissue artefact, rigid part), by segment-name

@@ -26,6 +26,7 @@ import numpy as np
 from imugraph.factors import body as bf
 from imugraph.geometry import quat_conj, quat_mul, quat_slerp, quat_to_rotmat, rotmat_to_quat, rotvec_to_quat
 from imugraph.factors.body_axial import long_axis
+from imugraph.graphs import body_chain
 from imugraph.graphs.body_axial import axial_angles
 from imugraph.graphs.body_init import rz
 
@@ -91,8 +92,13 @@ def estimate_placements(pb, x: gtsam.Values) -> tuple[dict, float]:
     for s, name in enumerate(pb.names):
         M = sum(rz(psi).T @ x.atPose3(bf.pose_key(s, k)).rotation().matrix() for k in kfs)
         bRs = project_so3(M)
-        b = [jt.b_parent if jt.parent == name else jt.b_child for jt in pb.joints if name in (jt.parent, jt.child)]
-        ls = [x.atPoint3(bf.lever_key(i)) for i, (seg, j, _) in enumerate(pb.levers) if seg == name]
+        chained = body_chain.chain_joints(pb)            # their parent-side lever is unused (prior only)
+        b = [jt.b_parent if jt.parent == name else jt.b_child for j, jt in enumerate(pb.joints)
+             if name in (jt.parent, jt.child) and not (jt.parent == name and j in chained)]
+        ls = [x.atPoint3(bf.lever_key(i)) for i, (seg, j, _) in enumerate(pb.levers)
+              if seg == name and not (pb.joints[j].parent == name and j in chained)]
+        for bj, lj in body_chain.placement_levers(pb, x, name):
+            b, ls = b + [bj], ls + [lj]
         b_pos = np.mean([bj - bRs @ l for bj, l in zip(b, ls)], axis=0) if ls else pb.setups[name].b_pos_nom
         out[name] = (bRs, b_pos)
     return out, psi
@@ -168,6 +174,7 @@ def make_result(pb, x: gtsam.Values, info: dict) -> BodyResult:
             axial[name] = theta
         if s == 0:
             root_q = q_s
+    q_seg.update(body_chain.link_orientations(pb, x, q_seg))           # estimated unsensed links (C1)–(C4)
     n_quat = fill_segments(pb.skel, q_seg)
     nRg = rz(np.deg2rad(pb.opts.npose_heading_deg) - psi)                    # graph frame → output frame (step 5)
     q_out = rotmat_to_quat(nRg)
