@@ -102,3 +102,29 @@ def test_without_the_gap_model_drops_cost_degrees(monkeypatch):
     monkeypatch.setattr(velocity, "has_gap", lambda dt, T: False)
     clean = _rms(calibrate(session, Options()), session)
     assert _rms(calibrate(gapped, Options()), gapped) > clean + 0.3
+
+
+def test_one_long_drop_restarts_the_start_values():
+    """A single 5 s drop (simulation): the start values restart from the measured TRIAD after the gap
+    (complementary_keyframes); carrying the held rate's ΔR across it left the solver 13° RMS off (review R1)."""
+    session, _ = distorted_session(3, duration_s=60.0)
+    gapped, _ = _drop(session, (30.0,), 5.0)
+    assert _rms(calibrate(gapped, Options()), gapped) < 3.0
+
+
+def test_a_keyframe_without_up_borrows_its_neighbours():
+    """keyframe_directions: a keyframe whose rows sum to a zero specific force (a placeholder row alone in its
+    interval, as Rasteiro's first row) takes the nearest keyframe's up instead of a NaN TRIAD."""
+    from imugraph.graphs.orientation_init import complementary_keyframes, keyframe_directions
+
+    n = 40
+    dt = np.full(n, 0.01)
+    dt[0] = 0.3                                            # row 0 alone before a gap: a keyframe of its own
+    kf, skf = keyframe_layout(n, 10, dt)
+    pre = preintegrate(np.zeros((n, 3)), dt, kf, skf, np.zeros(3), np.full(3, 0.01))
+    acc = np.tile([0.0, 0.0, 9.81], (n, 1))
+    acc[0] = 0.0
+    mag = np.tile([0.3, 0.0, -0.9], (n, 1))
+    up, _ = keyframe_directions(pre, acc, mag)
+    assert kf[1] == 1 and np.allclose(up[0] / np.linalg.norm(up[0]), [0.0, 0.0, 1.0])
+    assert np.all(np.isfinite(complementary_keyframes(pre, acc, mag)))

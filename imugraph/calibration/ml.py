@@ -370,7 +370,8 @@ def _window_rotations(windows: list, nRk: np.ndarray, pre) -> np.ndarray:
         ka, kb = int(pre.sample_kf[w.start]), min(int(pre.sample_kf[w.stop - 1]) + 1, K - 1)
         s0 = int(pre.kf_samples[ka])
         sub = replace(pre, kf_samples=pre.kf_samples[ka:kb + 1] - s0, sample_kf=pre.sample_kf[s0:w.stop] - ka,
-                      kRb=pre.kRb[s0:w.stop], delta_R=pre.delta_R[ka:kb])
+                      kRb=pre.kRb[s0:w.stop], delta_R=pre.delta_R[ka:kb],
+                      gap_end=None if pre.gap_end is None else pre.gap_end[ka:kb])
         nRb[w.start:w.stop] = quat_to_rotmat(sample_orientations(nRk[ka:kb + 1], sub)[w.start - s0:])
     return nRb
 

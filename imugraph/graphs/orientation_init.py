@@ -32,12 +32,13 @@ def keyframe_directions(pre: Preintegration, b_acc: np.ndarray, b_mag_cal: np.nd
     valid = np.all(np.isfinite(b_mag_cal), axis=1)
     mag = np.zeros((K, 3))
     np.add.at(mag, pre.sample_kf[valid], np.einsum("mij,mj->mi", pre.kRb[valid], b_mag_cal[valid]))
-    # keyframes without a magnetometer sample borrow the nearest one that has
-    has = np.linalg.norm(mag, axis=1) > 0
-    if has.any() and not has.all():
-        idx = np.flatnonzero(has)
-        nearest = idx[np.clip(np.searchsorted(idx, np.arange(K)), 0, len(idx) - 1)]
-        mag[~has] = mag[nearest[~has]]
+    # keyframes without a magnetometer sample (or, defensively, with a zero "up") borrow the nearest one that has
+    for vec in (mag, up):
+        has = np.linalg.norm(vec, axis=1) > 0
+        if has.any() and not has.all():
+            idx = np.flatnonzero(has)
+            nearest = idx[np.clip(np.searchsorted(idx, np.arange(K)), 0, len(idx) - 1)]
+            vec[~has] = vec[nearest[~has]]
     return up, mag
 
 
@@ -79,8 +80,11 @@ def complementary_keyframes(pre: Preintegration, b_acc: np.ndarray, b_mag_cal: n
 
     meas_rot = [gtsam.Rot3(m) for m in meas]
     dR = [gtsam.Rot3(m) for m in pre.delta_R]
-    fwd = run(np.arange(K), lambda R, k: R.compose(dR[k - 1]))
-    bwd = run(np.arange(K)[::-1], lambda R, k: R.compose(dR[k].inverse()))
+    # across a gap (pre.gap_end, factors.gaps) the held rate's ΔR is no prediction: restart from the measured TRIAD
+    # (a single 5 s drop in simulation: 13.2° RMS without, 1.83° with; review R1, session 16)
+    gap = np.zeros(max(K - 1, 0), bool) if getattr(pre, "gap_end", None) is None else pre.gap_end
+    fwd = run(np.arange(K), lambda R, k: meas_rot[k] if gap[k - 1] else R.compose(dR[k - 1]))
+    bwd = run(np.arange(K)[::-1], lambda R, k: meas_rot[k] if gap[k] else R.compose(dR[k].inverse()))
     q = quat_slerp(rotmat_to_quat(fwd), rotmat_to_quat(bwd), np.full(K, 0.5))
     return quat_to_rotmat(q)
 

@@ -118,11 +118,15 @@ def read_rasteiro_fields(path: Path, fields: dict) -> Session:
             raise SessionError(src, name, f"{arr.shape[0]} samples", f"{n} samples, as MATLABtime")
     ok = np.isfinite(t) & np.all(np.isfinite(gyr), 1) & np.all(np.isfinite(acc), 1)
     dropped = np.flatnonzero(~ok).tolist()
+    # every raw file starts with an all-zero row (a placeholder, not a measurement: zero specific force); in
+    # eV50p MPU6050/MPU6500 it is followed by a 0.1–0.3 s gap, so it became a keyframe of its own with no "up"
+    blank = ok & np.all(gyr == 0, 1) & np.all(acc == 0, 1) & np.all(np.nan_to_num(mag) == 0, 1)
+    ok &= ~blank
     t, gyr, acc, mag, q_abb = t[ok], gyr[ok], acc[ok], mag[ok], q_abb[ok]
     scale, note = SENSORS[sensor]
     gyr, acc = gyr * scale, acc * G_STD
     meta = {"format": "rasteiro", "sensor": sensor, "converted": [note, "acc: g->m/s^2"],
-            "mag_unit": "counts", "dropped_rows": dropped,
+            "mag_unit": "counts", "dropped_rows": dropped, "blank_rows": np.flatnonzero(blank).tolist(),
             "quat_frame": "robot base (z up), heading arbitrary"}
     if t.size > 1:
         dt = np.diff(t)
