@@ -112,6 +112,15 @@ def model_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--magnet-ramps", action=argparse.BooleanOptionalAction, default=None,
                    help="S15: magnetic_disturbance's field with fitted ramps at the window edges (R1) "
                         "(DiagnoseOptions.magnet_ramps; default on)")
+    p.add_argument("--magnet-step-refit", action=argparse.BooleanOptionalAction, default=None,
+                   help="S16-E (M3'): magnetic_disturbance's step search repeated on the residual of the (M1) "
+                        "fit of the windows found (DiagnoseOptions.magnet_step_refit; default off)")
+    p.add_argument("--saturation-censor", action=argparse.BooleanOptionalAction, default=None,
+                   help="S16-E (C1'): a gyro sample on a rail censored in saturation's residuals "
+                        "(DiagnoseOptions.saturation_censor; default off)")
+    p.add_argument("--saturation-area", action=argparse.BooleanOptionalAction, default=None,
+                   help="S16-E (C1''): the censored gyro values estimated per keyframe interval against the "
+                        "keyframes (DiagnoseOptions.saturation_area; default off)")
     p.add_argument("--cross-gap", type=float, default=None, metavar="W",
                    help="S16: weight w_x of the gap's cross-channel term (G1'), the correlation of the acc and "
                         "mag residuals with the model's motion derivative (GapOptions.cross_weight; default 0: off)")
@@ -133,7 +142,10 @@ def diagnose_options(args: argparse.Namespace, **fields):
                         timing_rules=getattr(args, "timing_rules", None),
                         drift_basis=getattr(args, "drift_basis", None),
                         gyro_delay_model=getattr(args, "gyro_delay_model", None),
-                        magnet_ramps=getattr(args, "magnet_ramps", None), **fields)   # None: the defaults
+                        magnet_ramps=getattr(args, "magnet_ramps", None),
+                        magnet_step_refit=getattr(args, "magnet_step_refit", None),
+                        saturation_censor=getattr(args, "saturation_censor", None),
+                        saturation_area=getattr(args, "saturation_area", None), **fields)   # None: the defaults
     if getattr(args, "cross_gap", None) is not None:                        # S16 (G1')
         o = replace(o, gap=replace(o.gap, cross_weight=float(args.cross_gap)))
     if getattr(args, "cross_form", None) is not None:

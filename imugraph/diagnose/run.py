@@ -52,6 +52,12 @@ class DiagnoseOptions:
             `time_offset.GYRO_DELAY_MODEL` (default True since session 15).
         magnet_ramps: S15: magnetic_disturbance's window field with fitted linear ramps at its edges (R1)
             instead of a step; None: the module flag `magnetic_disturbance.RAMPS` (default True since session 15).
+        magnet_step_refit: S16-E (M3'): magnetic_disturbance's step search repeated on the residual of the (M1)
+            fit of the windows found so far; None: the module flag `magnetic_disturbance.STEP_REFIT` (default False).
+        saturation_censor: S16-E (C1'): a gyro sample on a rail censored in saturation's residuals (no residual
+            where the fitted rate is beyond the rail); None: the module flag `saturation.CENSOR_GYRO` (default False).
+        saturation_area: S16-E (C1''): the censored gyro values estimated per keyframe interval against the
+            keyframes (≥ the rail); None: the module flag `saturation.CENSOR_AREA` (default False).
     """
 
     keyframe_hz: float = 5.0
@@ -64,6 +70,9 @@ class DiagnoseOptions:
     drift_basis: str | None = None
     gyro_delay_model: bool | None = None
     magnet_ramps: bool | None = None
+    magnet_step_refit: bool | None = None
+    saturation_censor: bool | None = None
+    saturation_area: bool | None = None
     gap: GapOptions = field(default_factory=GapOptions)
     attribution: AttributionOptions = field(default_factory=AttributionOptions)
 
@@ -141,16 +150,23 @@ def model_switches(options: DiagnoseOptions):
     from imugraph.diagnose.effects import gyro_bias_drift as dmod
     from imugraph.diagnose.effects import time_offset as tmod
     from imugraph.diagnose.effects import magnetic_disturbance as mmod
+    from imugraph.diagnose.effects import saturation as smod
 
     old = (joint.ENABLED, fitmod.SUBSAMPLE_LAG)
     old_t = (tmod.MAG_REMAINDER_OUT, tmod.LOG_SCORE_SIGNIFICANCE, tmod.ROTATION_CHECK)
     old_d = dmod.BASIS
-    old_s15 = (tmod.GYRO_DELAY_MODEL, mmod.RAMPS)
+    old_s15 = (tmod.GYRO_DELAY_MODEL, mmod.RAMPS, mmod.STEP_REFIT, smod.CENSOR_GYRO, smod.CENSOR_AREA)
     try:
         if options.gyro_delay_model is not None:
             tmod.GYRO_DELAY_MODEL = bool(options.gyro_delay_model)
         if options.magnet_ramps is not None:
             mmod.RAMPS = bool(options.magnet_ramps)
+        if options.saturation_area is not None:
+            smod.CENSOR_AREA = bool(options.saturation_area)
+        if options.saturation_censor is not None:
+            smod.CENSOR_GYRO = bool(options.saturation_censor)
+        if options.magnet_step_refit is not None:
+            mmod.STEP_REFIT = bool(options.magnet_step_refit)
         if options.drift_basis is not None:
             if options.drift_basis not in ("legendre", "spline"):
                 from imugraph.errors import SessionError
@@ -168,7 +184,7 @@ def model_switches(options: DiagnoseOptions):
         joint.ENABLED, fitmod.SUBSAMPLE_LAG = old
         tmod.MAG_REMAINDER_OUT, tmod.LOG_SCORE_SIGNIFICANCE, tmod.ROTATION_CHECK = old_t
         dmod.BASIS = old_d
-        tmod.GYRO_DELAY_MODEL, mmod.RAMPS = old_s15
+        tmod.GYRO_DELAY_MODEL, mmod.RAMPS, mmod.STEP_REFIT, smod.CENSOR_GYRO, smod.CENSOR_AREA = old_s15
 
 
 def diagnose(session: Session, options: DiagnoseOptions = DiagnoseOptions(), effects: dict | None = None,

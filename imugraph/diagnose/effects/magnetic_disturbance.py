@@ -54,6 +54,7 @@ MAX_WINDOWS = 3
 PAD_S = 1.0                  # windows widened by this for the refit (the ramps of a magnet brought by hand)
 RELEVANT_FRACTION = 0.10     # relevance: extra field ≥ 10 % of |m| (M2)
 RAMPS = True                 # S15 (R1): the window's field with fitted linear ramps at its edges (default since S15)
+STEP_REFIT = False           # S16-E (M3'): re-search windows on the residual of the (M1) fit of those found (opt-in)
 
 
 class MagneticCorrection(Correction):
@@ -207,8 +208,11 @@ class MagneticDisturbance(Effect):
         bRn = np.transpose(fit.nRb, (0, 2, 1))
         earth = float(np.median(np.linalg.norm((bRn @ fit.calibration.n_mag) @ np.asarray(fit.calibration.D).T,
                                                axis=1)))
-        found = [(i0, i1) for i0, i1, _, _ in step_windows(t, r, earth)]
-        z2 = np.sum((r / fit.sigma["mag"]) ** 2, axis=1) / 3.0
+        if STEP_REFIT:                             # S16-E (M3'): each search after the (M1) fit of the windows found
+            found, r_rest = step_windows_refit(fit, r, earth)
+        else:
+            found, r_rest = [(i0, i1) for i0, i1, _, _ in step_windows(t, r, earth)], r
+        z2 = np.sum((r_rest / fit.sigma["mag"]) ** 2, axis=1) / 3.0
         for i0, i1 in detect_windows(t, z2, smooth_s=1.0, factor=4.0, min_s=2.0, merge_s=2.0):
             if all(i1 <= a or i0 >= b for a, b in found):
                 found.append((i0, i1))
@@ -313,6 +317,33 @@ def step_windows(t: np.ndarray, r: np.ndarray, field: float, max_windows: int = 
         y[i:j] -= step
     return out
 
+def step_windows_refit(fit, r: np.ndarray, field: float, max_windows: int = MAX_WINDOWS) -> tuple:
+    """(M3') The step search (M3) one window at a time, each time on the residual of the (M1) least-squares
+    fit (δo, δD and the windows found so far, `_solve_fields`) instead of the residual with only the block
+    means' step subtracted. Why: a strong magnet pulls the base fit's offset o and scale D (and the heading)
+    over the whole recording; (M3)'s greedy removal of the window's mean leaves that pull in place, and its
+    remainder — an orientation-dependent field δo + δD bRn n outside the window — shows as further "steps"
+    (harness seed 1 case 001: a 0.90 |m| magnet at 120.7–130.7 s, then 0.07 |m| over 76.0–125.2 s, which
+    became the reported window). Fitting (M1) first removes what the magnet pulled, so the next search sees
+    only what (M1) with the windows found cannot explain. The thresholds are (M3)'s (χ² Bonferroni, floor).
+
+    Returns ([(i_start, i_stop)], the residual r − δ of the last (M1) fit)."""
+    t = fit.session.t
+    bRn = np.transpose(fit.nRb, (0, 2, 1))
+    D = np.asarray(fit.calibration.D, float)
+    use = np.all(np.isfinite(r), axis=1)
+    found, rest = [], r
+    for _ in range(max_windows):
+        sw = step_windows(t, rest, field, max_windows=1)
+        if not sw or any(sw[0][0] < b and sw[0][1] > a for a, b in found):
+            break                                          # nothing new (or the same window again)
+        found.append(sw[0][:2])
+        env = [((np.arange(len(t)) >= a) & (np.arange(len(t)) < b)).astype(float) for a, b in found]
+        _, delta, _ = _solve_fields(fit, r, use, bRn, D, env)                  # (M1) on all windows found
+        rest = r - delta
+    return found, rest
+
+
 EFFECT = MagneticDisturbance()
 
 
@@ -326,4 +357,4 @@ class _Alternation(MagneticDisturbance):
 
 _ALTERNATION = _Alternation()
 
-__all__ = ["EFFECT", "MagneticDisturbance", "RANGES", "step_windows", "window_mask"]
+__all__ = ["EFFECT", "MagneticDisturbance", "RANGES", "step_windows", "step_windows_refit", "window_mask"]

@@ -45,6 +45,8 @@ MIN_RUN, MIN_COUNT = 2, 3
 SUPPORT_S = 0.5             # the support of the attribution (A3): clipped samples ± 0.5 s (2.5 keyframe intervals)
 MIN_EPISODES = 2             # (C2): the rail is reached in ≥ 2 separate episodes
 MIN_CLIPPED = 5              # relevance: ≥ 5 samples on a rail (fewer is a chance repeat of a maximum)
+CENSOR_GYRO = False          # S16-E (C1'): a gyro sample on a rail is censored in the residuals too (opt-in)
+CENSOR_AREA = False           # S16-E (C1''): the censored gyro values estimated per keyframe interval (opt-in)
 
 
 def on_rail(y: np.ndarray, level: float) -> np.ndarray:
@@ -87,6 +89,82 @@ def reconstruct_peaks(t: np.ndarray, y: np.ndarray, rails: list) -> np.ndarray:
     return out
 
 
+def censored_gyro(y: np.ndarray, y_new: np.ndarray, r: np.ndarray, rails: list) -> np.ndarray:
+    """(C1') The gyro residual of a censored sample. A sample on a rail says only sign·ω ≥ sign·L (C1): its
+    residual under the model is not y_new − ω̂ (the quadratic's guess minus the fit — a guess's error, many
+    σ_ω: on the simulation of harness seed 1 case 011 the reconstruction is off by 0.014 rad/s RMS = 28 σ_ω,
+    benchmarks/e5_saturation.py) but the violation of the inequality: none (NaN, as the accelerometer's
+    censored rows) where the fitted rate is beyond the rail, L − ω̂ where it falls short of it (a fit that
+    contradicts the measurement stays visible). r: residual against y_new; ω̂ = y_new − r."""
+    out = r.copy()
+    for a, sign, level in rails:
+        hit = on_rail(y[:, a], level)
+        pred = y_new[hit, a] - r[hit, a]                                   # the fit's ω̂ (incl. its bias)
+        out[hit, a] = np.where(sign * (pred - level) >= 0.0, np.nan, level - pred)
+    return out
+
+
+def _rail_samples(y: np.ndarray, rails: list) -> list:
+    """[(axis, sign, level, mask)] of the samples on each rail."""
+    return [(a, sg, lv, on_rail(y[:, a], lv)) for a, sg, lv in rails]
+
+
+def _intervals(fit) -> np.ndarray:
+    """(N,) keyframe interval of each sample."""
+    from imugraph.factors.gyro import keyframe_layout
+
+    kf, _ = keyframe_layout(fit.n, int(fit.info["stride"]))
+    return np.searchsorted(kf, np.arange(fit.n), side="right") - 1
+
+
+def n_censored_intervals(fit, y: np.ndarray, rails: list) -> int:
+    """Parameters of (C1''): one per (keyframe interval, rail) holding censored samples."""
+    k_of = _intervals(fit)
+    return int(sum(len(np.unique(k_of[m])) for _a, _s, _l, m in _rail_samples(y, rails)))
+
+
+def censored_values(fit, y_new: np.ndarray, rails: list) -> np.ndarray:
+    """(C1'') The censored gyro samples as unknowns ≥ the rail, estimated against the fit's keyframes.
+    (C1) says a clipped sample only bounds the rate (sign·ω ≥ sign·L); the quadratic's guess (y_new) is off
+    by many σ_ω (28 σ on the simulation of harness seed 1 case 011), and with the keyframes fixed the
+    interval's integration mismatch spreads that error over every sample of the keyframe interval
+    (`trajectory.reintegrate`: nRb_j = R_k Exp(u_j ε_k) ΔR_kj), where the unclipped samples' residual shows it
+    (benchmarks/e5_saturation.py: 9.4 against the host's 2.1 whitened RMS in those intervals). One shift
+    Δ_k per (interval, rail) of the censored samples (sign·Δ, i.e. further beyond the rail for Δ > 0):
+
+        Δ_k = argmin Σ_{j in k, unclipped} |r_j + J_j Δ_k|²_Σ⁻¹ ,   subject to y_new + sign·Δ_k ≥ the rail       (C1'')
+
+    J from one exact reintegration with every censored sample moved by sign·δ (the intervals decouple
+    with the keyframes fixed; one reintegration per rail). Returns y_new with the shifts applied."""
+    from imugraph.diagnose.effects.trajectory import gyro_exact
+
+    s = fit.session
+    k_of = _intervals(fit)
+    w = 1.0 / np.asarray(fit.sigma["gyr"], float) ** 2
+    y_out = y_new.copy()
+    clipped = np.zeros(fit.n, bool)
+    for _a, _sg, _lv, m in _rail_samples(s.gyr, rails):
+        clipped |= m
+    delta = 1e-3
+    for a, sign, level, m in _rail_samples(s.gyr, rails):
+        if not m.any():
+            continue
+        r0 = gyro_exact(fit, y_out - s.gyr)["gyr"]
+        pert = y_out.copy()
+        pert[m, a] += sign * delta
+        J = (gyro_exact(fit, pert - s.gyr)["gyr"] - r0) / delta
+        for k in np.unique(k_of[m]):
+            iv = (k_of == k) & ~clipped & np.all(np.isfinite(r0), axis=1) & np.all(np.isfinite(J), axis=1)
+            jj = float(np.sum(w * J[iv] ** 2))
+            if jj <= 0.0:
+                continue
+            d_k = -float(np.sum(w * J[iv] * r0[iv])) / jj
+            mk = m & (k_of == k)
+            lb = -float(np.min(sign * (y_out[mk, a] - level)))      # stays at or beyond the rail
+            y_out[mk, a] += sign * max(d_k, lb)
+    return y_out
+
+
 def separate_runs(y: np.ndarray, level: float, t: np.ndarray, gap_s: float = 0.1) -> int:
     """Number of separate episodes (runs of ≥ MIN_RUN samples at exactly `level`, more than `gap_s`
     apart) of one axis."""
@@ -119,7 +197,11 @@ class SaturationCorrection(Correction):
         rails = self.deltas["rails"]
         if rails.get("gyr"):
             y_new = reconstruct_peaks(s.t, s.gyr, rails["gyr"])
+            if CENSOR_AREA:
+                y_new = censored_values(fit, y_new, rails["gyr"])
             out = gyro_exact(fit, y_new - s.gyr)
+            if CENSOR_GYRO:
+                out["gyr"] = censored_gyro(s.gyr, y_new, out["gyr"], rails["gyr"])
         for a, sign, level in rails.get("acc", []):
             out["acc"][on_rail(s.acc[:, a], level)] = np.nan                                  # censored
         return out
@@ -159,7 +241,11 @@ class Saturation(Effect):
                   "channel": channel}
         corr = SaturationCorrection(self.name, params, n_params=n_rails, channel=channel, deltas={"rails": rails})
         if rails["gyr"]:
-            corr.deltas["d_omega"] = reconstruct_peaks(s.t, s.gyr, rails["gyr"]) - s.gyr
+            y_new = reconstruct_peaks(s.t, s.gyr, rails["gyr"])
+            if CENSOR_AREA:                                     # (C1''): the refit's data carry the estimate
+                y_new = censored_values(fit, y_new, rails["gyr"])
+                corr.n_params += n_censored_intervals(fit, s.gyr, rails["gyr"])
+            corr.deltas["d_omega"] = y_new - s.gyr
         if n_rails:
             corr.deltas["support"] = clipped_support(s, rails)
             corr.deltas["decisive"] = any(separate_runs(getattr(s, c)[:, a], lv, s.t) >= MIN_EPISODES
