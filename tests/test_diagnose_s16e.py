@@ -79,7 +79,7 @@ def test_options_switch_and_restore_the_flags():
     with model_switches(DiagnoseOptions(magnet_step_refit=not before[0], saturation_censor=not before[1])):
         assert (md.STEP_REFIT, sat.CENSOR_GYRO) == (not before[0], not before[1])
     assert (md.STEP_REFIT, sat.CENSOR_GYRO) == before
-    assert before == (False, False)                      # defaults unchanged (opt-in)
+    assert before == (True, True)                        # the defaults since session 16
 
 
 def test_censored_values_match_the_keyframes_and_stay_beyond_the_rail():

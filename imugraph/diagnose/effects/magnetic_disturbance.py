@@ -54,7 +54,7 @@ MAX_WINDOWS = 3
 PAD_S = 1.0                  # windows widened by this for the refit (the ramps of a magnet brought by hand)
 RELEVANT_FRACTION = 0.10     # relevance: extra field ≥ 10 % of |m| (M2)
 RAMPS = True                 # S15 (R1): the window's field with fitted linear ramps at its edges (default since S15)
-STEP_REFIT = False           # S16-E (M3'): re-search windows on the residual of the (M1) fit of those found (opt-in)
+STEP_REFIT = True            # S16-E (M3'): re-search windows on the residual of the (M1) fit of those found (default since S16)
 
 
 class MagneticCorrection(Correction):

@@ -45,7 +45,7 @@ MIN_RUN, MIN_COUNT = 2, 3
 SUPPORT_S = 0.5             # the support of the attribution (A3): clipped samples ± 0.5 s (2.5 keyframe intervals)
 MIN_EPISODES = 2             # (C2): the rail is reached in ≥ 2 separate episodes
 MIN_CLIPPED = 5              # relevance: ≥ 5 samples on a rail (fewer is a chance repeat of a maximum)
-CENSOR_GYRO = False          # S16-E (C1'): a gyro sample on a rail is censored in the residuals too (opt-in)
+CENSOR_GYRO = True           # S16-E (C1'): a gyro sample on a rail is censored in the residuals too (default since S16)
 CENSOR_AREA = False           # S16-E (C1''): the censored gyro values estimated per keyframe interval (opt-in)
 
 
