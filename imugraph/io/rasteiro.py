@@ -128,12 +128,12 @@ def read_rasteiro_fields(path: Path, fields: dict) -> Session:
     meta = {"format": "rasteiro", "sensor": sensor, "converted": [note, "acc: g->m/s^2"],
             "mag_unit": "counts", "dropped_rows": dropped, "blank_rows": np.flatnonzero(blank).tolist(),
             "quat_frame": "robot base (z up), heading arbitrary"}
-    if t.size > 1:
+    t0 = t[0] if t.size else 0.0
+    if t.size > 1:                       # on the session's time base (t − t0: t0 is no longer 0 once row 0 is blank)
         dt = np.diff(t)
         gap = np.flatnonzero(dt > 5.0 * np.median(dt))
-        meta["gaps"] = [[float(t[i]), float(t[i + 1])] for i in gap]
+        meta["gaps"] = [[float(t[i] - t0), float(t[i + 1] - t0)] for i in gap]
     quat = _truth(q_abb, acc, gyr, meta)
-    t0 = t[0] if t.size else 0.0
     return Session(t=t - t0, gyr=gyr, acc=acc, mag=mag, quat=quat, source=src,
                    name=f"{path.parent.parent.name}_{path.parent.name}_{path.stem}", meta=meta)
 
