@@ -26,6 +26,7 @@ from imugraph.calibration.acc_timing import session_lead, with_lead
 from imugraph.calibration.gyro_rate import update_rate_error
 from imugraph.calibration.gyro_map_select import calibrate_chosen
 from imugraph.calibration.result import Calibration, n_mag_from_dip
+from imugraph.factors.gaps import GAP_RATE_WALK
 from imugraph.factors.gyro import keyframe_layout, preintegrate
 from imugraph.calibration.disturbance import apply_windows, detect_windows
 from imugraph.calibration.acc_rate import update_acc_rate_error
@@ -106,7 +107,7 @@ def calibrate(session: Session, options: Options | None = None, initial=None,
     theta0 = pack_theta(init.D, init.o, init.dip_rad)
     bias = np.asarray(init.gyro_bias, float)
     stride = stride_for(session, opt.keyframe_hz)
-    kf, skf = keyframe_layout(session.n, stride, session.dt)
+    kf, skf = keyframe_layout(session.n, stride, session.dt if opt.gap_model else None)
     m_cal0 = np.linalg.solve(init.D, (session.mag - init.o).T).T
     nRk = None
     theta = theta0
@@ -142,7 +143,8 @@ def calibrate(session: Session, options: Options | None = None, initial=None,
         values0: the previous round's solution, which holds exactly nRk, bias, θ and the velocities."""
         g_c, b_rows = gyro.corrected(session.gyr), _per_sample_bias(bias, seg, skf)
         with_map = phase["map"] and (opt.gyro_map_final or not final)
-        pre = preintegrate(g_c, session.dt, kf, skf, b_rows, noise.gyr, rate["kappa"], keep_steps=with_map)
+        pre = preintegrate(g_c, session.dt, kf, skf, b_rows, noise.gyr, rate["kappa"], keep_steps=with_map,
+                           gap_walk=GAP_RATE_WALK if opt.gap_model else None)
         gmap = gyro.model(g_c, session.dt, pre, b_rows) if with_map else None
         if gmap is None and values0 is not None:       # the rounds' β_k and e are not in this graph
             values0 = without_map_keys(values0)

@@ -96,6 +96,9 @@ class Options:
     #   field_sigma=(0.015, 0.006, 0.015): 0.606°, behind offline VQF only 02 (0.370 vs 0.366°), 16 (0.377 vs
     #   0.370°), 32 +0.017° (docs/results_issue2.md, session 16). Off: the σ_y setting was chosen on BROAD
     position_tau: float = 30.0        # τ_p, s: the position prior's correlation time
+    gap_model: bool = True            # steps over 1.5 T are missing time (factors/gaps.py: variance G1, a keyframe
+    #   at gaps > 50 ms, the per-sample blend and start values restart there); False: trusted like measured time
+    #   (before session 16; e.g. for a clock whose jitter is not missing data)
     zero_velocity_at_rest: bool = False  # v = 0 ± 0.02 m/s at detected rest: BROAD 04 1.79 → 0.92°,
     #                                      but 01 1.59 → 1.99°, 30 1.11 → 2.01° (acc errors then tilt)
     acc_bias: bool = False            # a slowly varying accelerometer bias in the velocity state: off,

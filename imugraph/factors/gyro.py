@@ -125,7 +125,7 @@ class Preintegration:
 
 def preintegrate(b_gyr: np.ndarray, dt: np.ndarray, kf_samples: np.ndarray, sample_kf: np.ndarray,
                  bias_hat: np.ndarray, sigma_gyr: np.ndarray, rate_error: float = 0.0,
-                 keep_steps: bool = False) -> Preintegration:
+                 keep_steps: bool = False, gap_walk: float | None = GAP_RATE_WALK) -> Preintegration:
     """Integrate the gyro within every keyframe interval at once (loop over the position in the interval).
 
     Args:
@@ -135,6 +135,7 @@ def preintegrate(b_gyr: np.ndarray, dt: np.ndarray, kf_samples: np.ndarray, samp
         keep_steps: also return each sample's kRb_j Exp(θ_j) J_r(θ_j)Δt_j (Preintegration.steps), formed in
             the recursion, where kRb_j Exp(θ_j) is the running product after step j (one batched product
             per position instead of two over all samples afterwards, and no copies of Exp(θ_j), J_r).
+        gap_walk: q_ω of the steps with missing time (factors.gaps eq. G1; Preintegration.gap_end); None: off.
     """
     n = b_gyr.shape[0]
     k = len(kf_samples)
@@ -144,8 +145,9 @@ def preintegrate(b_gyr: np.ndarray, dt: np.ndarray, kf_samples: np.ndarray, samp
     theta = (b_gyr - bias_rows) * dt[:, None]                 # (N,3) rotation increment of sample i
     rate2 = np.sum((b_gyr - bias_rows) ** 2, axis=1, keepdims=True)
     var_step = ((np.asarray(sigma_gyr, float) ** 2)[None, :] + rate_error**2 * rate2) * (dt**2)[:, None]
-    if np.any(sigma_gyr) and has_gap(dt, float(np.median(dt))):     # samples that never arrived: gaps eq. (G1)
-        var_step = var_step + gap_variance(dt, float(np.median(dt)), GAP_RATE_WALK)[:, None]
+    gaps = gap_walk is not None and has_gap(dt, float(np.median(dt)))
+    if gaps and np.any(sigma_gyr):                                # samples that never arrived: gaps eq. (G1)
+        var_step = var_step + gap_variance(dt, float(np.median(dt)), gap_walk)[:, None]
     lengths = np.diff(np.append(kf_samples, n))               # samples attached to each keyframe
     L = int(lengths.max())
     # every keyframe interval laid out over L positions; positions past its end get the identity step
@@ -191,7 +193,7 @@ def preintegrate(b_gyr: np.ndarray, dt: np.ndarray, kf_samples: np.ndarray, samp
     # Interval k integrated the increments of samples s_k .. s_{k+1}−1: exactly keyframe k → k+1.
     kf_dt = np.add.reduceat(dt, kf_samples)[:-1]
     gap_end = None
-    if has_gap(dt, float(np.median(dt))):        # the step into each next keyframe
+    if gaps:                                     # the step into each next keyframe
         gap_end = dt[kf_samples[1:] - 1] > 1.5 * float(np.median(dt))
     return Preintegration(kf_samples, sample_kf, kRb, R[:-1], dRdb[:-1], cov[:-1], kf_dt,
                           np.array(bias_rows[kf_samples[:-1]]), steps, gap_end)

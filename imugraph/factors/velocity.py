@@ -42,19 +42,21 @@ from imugraph.geometry import skew
 
 
 def velocity_increments(kRb: np.ndarray, sample_kf: np.ndarray, b_acc: np.ndarray, dt: np.ndarray,
-                        n_keyframes: int, sigma_acc: np.ndarray, rate_error: float) -> tuple[np.ndarray, np.ndarray]:
+                        n_keyframes: int, sigma_acc: np.ndarray, rate_error: float,
+                        gap_walk: float | None = GAP_ACC_WALK) -> tuple[np.ndarray, np.ndarray]:
     """Δv_k in keyframe k's body frame (K−1, 3) and the std of its error (K−1,), m/s.
 
     Args:
         kRb: (N, 3, 3) ΔR_kj of each sample; sample_kf: (N,) keyframe of each sample; b_acc: (N, 3) m/s²;
         dt: (N,) step from sample j to j+1, s; sigma_acc: (3,) white noise std per sample, m/s²;
         rate_error: κ_a, relative accelerometer error (scale factor, misalignment).
+        gap_walk: q_a of the steps with missing time (factors.gaps eq. G1); None: off.
     """
     a_k = np.einsum("nij,nj->ni", kRb, b_acc) * dt[:, None]
     dv = _sum_by(sample_kf, a_k, n_keyframes)
     var = (float(np.mean(np.asarray(sigma_acc, float) ** 2)) + rate_error**2 * np.sum(b_acc**2, axis=1)) * dt**2
-    if has_gap(dt, float(np.median(dt))):                               # samples that never arrived: gaps eq. (G1)
-        var = var + gap_variance(dt, float(np.median(dt)), GAP_ACC_WALK)
+    if gap_walk is not None and has_gap(dt, float(np.median(dt))):      # samples that never arrived: gaps eq. (G1)
+        var = var + gap_variance(dt, float(np.median(dt)), gap_walk)
     var_k = np.bincount(sample_kf, weights=var, minlength=n_keyframes)
     # the last keyframe starts no interval (its own sample has no successor)
     return dv[:-1], np.sqrt(np.maximum(var_k[:-1], 1e-12))

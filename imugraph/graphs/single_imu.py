@@ -197,9 +197,11 @@ def build_problem(pre: Preintegration, b_acc: np.ndarray, b_mag: np.ndarray, noi
     # interleave each bias segment after its keyframes: fill-in stays local
     vblock = None
     if velocity is not None:
+        from imugraph.factors.gaps import GAP_ACC_WALK
         from imugraph.factors.velocity import bias_integrals, velocity_increments
         dv, sig_dv = velocity_increments(pre.kRb, pre.sample_kf, b_acc, dt, K, noise.acc,
-                                         velocity.acc_rate_error)
+                                         velocity.acc_rate_error,
+                                         None if pre.gap_end is None else GAP_ACC_WALK)   # the gyro's gap setting
         B = bias_integrals(pre.kRb, pre.sample_kf, dt, K) if velocity.acc_bias else None
         rest_kf = None
         if velocity.rest is not None:
