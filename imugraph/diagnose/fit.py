@@ -201,7 +201,7 @@ def fit_base(session: Session, options=None, initial=None, extended: dict | None
     nRb = quat_to_rotmat(est.quat)
     g = float(est.info["g"])
     stride = int(est.info["stride"])
-    kf, skf = keyframe_layout(session.n, stride)
+    kf, skf = keyframe_layout(session.n, stride, session.dt)      # a keyframe at every long gap, as calibrate
     seg = _bias_segments(session, kf, opt.bias_segment_s)
     bias_seg = np.asarray(est.info["gyro_bias_segments"], float)
     b_bias = _per_sample_bias(bias_seg, seg, skf)                                   # (B1) δ_ω,s(j)

@@ -113,7 +113,7 @@ def _intervals(fit) -> np.ndarray:
     """(N,) keyframe interval of each sample."""
     from imugraph.factors.gyro import keyframe_layout
 
-    kf, _ = keyframe_layout(fit.n, int(fit.info["stride"]))
+    kf, _ = keyframe_layout(fit.n, int(fit.info["stride"]), fit.session.dt)
     return np.searchsorted(kf, np.arange(fit.n), side="right") - 1
 
 

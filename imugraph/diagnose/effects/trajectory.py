@@ -63,7 +63,7 @@ def reintegrate(fit, gyr: np.ndarray) -> np.ndarray:
     from imugraph.geometry import quat_to_rotmat
     from imugraph.graphs.orientation_init import sample_orientations
 
-    kf, skf = keyframe_layout(fit.n, int(fit.info["stride"]))
+    kf, skf = keyframe_layout(fit.n, int(fit.info["stride"]), fit.session.dt)
     pre = _rotations_only(np.asarray(gyr, float), fit.session.dt, kf, skf, np.asarray(fit.b_gyr_bias, float))
     return quat_to_rotmat(sample_orientations(fit.nRb[kf], pre))
 
@@ -76,7 +76,7 @@ def reintegrate_matrices(fit, gyr: np.ndarray, nRk: np.ndarray) -> np.ndarray:
     from imugraph.factors.gyro import keyframe_layout
     from imugraph.geometry import expmap, logmap
 
-    kf, skf = keyframe_layout(fit.n, int(fit.info["stride"]))
+    kf, skf = keyframe_layout(fit.n, int(fit.info["stride"]), fit.session.dt)
     pre = _rotations_only(np.asarray(gyr, float), fit.session.dt, kf, skf, np.asarray(fit.b_gyr_bias, float))
     k, K = pre.sample_kf, len(nRk)
     if K < 2:
