@@ -63,12 +63,13 @@ from imugraph.graphs.stream_online import OnlineCalibrationMixin
 from imugraph.graphs.stream_options import (SIGMA_WEAK_POSE, StreamOptions, StreamStats, acc_lead, make_solver,
                                             velocity_process)
 from imugraph.graphs.stream_output import StreamOutputMixin
+from imugraph.graphs.stream_realign import GapRealignMixin
 from imugraph.graphs.stream_start import KeyframeStartMixin, _quat
 
 __all__ = ["StreamOptions", "StreamSmoother", "StreamStats"]
 
 
-class StreamSmoother(OnlineCalibrationMixin, KeyframeStartMixin, ArrivalMixin, StreamOutputMixin):
+class StreamSmoother(OnlineCalibrationMixin, KeyframeStartMixin, ArrivalMixin, StreamOutputMixin, GapRealignMixin):
     """Push samples in arrival order; get the filtered orientation of each at once, the smoothed ones at the end.
 
     Args:
@@ -91,6 +92,7 @@ class StreamSmoother(OnlineCalibrationMixin, KeyframeStartMixin, ArrivalMixin, S
         self.rate, self.opt = float(rate), options
         self.stride = max(1, int(round(rate / options.keyframe_hz)))
         self._gap_step = keyframe_gap_step(1.0 / rate)    # a longer gap closes the interval (keyframe_layout)
+        self._init_realign()                 # gap_realign_s (stream_realign)
         self._mid = self.stride // 2 + 1 if self.stride >= 2 else 0     # see _between_keyframes
         self._chain = options.lag_s is not None and options.fixed_lag_solver == "chain"
         self._maintained = not self._chain   # the chain lag's `maintain` ran in the open interval
@@ -285,6 +287,7 @@ class StreamSmoother(OnlineCalibrationMixin, KeyframeStartMixin, ArrivalMixin, S
         pim = super_sample_pim(self._pim_params, omega, dv / dt_k, dt_k, self._b_hat)
         ends = (pose_key(k), keys.vel(k), pose_key(k + 1), keys.vel(k + 1), imu_bias_key(seg))
         f = gtsam.ImuFactorWithGravityVector(*ends, G_KEY, pim) if self._estimate_g else gtsam.ImuFactor(*ends, pim)
+        rot_at = graph.size()                        # the rotation rows' position (stream_realign)
         for model in split_noise_one(cov, sig_dv, self.opt.acc_huber_k):      # cpp_velocity.split_noise
             graph.add(f.cloneWithNewNoiseModel(model))
         # v_{k+1} = φ v_k + w (stream_interval.gauss_markov_factor); blocks by Δt_k (stream_kernels.StepBlocks)
@@ -308,6 +311,8 @@ class StreamSmoother(OnlineCalibrationMixin, KeyframeStartMixin, ArrivalMixin, S
         values.insert(keys.vel(k + 1), self._v + c)
         if self.opt.lag_s is None or self.opt.fixed_lag_solver != "batch":     # iSAM2 inside
             graph.add(gtsam.PriorFactorPose3(pose_key(k + 1), values.atPose3(pose_key(k + 1)), self._weak_pose))
+        if self.opt.gap_realign_s:                   # stream_realign (R1)–(R3), after a gap that starts a keyframe
+            self._realign_step(graph, values, k, steps[-1] > self._gap_step, (dv, delta_R, dt_k), R_next, rot_at)
         keep = self._offsets.keep(self._offset_alive) if self._offsets is not None else ()    # stream_offsets
         for key in (pose_key(k + 1), keys.vel(k + 1), imu_bias_key(seg)) + self._global_keys + keep:
             stamps[key] = t_next - self._t0
@@ -333,14 +338,15 @@ class StreamSmoother(OnlineCalibrationMixin, KeyframeStartMixin, ArrivalMixin, S
     def _update(self, graph, values, stamps, k_new: int, seg: int, R_pred) -> None:
         try:
             chain = self._chain
+            remove, force = self._realign_removals() if self.opt.gap_realign_s else ((), False)    # stream_realign
             if self.opt.lag_s is None or chain:
                 if chain:      # only the keyframes leaving the window are read back (their smoothed output)
-                    left = self._solver.update(graph, values, stamps)
+                    left = self._solver.update(graph, values, stamps, remove, force)
                     self._smoothed_kf.update(left or {})
                     if left:
                         self._forget_smoothed(k_new)
                 else:
-                    self._solver.update(graph, values)
+                    self._solver.update(graph, values, list(remove), None, None, None, force)
                 isam = self._solver.isam if chain else self._solver
                 est_pose = isam.calculateEstimatePose3(pose_key(k_new))
                 est_v = isam.calculateEstimateVector(keys.vel(k_new))

@@ -60,13 +60,16 @@ class ChainLagSmoother:
         self._maintained = True          # `maintain` ran since the last update
         self._last_keys: list = []       # the keys stamped by the last update
 
-    def update(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, stamps: dict) -> dict | None:
+    def update(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, stamps: dict,
+               remove: tuple = (), force: bool = False) -> dict | None:
         """Add factors and new values; when a marginalisation is due (`due`), do it in this update.
 
         With `deferred` the caller runs `maintain` between updates: this update then only adds the factors and
         solves (no relinearisation, no marginalisation) unless no `maintain` ran since the last update, in
-        which case it does that work itself. Returns None, or after a marginalisation the keyframe rotations
-        (nRb 3×3 by keyframe index) of the marginalised pose keys as they left the window."""
+        which case it does that work itself. `remove`: iSAM2 indices of factors to remove (a temporary pin,
+        stream_realign); `force`: relinearise in this update (iSAM2's threshold check). Returns None, or after a
+        marginalisation the keyframe rotations (nRb 3×3 by keyframe index) of the marginalised pose keys as they
+        left the window."""
         for k in stamps:
             if k not in self.stamps:
                 self.group[k] = self.group_of(k)
@@ -77,9 +80,9 @@ class ChainLagSmoother:
         self._check_due()
         if not self._due or (self.deferred and not missed):
             # iSAM2's own order for an incremental update: the new factors' keys last (at the root)
-            self.isam.update(graph, values, [], None, None, None, missed)
+            self.isam.update(graph, values, list(remove), None, None, None, missed or force)
             return None
-        return self._marginalize(graph, values)
+        return self._marginalize(graph, values, remove, force)
 
     def due(self) -> bool:
         """A marginalisation is due: the oldest stamp is more than lag_s + hold_s older than the newest."""
@@ -108,7 +111,8 @@ class ChainLagSmoother:
         self.isam.update(gtsam.NonlinearFactorGraph(), gtsam.Values(), [], last, None, None, self.deferred)
         return None
 
-    def _marginalize(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values) -> dict:
+    def _marginalize(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, remove: tuple = (),
+                     force: bool = False) -> dict:
         """One update that re-eliminates the whole window (keys older than lag_s first), then their
         marginalisation."""
         now = max(self.stamps.values())
@@ -117,7 +121,7 @@ class ChainLagSmoother:
         existing = _key_list(k for k in self.stamps if k not in new)
         # marginalizeLeaves needs leaves (it crashed, not raised, on a key that was not one): this update
         # re-eliminates the whole window with those keys first, then they are marginalised
-        self.isam.update(graph, values, [], self._groups(old), None, existing, self.deferred)
+        self.isam.update(graph, values, list(remove), self._groups(old), None, existing, self.deferred or force)
         left = _pose_rotations(self.isam, old)
         self.isam.marginalizeLeaves(_key_list(old))
         for k in old:

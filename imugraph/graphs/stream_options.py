@@ -110,6 +110,16 @@ class StreamOptions:
     # 0: trusted like measured time. No effect on a stream without gaps.
     gap_rate_walk: float = GAP_RATE_WALK
     gap_acc_walk: float = GAP_ACC_WALK
+    # after a gap that starts a keyframe, the rotation about the magnetic field re-solved from the first
+    # gap_realign_s seconds of integrated specific force (stream_realign eq. R1–R3); when |α*| > gap_realign_gate σ_α
+    # the gap's rotation rows are removed and the keyframe closing that window is pinned there about n̂ (σ
+    # gap_realign_pin_deg) for gap_realign_hold updates. None: off (chain lag and iSAM2 only). No effect on a stream
+    # without gaps. A partial fix (docs/gaps.md "Task G": BROAD 06, 3 × 0.5 s: 37.4° → 25.2° filtered).
+    gap_realign_s: float | None = None
+    gap_realign_gate: float = 3.0
+    gap_realign_pin_deg: float = 1.0
+    gap_realign_hold: int = 3
+    gap_realign_keep: bool = False     # also a lasting one-axis prior of σ_α (eq. R3) at the same rotation
     acc_huber_k: float | None = 2.0
     acc_bias_sigma: float = 1e-4
     bias_segment_s: float = 5.0
