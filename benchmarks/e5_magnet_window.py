@@ -5,11 +5,14 @@ base fit (`find_windows`: the step search (M3) and the energy detector), and per
 """
 from __future__ import annotations
 
-import argparse
+import sys
+from pathlib import Path
 
 import numpy as np
 
-from imugraph.diagnose.bench import broad_sessions, simulated_session
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from benchmarks.e5_hosts import harness_hosts  # noqa: E402
 from imugraph.diagnose.effects import EFFECTS
 from imugraph.diagnose.effects import magnetic_disturbance as md
 from imugraph.diagnose.fit import base_options, fit_base
@@ -18,13 +21,7 @@ from imugraph.diagnose.refit import refit_effect
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__)
-    ap.add_argument("--seed", type=int, default=1)
-    ap.add_argument("--cases", default="001")
-    ap.add_argument("--duration", type=float, default=60.0)
-    a = ap.parse_args()
-    sessions = broad_sessions(["01", "02", "04", "06", "07"], a.duration) + \
-        [simulated_session(a.seed * 100 + i, a.duration, 285.714) for i in range(2)]
+    a, sessions = harness_hosts(__doc__, "001")
 
     def fn(s):
         print(s.name, "t0", round(float(s.t[0]), 2), "t1", round(float(s.t[-1]), 2), flush=True)

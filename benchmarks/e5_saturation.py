@@ -8,11 +8,14 @@ split into rail samples, their ±0.5 s support, and the rest.
 """
 from __future__ import annotations
 
-import argparse
+import sys
+from pathlib import Path
 
 import numpy as np
 
-from imugraph.diagnose.bench import broad_sessions, simulated_session
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from benchmarks.e5_hosts import harness_hosts  # noqa: E402
 from imugraph.diagnose.effects import EFFECTS
 from imugraph.diagnose.effects import saturation as sat
 from imugraph.diagnose.fit import base_options, fit_base
@@ -23,13 +26,7 @@ from imugraph.diagnose.refit import refit_effect, rescale
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__)
-    ap.add_argument("--seed", type=int, default=1)
-    ap.add_argument("--cases", default="012")
-    ap.add_argument("--duration", type=float, default=60.0)
-    a = ap.parse_args()
-    sessions = broad_sessions(["01", "02", "04", "06", "07"], a.duration) + \
-        [simulated_session(a.seed * 100 + i, a.duration, 285.714) for i in range(2)]
+    a, sessions = harness_hosts(__doc__, "012")
     hosts = {}
     rng = np.random.default_rng(a.seed)
     # replay the draws to know each case's host (run_harness draws host, then injects)
