@@ -114,13 +114,16 @@ def model_arguments(p: argparse.ArgumentParser) -> None:
                         "(DiagnoseOptions.magnet_ramps; default on)")
     p.add_argument("--magnet-step-refit", action=argparse.BooleanOptionalAction, default=None,
                    help="S16-E (M3'): magnetic_disturbance's step search repeated on the residual of the (M1) "
-                        "fit of the windows found (DiagnoseOptions.magnet_step_refit; default off)")
+                        "fit of the windows found (DiagnoseOptions.magnet_step_refit; default on since session 16)")
     p.add_argument("--saturation-censor", action=argparse.BooleanOptionalAction, default=None,
                    help="S16-E (C1'): a gyro sample on a rail censored in saturation's residuals "
-                        "(DiagnoseOptions.saturation_censor; default off)")
+                        "(DiagnoseOptions.saturation_censor; default on since session 16)")
     p.add_argument("--saturation-area", action=argparse.BooleanOptionalAction, default=None,
                    help="S16-E (C1''): the censored gyro values estimated per keyframe interval against the "
                         "keyframes (DiagnoseOptions.saturation_area; default off)")
+    p.add_argument("--vibration-band-windows", action=argparse.BooleanOptionalAction, default=None,
+                   help="S16-F (V3)-(V4): vibration's windows re-localised on the fitted band, narrow-band excess "
+                        "only (DiagnoseOptions.vibration_band_windows; default off)")
     p.add_argument("--cross-gap", type=float, default=None, metavar="W",
                    help="S16: weight w_x of the gap's cross-channel term (G1'), the correlation of the acc and "
                         "mag residuals with the model's motion derivative (GapOptions.cross_weight; default 0: off)")
@@ -145,7 +148,8 @@ def diagnose_options(args: argparse.Namespace, **fields):
                         magnet_ramps=getattr(args, "magnet_ramps", None),
                         magnet_step_refit=getattr(args, "magnet_step_refit", None),
                         saturation_censor=getattr(args, "saturation_censor", None),
-                        saturation_area=getattr(args, "saturation_area", None), **fields)   # None: the defaults
+                        saturation_area=getattr(args, "saturation_area", None),
+                        vibration_band_windows=getattr(args, "vibration_band_windows", None), **fields)   # None: the defaults
     if getattr(args, "cross_gap", None) is not None:                        # S16 (G1')
         o = replace(o, gap=replace(o.gap, cross_weight=float(args.cross_gap)))
     if getattr(args, "cross_form", None) is not None:

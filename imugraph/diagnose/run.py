@@ -53,11 +53,14 @@ class DiagnoseOptions:
         magnet_ramps: S15: magnetic_disturbance's window field with fitted linear ramps at its edges (R1)
             instead of a step; None: the module flag `magnetic_disturbance.RAMPS` (default True since session 15).
         magnet_step_refit: S16-E (M3'): magnetic_disturbance's step search repeated on the residual of the (M1)
-            fit of the windows found so far; None: the module flag `magnetic_disturbance.STEP_REFIT` (default False).
+            fit of the windows found so far; None: the module flag `magnetic_disturbance.STEP_REFIT` (default True since session 16).
         saturation_censor: S16-E (C1'): a gyro sample on a rail censored in saturation's residuals (no residual
-            where the fitted rate is beyond the rail); None: the module flag `saturation.CENSOR_GYRO` (default False).
+            where the fitted rate is beyond the rail); None: the module flag `saturation.CENSOR_GYRO` (default True since session 16).
         saturation_area: S16-E (C1''): the censored gyro values estimated per keyframe interval against the
             keyframes (≥ the rail); None: the module flag `saturation.CENSOR_AREA` (default False).
+        vibration_band_windows: S16-F (V3)–(V4): vibration's windows re-localised on the fitted band, and kept
+            only when their excess power above the motion band lies mostly in it (a broadband transient of the
+            host is not a vibration); None: the module flag `vibration.BAND_WINDOWS` (default False).
     """
 
     keyframe_hz: float = 5.0
@@ -73,6 +76,7 @@ class DiagnoseOptions:
     magnet_step_refit: bool | None = None
     saturation_censor: bool | None = None
     saturation_area: bool | None = None
+    vibration_band_windows: bool | None = None
     gap: GapOptions = field(default_factory=GapOptions)
     attribution: AttributionOptions = field(default_factory=AttributionOptions)
 
@@ -151,12 +155,16 @@ def model_switches(options: DiagnoseOptions):
     from imugraph.diagnose.effects import time_offset as tmod
     from imugraph.diagnose.effects import magnetic_disturbance as mmod
     from imugraph.diagnose.effects import saturation as smod
+    from imugraph.diagnose.effects import vibration as vmod
 
     old = (joint.ENABLED, fitmod.SUBSAMPLE_LAG)
     old_t = (tmod.MAG_REMAINDER_OUT, tmod.LOG_SCORE_SIGNIFICANCE, tmod.ROTATION_CHECK)
     old_d = dmod.BASIS
     old_s15 = (tmod.GYRO_DELAY_MODEL, mmod.RAMPS, mmod.STEP_REFIT, smod.CENSOR_GYRO, smod.CENSOR_AREA)
+    old_v = vmod.BAND_WINDOWS
     try:
+        if options.vibration_band_windows is not None:
+            vmod.BAND_WINDOWS = bool(options.vibration_band_windows)
         if options.gyro_delay_model is not None:
             tmod.GYRO_DELAY_MODEL = bool(options.gyro_delay_model)
         if options.magnet_ramps is not None:
@@ -185,6 +193,7 @@ def model_switches(options: DiagnoseOptions):
         tmod.MAG_REMAINDER_OUT, tmod.LOG_SCORE_SIGNIFICANCE, tmod.ROTATION_CHECK = old_t
         dmod.BASIS = old_d
         tmod.GYRO_DELAY_MODEL, mmod.RAMPS, mmod.STEP_REFIT, smod.CENSOR_GYRO, smod.CENSOR_AREA = old_s15
+        vmod.BAND_WINDOWS = old_v
 
 
 def diagnose(session: Session, options: DiagnoseOptions = DiagnoseOptions(), effects: dict | None = None,

@@ -21,6 +21,26 @@ Residuals (base rule 2): inside the windows, the accelerometer residual passed t
 model's whitening filter |H_w(f)| = √(S_out / (S_out + S_v,w)) (zero phase); unchanged outside.
 The reported window (t_start, t_end) and amplitude are those of the window with the largest band RMS.
 
+Band windows (S16-F, opt-in: BAND_WINDOWS / DiagnoseOptions.vibration_band_windows, default off). (V2)'s
+windows are where the residual has power above the motion band — a narrow-band vibration, but also a
+broadband transient of the host (a knock, the sensor put down: BROAD 04's "breaks"), which (V2) merges with
+or adds to the vibration's window. The model (V1) claims a band only, so with the option the windows are
+localised a second time on the residual band-passed to the fitted band f_lo..f_hi (± 1 Hz), same moving
+mean and threshold as (V2) (V3), and a window is kept only when most of its excess power above the motion
+band lies in the band:
+
+    ρ_w = (P_band,w − P_band,quiet) / (P_above,w − P_above,quiet) ≥ ½       (narrow-band excess)      (V4)
+
+(P: the 0.5 s moving mean of the squared norm of the band-passed / above-motion-band residual, tested
+sample by sample, so that a transient inside or next to the vibration is cut out; quiet: its 20 % quantile
+over the recording, as in detect_windows). A transient spreads its power over 15 Hz … rate/2, of
+which a few-Hz band holds a few per cent. The spectra (S_in, S_out, the band, S_v,w) are then estimated
+again with the windows of (V3)–(V4). Why: a broadband transient claimed as vibration keeps its residual
+(outside the band nothing is whitened) while the extended model's σ, estimated on the whitened window,
+is smaller — the held-out log score (A4) of the fold that holds the transient turns negative and the sign
+test (A4'') rejects the vibration (harness seed 2, cases 015/016: fold gains −0.15 / −0.44 nats, all
+others +0.20 … +1.08; docs/diagnose.md §S16-F).
+
 Relevance (`size`): band RMS ≥ 0.3 m/s².
 
 Injection ranges (RANGES): f₀ = 20–80 Hz (above the motion band; motors, hand tools and engines vibrate at tens
@@ -34,13 +54,16 @@ import numpy as np
 
 from imugraph.diagnose.effects.base import (Correction, Effect, check_train, detect_windows, envelope,
                                              noise_scale, psd_filter, random_window, replace_session,
-                                             train_psd, window_mask)
+                                             smooth, train_psd, window_mask)
 from imugraph.io.validate import runs
 
 RANGES = {"freq_hz": (20.0, 80.0), "amp_ms2": (0.6, 3.0), "window_frac": (0.15, 0.4), "ramp_s": (0.1, 0.5)}
 MAX_WINDOWS = 3
 MOTION_BAND_HZ = 15.0        # human movement (incl. physiological tremor, 8–12 Hz) stays below this (V2)
 RELEVANT_RMS = 0.3           # relevance: band RMS ≥ 0.3 m/s² (≈ 10× a MEMS accelerometer's white noise)
+BAND_WINDOWS = False         # S16-F (V3)–(V4): windows re-localised on the fitted band, narrow-band excess only
+BAND_MARGIN_HZ = 1.0         # (V3): band-pass f_lo − 1 Hz … f_hi + 1 Hz (the ±2 % wander of f₀ stays inside)
+NARROW_SHARE = 0.5           # (V4): share of the window's above-motion-band excess power inside the band
 
 
 def above_motion_band(x: np.ndarray, rate: float) -> np.ndarray:
@@ -49,6 +72,61 @@ def above_motion_band(x: np.ndarray, rate: float) -> np.ndarray:
     f_hz = np.fft.rfftfreq(len(x), 1.0 / rate)
     ramp = np.clip((f_hz - MOTION_BAND_HZ) / 1.0 + 0.5, 0.0, 1.0)
     return psd_filter(x, 0.5 * (1.0 - np.cos(np.pi * ramp)))
+
+
+def band_pass(x: np.ndarray, rate: float, f_lo: float, f_hi: float) -> np.ndarray:
+    """x (N, d) band-passed (zero phase) to f_lo … f_hi Hz with raised-cosine transitions of 1 Hz (V3)."""
+    f_hz = np.fft.rfftfreq(len(x), 1.0 / rate)
+    up = np.clip((f_hz - f_lo) / 1.0 + 0.5, 0.0, 1.0)
+    down = np.clip((f_hi - f_hz) / 1.0 + 0.5, 0.0, 1.0)
+    return psd_filter(x, 0.25 * (1.0 - np.cos(np.pi * up)) * (1.0 - np.cos(np.pi * down)))
+
+
+def band_spectra(r: np.ndarray, train: np.ndarray, inside: np.ndarray, nper: int, rate: float):
+    """(f, S_out, k0, lo, hi) of (V1)'s fit: Welch spectra of the residual r inside / outside the windows
+    (training samples), f₀'s bin k0 = the peak of S_in/S_out above the motion band and the band's bins
+    lo..hi (ratio > peak/4, one bin of margin); None when a spectrum cannot be estimated."""
+    f, s_in = train_psd(r, train & inside, nper)
+    _, s_out = train_psd(r, train & ~inside, nper)
+    if not np.all(np.isfinite(s_in)) or not np.all(np.isfinite(s_out)):
+        return None
+    ratio = s_in.sum(axis=1) / np.maximum(s_out.sum(axis=1), 1e-30)
+    ratio[f * rate < MOTION_BAND_HZ] = 0.0
+    k0 = int(np.argmax(ratio))
+    band = ratio > ratio[k0] / 4.0
+    lo = hi = k0
+    while lo > 0 and band[lo - 1]:
+        lo -= 1
+    while hi < len(f) - 1 and band[hi + 1]:
+        hi += 1
+    return f, s_out, k0, max(lo - 1, 0), min(hi + 1, len(f) - 1)
+
+
+def band_windows(fit, f_lo_hz: float, f_hi_hz: float) -> list:
+    """(V3)–(V4): windows (t_start, t_end) where the residual's power in the band f_lo … f_hi (± BAND_MARGIN_HZ)
+    is well above its quiet level AND holds most of the excess power above the motion band, both on the
+    0.5 s moving mean (a transient inside or next to a vibration is cut out at that resolution); runs
+    closer than 1 s merged, shorter than 2 s dropped (as (V2)); longest first."""
+    s = fit.session
+    r = fit.residuals["acc"]
+    n = int(round(0.5 * s.rate))
+    p_band = smooth(np.sum(band_pass(r, s.rate, f_lo_hz - BAND_MARGIN_HZ, f_hi_hz + BAND_MARGIN_HZ) ** 2, axis=1), n)
+    p_above = smooth(np.sum(above_motion_band(r, s.rate) ** 2, axis=1), n)
+    ok = np.isfinite(p_band) & np.isfinite(p_above)
+    if ok.sum() < 10:
+        return []
+    q_band = max(float(np.quantile(p_band[ok], 0.2)), 1e-12)
+    q_above = float(np.quantile(p_above[ok], 0.2))
+    flag = ok & (p_band > 4.0 * q_band)                                                              # (V3)
+    flag &= (p_band - q_band) >= NARROW_SHARE * np.maximum(p_above - q_above, 0.0)                  # (V4)
+    merged = []
+    for i0, i1 in zip(*runs(flag)):
+        if merged and s.t[i0] - s.t[merged[-1][1] - 1] < 1.0:
+            merged[-1] = (merged[-1][0], int(i1))
+        else:
+            merged.append((int(i0), int(i1)))
+    found = sorted([w for w in merged if s.t[w[1] - 1] - s.t[w[0]] >= 2.0], key=lambda w: w[0] - w[1])
+    return [(float(s.t[i0]), float(s.t[i1 - 1])) for i0, i1 in found[:MAX_WINDOWS]]
 
 
 class VibrationCorrection(Correction):
@@ -98,27 +176,20 @@ class Vibration(Effect):
         rate = s.rate
         r = fit.residuals["acc"]
         wins = [tuple(map(float, window))] if window is not None else self.find_windows(fit)
-        inside = window_mask(s.t, wins)
         a0, a1 = runs(train)
         nper = int(2 ** np.clip(np.floor(np.log2(min(rate, int(np.max(a1 - a0))))), 4, 12))  # ≤ 1 s
-        f, s_in = train_psd(r, train & inside, nper)
-        _, s_out = train_psd(r, train & ~inside, nper)
-        if not wins or not np.all(np.isfinite(s_in)) or not np.all(np.isfinite(s_out)):
+        spec = band_spectra(r, train, window_mask(s.t, wins), nper, rate) if wins else None
+        if spec is not None and window is None and BAND_WINDOWS:                          # (V3)–(V4)
+            f, _, _, lo, hi = spec
+            wins = band_windows(fit, f[lo] * rate, f[hi] * rate)
+            spec = band_spectra(r, train, window_mask(s.t, wins), nper, rate) if wins else None
+        if not wins or spec is None:
             return VibrationCorrection(self.name, {"windows": []}, n_params=0, channel=self.channel)
-        ratio = s_in.sum(axis=1) / np.maximum(s_out.sum(axis=1), 1e-30)
-        ratio[f * rate < MOTION_BAND_HZ] = 0.0
-        k0 = int(np.argmax(ratio))
-        band = ratio > ratio[k0] / 4.0
-        lo = hi = k0
-        while lo > 0 and band[lo - 1]:
-            lo -= 1
-        while hi < len(f) - 1 and band[hi + 1]:
-            hi += 1
-        lo, hi = max(lo - 1, 0), min(hi + 1, len(f) - 1)
+        f, s_out, k0, lo, hi = spec
         s_vs, amps = [], []
         for a, b in wins:                       # per window: a spurious window gets S_v ≈ 0 (no change)
             _, s_w = train_psd(r, train & window_mask(s.t, [(a, b)]), nper)
-            s_v = np.zeros_like(s_in)
+            s_v = np.zeros_like(s_out)
             if np.all(np.isfinite(s_w)):
                 s_v[lo:hi + 1] = np.maximum(s_w[lo:hi + 1] - s_out[lo:hi + 1], 0.0)
             s_vs.append(s_v)
