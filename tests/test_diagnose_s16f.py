@@ -70,10 +70,10 @@ def test_option_fit_uses_band_windows(vibration_and_knock, monkeypatch):
 
 
 def test_option_switch_is_scoped():
-    """DiagnoseOptions.vibration_band_windows sets the module flag for the diagnosis only; default off."""
-    assert vib.BAND_WINDOWS is False
-    with model_switches(DiagnoseOptions(vibration_band_windows=True)):
-        assert vib.BAND_WINDOWS is True
-    assert vib.BAND_WINDOWS is False
-    with model_switches(DiagnoseOptions()):
+    """DiagnoseOptions.vibration_band_windows sets the module flag for the diagnosis only; default on (S16)."""
+    assert vib.BAND_WINDOWS is True
+    with model_switches(DiagnoseOptions(vibration_band_windows=False)):
         assert vib.BAND_WINDOWS is False
+    assert vib.BAND_WINDOWS is True
+    with model_switches(DiagnoseOptions()):
+        assert vib.BAND_WINDOWS is True

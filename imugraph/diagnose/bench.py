@@ -123,7 +123,7 @@ def model_arguments(p: argparse.ArgumentParser) -> None:
                         "keyframes (DiagnoseOptions.saturation_area; default off)")
     p.add_argument("--vibration-band-windows", action=argparse.BooleanOptionalAction, default=None,
                    help="S16-F (V3)-(V4): vibration's windows re-localised on the fitted band, narrow-band excess "
-                        "only (DiagnoseOptions.vibration_band_windows; default off)")
+                        "only (DiagnoseOptions.vibration_band_windows; default on since session 16)")
     p.add_argument("--cross-gap", type=float, default=None, metavar="W",
                    help="S16: weight w_x of the gap's cross-channel term (G1'), the correlation of the acc and "
                         "mag residuals with the model's motion derivative (GapOptions.cross_weight; default 0: off)")

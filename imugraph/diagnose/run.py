@@ -60,7 +60,7 @@ class DiagnoseOptions:
             keyframes (≥ the rail); None: the module flag `saturation.CENSOR_AREA` (default False).
         vibration_band_windows: S16-F (V3)–(V4): vibration's windows re-localised on the fitted band, and kept
             only when their excess power above the motion band lies mostly in it (a broadband transient of the
-            host is not a vibration); None: the module flag `vibration.BAND_WINDOWS` (default False).
+            host is not a vibration); None: the module flag `vibration.BAND_WINDOWS` (default True since session 16).
     """
 
     keyframe_hz: float = 5.0

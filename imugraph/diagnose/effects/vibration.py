@@ -61,7 +61,7 @@ RANGES = {"freq_hz": (20.0, 80.0), "amp_ms2": (0.6, 3.0), "window_frac": (0.15, 
 MAX_WINDOWS = 3
 MOTION_BAND_HZ = 15.0        # human movement (incl. physiological tremor, 8–12 Hz) stays below this (V2)
 RELEVANT_RMS = 0.3           # relevance: band RMS ≥ 0.3 m/s² (≈ 10× a MEMS accelerometer's white noise)
-BAND_WINDOWS = False         # S16-F (V3)–(V4): windows re-localised on the fitted band, narrow-band excess only
+BAND_WINDOWS = True          # S16-F (V3)–(V4): windows re-localised on the fitted band, narrow-band excess only (default since S16)
 BAND_MARGIN_HZ = 1.0         # (V3): band-pass f_lo − 1 Hz … f_hi + 1 Hz (the ±2 % wander of f₀ stays inside)
 NARROW_SHARE = 0.5           # (V4): share of the window's above-motion-band excess power inside the band
 
