@@ -147,53 +147,41 @@ def null_fold_gap(null: Fit, sim: Fit, sigma: dict, folds: list, gap_opt: GapOpt
 
 @contextmanager
 def model_switches(options: DiagnoseOptions):
-    """The options' model switches (joint_gyro, subsample_lag) set on their modules for the duration of a
-    diagnosis, restored afterwards (None: left as the module has them)."""
-    from imugraph.diagnose import fit as fitmod
-    from imugraph.diagnose.effects import joint
-    from imugraph.diagnose.effects import gyro_bias_drift as dmod
-    from imugraph.diagnose.effects import time_offset as tmod
-    from imugraph.diagnose.effects import magnetic_disturbance as mmod
-    from imugraph.diagnose.effects import saturation as smod
-    from imugraph.diagnose.effects import vibration as vmod
+    """The options' model switches (the table below: option field → module flags) set on their modules for the
+    duration of a diagnosis, restored afterwards, also on an error (None: left as the module has them)."""
+    import importlib
 
-    old = (joint.ENABLED, fitmod.SUBSAMPLE_LAG)
-    old_t = (tmod.MAG_REMAINDER_OUT, tmod.LOG_SCORE_SIGNIFICANCE, tmod.ROTATION_CHECK)
-    old_d = dmod.BASIS
-    old_s15 = (tmod.GYRO_DELAY_MODEL, mmod.RAMPS, mmod.STEP_REFIT, smod.CENSOR_GYRO, smod.CENSOR_AREA)
-    old_v = vmod.BAND_WINDOWS
+    from imugraph.errors import SessionError
+
+    if options.drift_basis is not None and options.drift_basis not in ("legendre", "spline"):
+        raise SessionError("<options>", "drift_basis", repr(options.drift_basis), "'legendre' or 'spline'")
+    # (option field, module, module flags it sets, converter): the boolean ones take bool(value)
+    pkg = "imugraph.diagnose."
+    table = [("vibration_band_windows", "effects.vibration", ("BAND_WINDOWS",), bool),
+             ("gyro_delay_model", "effects.time_offset", ("GYRO_DELAY_MODEL",), bool),
+             ("magnet_ramps", "effects.magnetic_disturbance", ("RAMPS",), bool),
+             ("saturation_area", "effects.saturation", ("CENSOR_AREA",), bool),
+             ("saturation_censor", "effects.saturation", ("CENSOR_GYRO",), bool),
+             ("magnet_step_refit", "effects.magnetic_disturbance", ("STEP_REFIT",), bool),
+             ("drift_basis", "effects.gyro_bias_drift", ("BASIS",), str),
+             ("timing_rules", "effects.time_offset", ("MAG_REMAINDER_OUT", "LOG_SCORE_SIGNIFICANCE",
+                                                      "ROTATION_CHECK"), bool),
+             ("joint_gyro", "effects.joint", ("ENABLED",), bool),
+             ("subsample_lag", "fit", ("SUBSAMPLE_LAG",), bool)]
+    saved = []                                   # (module, flag, old value), restored in reverse order
     try:
-        if options.vibration_band_windows is not None:
-            vmod.BAND_WINDOWS = bool(options.vibration_band_windows)
-        if options.gyro_delay_model is not None:
-            tmod.GYRO_DELAY_MODEL = bool(options.gyro_delay_model)
-        if options.magnet_ramps is not None:
-            mmod.RAMPS = bool(options.magnet_ramps)
-        if options.saturation_area is not None:
-            smod.CENSOR_AREA = bool(options.saturation_area)
-        if options.saturation_censor is not None:
-            smod.CENSOR_GYRO = bool(options.saturation_censor)
-        if options.magnet_step_refit is not None:
-            mmod.STEP_REFIT = bool(options.magnet_step_refit)
-        if options.drift_basis is not None:
-            if options.drift_basis not in ("legendre", "spline"):
-                from imugraph.errors import SessionError
-
-                raise SessionError("<options>", "drift_basis", repr(options.drift_basis), "'legendre' or 'spline'")
-            dmod.BASIS = options.drift_basis
-        if options.timing_rules is not None:
-            tmod.MAG_REMAINDER_OUT = tmod.LOG_SCORE_SIGNIFICANCE = tmod.ROTATION_CHECK = bool(options.timing_rules)
-        if options.joint_gyro is not None:
-            joint.ENABLED = bool(options.joint_gyro)
-        if options.subsample_lag is not None:
-            fitmod.SUBSAMPLE_LAG = bool(options.subsample_lag)
+        for field_name, module, flags, kind in table:
+            value = getattr(options, field_name)
+            if value is None:                    # left as the module has it
+                continue
+            mod = importlib.import_module(pkg + module)
+            for flag in flags:
+                saved.append((mod, flag, getattr(mod, flag)))
+                setattr(mod, flag, kind(value))
         yield
     finally:
-        joint.ENABLED, fitmod.SUBSAMPLE_LAG = old
-        tmod.MAG_REMAINDER_OUT, tmod.LOG_SCORE_SIGNIFICANCE, tmod.ROTATION_CHECK = old_t
-        dmod.BASIS = old_d
-        tmod.GYRO_DELAY_MODEL, mmod.RAMPS, mmod.STEP_REFIT, smod.CENSOR_GYRO, smod.CENSOR_AREA = old_s15
-        vmod.BAND_WINDOWS = old_v
+        for mod, flag, old in reversed(saved):
+            setattr(mod, flag, old)
 
 
 def diagnose(session: Session, options: DiagnoseOptions = DiagnoseOptions(), effects: dict | None = None,
