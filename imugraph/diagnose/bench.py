@@ -103,27 +103,27 @@ def model_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--joint-refit", action=argparse.BooleanOptionalAction, default=None,
                    help="stage-2 alternation for a jointly fitted gyro effect (AttributionOptions.joint_refit; "
                         "default off)")
-    p.add_argument("--timing-rules", action=argparse.BooleanOptionalAction, default=None,
-                   help="time_offset's rules T5–T7 (field remainder out, log-score significance, rotation check; "
-                        "DiagnoseOptions.timing_rules; default on)")
-    p.add_argument("--gyro-delay-model", action=argparse.BooleanOptionalAction, default=None,
-                   help="S15: time_offset's extended model of a gyro delay (T8)–(T10) (DiagnoseOptions."
-                        "gyro_delay_model; default on)")
-    p.add_argument("--magnet-ramps", action=argparse.BooleanOptionalAction, default=None,
-                   help="S15: magnetic_disturbance's field with fitted ramps at the window edges (R1) "
-                        "(DiagnoseOptions.magnet_ramps; default on)")
-    p.add_argument("--magnet-step-refit", action=argparse.BooleanOptionalAction, default=None,
-                   help="S16-E (M3'): magnetic_disturbance's step search repeated on the residual of the (M1) "
-                        "fit of the windows found (DiagnoseOptions.magnet_step_refit; default on since session 16)")
-    p.add_argument("--saturation-censor", action=argparse.BooleanOptionalAction, default=None,
-                   help="S16-E (C1'): a gyro sample on a rail censored in saturation's residuals "
-                        "(DiagnoseOptions.saturation_censor; default on since session 16)")
-    p.add_argument("--saturation-area", action=argparse.BooleanOptionalAction, default=None,
-                   help="S16-E (C1''): the censored gyro values estimated per keyframe interval against the "
-                        "keyframes (DiagnoseOptions.saturation_area; default off)")
-    p.add_argument("--vibration-band-windows", action=argparse.BooleanOptionalAction, default=None,
-                   help="S16-F (V3)-(V4): vibration's windows re-localised on the fitted band, narrow-band excess "
-                        "only (DiagnoseOptions.vibration_band_windows; default on since session 16)")
+    # on/off switches of DiagnoseOptions (None: the module's own default, stated in the help)
+    switches = [
+        ("--timing-rules", "time_offset's rules T5–T7 (field remainder out, log-score significance, rotation "
+                           "check; DiagnoseOptions.timing_rules; default on)"),
+        ("--gyro-delay-model", "S15: time_offset's extended model of a gyro delay (T8)–(T10) (DiagnoseOptions."
+                               "gyro_delay_model; default on)"),
+        ("--magnet-ramps", "S15: magnetic_disturbance's field with fitted ramps at the window edges (R1) "
+                           "(DiagnoseOptions.magnet_ramps; default on)"),
+        ("--magnet-step-refit", "S16-E (M3'): magnetic_disturbance's step search repeated on the residual of the "
+                                "(M1) fit of the windows found (DiagnoseOptions.magnet_step_refit; default on since "
+                                "session 16)"),
+        ("--saturation-censor", "S16-E (C1'): a gyro sample on a rail censored in saturation's residuals "
+                                "(DiagnoseOptions.saturation_censor; default on since session 16)"),
+        ("--saturation-area", "S16-E (C1''): the censored gyro values estimated per keyframe interval against the "
+                              "keyframes (DiagnoseOptions.saturation_area; default off)"),
+        ("--vibration-band-windows", "S16-F (V3)-(V4): vibration's windows re-localised on the fitted band, "
+                                     "narrow-band excess only (DiagnoseOptions.vibration_band_windows; default on "
+                                     "since session 16)"),
+    ]
+    for flag, text in switches:
+        p.add_argument(flag, action=argparse.BooleanOptionalAction, default=None, help=text)
     p.add_argument("--cross-gap", type=float, default=None, metavar="W",
                    help="S16: weight w_x of the gap's cross-channel term (G1'), the correlation of the acc and "
                         "mag residuals with the model's motion derivative (GapOptions.cross_weight; default 0: off)")
