@@ -108,3 +108,18 @@ def test_censored_values_match_the_keyframes_and_stay_beyond_the_rail():
     sig = np.asarray(fit.sigma["gyr"], float)
     rms = [float(np.sqrt(np.nanmean((gyro_exact(fit, y - clipped.gyr)["gyr"][iv] / sig) ** 2))) for y in (y_q, y_c)]
     assert rms[1] < 0.7 * rms[0], rms                                                           # (ii)
+
+
+@pytest.mark.parametrize("seed", [7, 11])
+def test_a_window_at_the_end_is_the_shorter_side(seed):
+    """(M3) scores a window touching an end exactly as its complement; the shorter side is the disturbance
+    (review R2: a magnet over the last 10 s of 60 s was reported as the first 50 s on some seeds)."""
+    rng = np.random.default_rng(seed)
+    rate = 100.0
+    t = np.arange(0.0, 60.0, 1.0 / rate)
+    r = rng.normal(0.0, 0.02, (len(t), 3))
+    r[t >= 50.0] += [0.6, -0.4, 0.3]
+    wins = md.step_windows(t, r, 1.0)
+    assert wins, "the step is found"
+    i0, i1 = wins[0][0], wins[0][1]
+    assert t[i0] > 45.0 and i1 >= len(t) - 200

@@ -301,6 +301,11 @@ def step_windows(t: np.ndarray, r: np.ndarray, field: float, max_windows: int = 
     n_in = (a[None, :] - a[:, None]).astype(float)                          # window [a, b) of blocks
     n_out = K - n_in
     valid = (n_in >= L) & (n_out >= L)
+    # (M3) is symmetric between inside and outside: a window touching an end of the recording scores exactly as
+    # its complement, and rounding chose (review R2: a 50–60.5 s magnet in 60 s reported as 0–50 s). The
+    # disturbance is the shorter side: of two complements the longer one is not a window
+    ends = (a[:, None] == 0) | (a[None, :] == K)
+    valid &= ~(ends & (n_in > n_out))
     out = []
     y = x.copy()
     for _ in range(max_windows):
