@@ -26,6 +26,13 @@ GAP_ACC_WALK = 10.0     # q_a, m/s^2.5
 # interval with the variance (G1): a sample overtaken by its successor looks like a one-sample gap first and must
 # still find its interval open.
 KEYFRAME_GAP_S = 0.05
+GAP_FACTOR = 1.5        # a step longer than 1.5 nominal steps holds missing time
+
+
+def gap_steps(dt: np.ndarray, nominal_dt: float) -> np.ndarray:
+    """(N,) bool: the steps that hold missing time, Δt > 1.5 T (the one rule for a gap; the stream's `gaps`
+    counter, the layout's `gap_end` and (G1) all use it)."""
+    return np.asarray(dt, float) > GAP_FACTOR * nominal_dt
 
 
 def gap_variance(dt: np.ndarray, nominal_dt: float, q: float) -> np.ndarray:
@@ -35,15 +42,15 @@ def gap_variance(dt: np.ndarray, nominal_dt: float, q: float) -> np.ndarray:
         dt: (N,) time steps, s; nominal_dt: T, the nominal step, s; q: walk density (q_ω or q_a).
     """
     dt = np.asarray(dt, float)
-    tau = np.where(dt > 1.5 * nominal_dt, dt - nominal_dt, 0.0)
+    tau = np.where(gap_steps(dt, nominal_dt), dt - nominal_dt, 0.0)
     return (q * q / 3.0) * tau**3
 
 
 def keyframe_gap_step(nominal_dt: float) -> float:
     """The step beyond which a gap starts a keyframe: T + KEYFRAME_GAP_S (and at least 1.5 T)."""
-    return max(1.5 * nominal_dt, nominal_dt + KEYFRAME_GAP_S)
+    return max(GAP_FACTOR * nominal_dt, nominal_dt + KEYFRAME_GAP_S)
 
 
 def has_gap(dt: np.ndarray, nominal_dt: float) -> bool:
     """Any step longer than 1.5 nominal steps (the stream's `gaps` counter uses the same rule)."""
-    return bool(np.max(dt, initial=0.0) > 1.5 * nominal_dt)
+    return bool(np.max(dt, initial=0.0) > GAP_FACTOR * nominal_dt)

@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import gtsam
 import numpy as np
 
-from imugraph.factors.gaps import GAP_RATE_WALK, gap_variance, has_gap, keyframe_gap_step
+from imugraph.factors.gaps import GAP_RATE_WALK, gap_steps, gap_variance, has_gap, keyframe_gap_step
 from imugraph.geometry import skew
 
 
@@ -83,8 +83,9 @@ def keyframe_layout(n: int, stride: int, dt: np.ndarray | None = None) -> tuple[
     a sample after it would be placed by the held rate's rotation (gaps eq. G1), off by tens of degrees over
     ½ s of motion; between keyframes the gap is one inflated preintegrated factor instead."""
     stride = max(1, int(stride))
-    if dt is not None and has_gap(np.asarray(dt)[:-1], float(np.median(dt))):
-        ends = np.flatnonzero(np.asarray(dt)[:-1] > keyframe_gap_step(float(np.median(dt)))) + 1
+    T = None if dt is None else float(np.median(dt))
+    if T is not None and has_gap(np.asarray(dt)[:-1], T):
+        ends = np.flatnonzero(np.asarray(dt)[:-1] > keyframe_gap_step(T)) + 1
         bounds = np.r_[0, ends, n]
         kf_samples = np.concatenate([np.arange(a, b, stride) for a, b in zip(bounds[:-1], bounds[1:])])
     else:
@@ -145,9 +146,10 @@ def preintegrate(b_gyr: np.ndarray, dt: np.ndarray, kf_samples: np.ndarray, samp
     theta = (b_gyr - bias_rows) * dt[:, None]                 # (N,3) rotation increment of sample i
     rate2 = np.sum((b_gyr - bias_rows) ** 2, axis=1, keepdims=True)
     var_step = ((np.asarray(sigma_gyr, float) ** 2)[None, :] + rate_error**2 * rate2) * (dt**2)[:, None]
-    gaps = gap_walk is not None and has_gap(dt, float(np.median(dt)))
+    T = float(np.median(dt)) if gap_walk is not None else 0.0
+    gaps = gap_walk is not None and has_gap(dt, T)
     if gaps and np.any(sigma_gyr):                                # samples that never arrived: gaps eq. (G1)
-        var_step = var_step + gap_variance(dt, float(np.median(dt)), gap_walk)[:, None]
+        var_step = var_step + gap_variance(dt, T, gap_walk)[:, None]
     lengths = np.diff(np.append(kf_samples, n))               # samples attached to each keyframe
     L = int(lengths.max())
     # every keyframe interval laid out over L positions; positions past its end get the identity step
@@ -194,7 +196,7 @@ def preintegrate(b_gyr: np.ndarray, dt: np.ndarray, kf_samples: np.ndarray, samp
     kf_dt = np.add.reduceat(dt, kf_samples)[:-1]
     gap_end = None
     if gaps:                                     # the step into each next keyframe
-        gap_end = dt[kf_samples[1:] - 1] > 1.5 * float(np.median(dt))
+        gap_end = gap_steps(dt[kf_samples[1:] - 1], T)
     return Preintegration(kf_samples, sample_kf, kRb, R[:-1], dRdb[:-1], cov[:-1], kf_dt,
                           np.array(bias_rows[kf_samples[:-1]]), steps, gap_end)
 

@@ -55,8 +55,9 @@ def velocity_increments(kRb: np.ndarray, sample_kf: np.ndarray, b_acc: np.ndarra
     a_k = np.einsum("nij,nj->ni", kRb, b_acc) * dt[:, None]
     dv = _sum_by(sample_kf, a_k, n_keyframes)
     var = (float(np.mean(np.asarray(sigma_acc, float) ** 2)) + rate_error**2 * np.sum(b_acc**2, axis=1)) * dt**2
-    if gap_walk is not None and has_gap(dt, float(np.median(dt))):      # samples that never arrived: gaps eq. (G1)
-        var = var + gap_variance(dt, float(np.median(dt)), gap_walk)
+    T = float(np.median(dt)) if gap_walk is not None else 0.0
+    if gap_walk is not None and has_gap(dt, T):                         # samples that never arrived: gaps eq. (G1)
+        var = var + gap_variance(dt, T, gap_walk)
     var_k = np.bincount(sample_kf, weights=var, minlength=n_keyframes)
     # the last keyframe starts no interval (its own sample has no successor)
     return dv[:-1], np.sqrt(np.maximum(var_k[:-1], 1e-12))

@@ -48,7 +48,7 @@ import numpy as np
 from imugraph import keys
 from imugraph.calibration.result import Calibration
 from imugraph.errors import SessionError
-from imugraph.factors.gaps import keyframe_gap_step
+from imugraph.factors.gaps import gap_steps, keyframe_gap_step
 from imugraph.graphs.cpp_velocity import G_KEY, imu_bias_key, pose_key, super_sample_pim
 from imugraph.graphs.stream_interval import (NAN3 as _NAN3, Q_ID, ArrivalMixin,
                                              interval_preintegration, lead_interval, qmul,
@@ -260,8 +260,8 @@ class StreamSmoother(OnlineCalibrationMixin, KeyframeStartMixin, ArrivalMixin, S
             w_rec = w if self._IE_inv is None else w @ self._IE_inv
             a, self._acc_tail = lead_interval(t, w_rec, a, self._acc_tail, self._lead_n, self._lead_f)
         steps = t[1:] - t[:-1]
-        if steps.max() > 1.5 / self.rate:              # counted on the interval as accepted (late rows in)
-            gap = steps > 1.5 / self.rate
+        gap = gap_steps(steps, 1.0 / self.rate)          # counted on the interval as accepted (late rows in)
+        if gap.any():
             self.stats.gaps += int(gap.sum())
             self.stats.missing += int(np.sum(np.round(steps[gap] * self.rate) - 1))
         # the batch path's preintegration (factors.gyro.preintegrate, factors.velocity.velocity_increments)
@@ -322,7 +322,7 @@ class StreamSmoother(OnlineCalibrationMixin, KeyframeStartMixin, ArrivalMixin, S
         if self.opt.keep_history:
             self._hist_kRb.append(q_kRb)
             self._hist_dR.append(delta_R)
-            self._hist_gap.append(bool(steps[-1] > 1.5 / self.rate))
+            self._hist_gap.append(bool(gap[-1]))
             self._hist_t.append(t[:-1])
             if self.opt.lag_s is None:
                 self._hist_y.append(y)

@@ -156,9 +156,10 @@ def interval_preintegration(t: np.ndarray, w: np.ndarray, a: np.ndarray, b_hat: 
     if kappa_a:
         var_dv += kappa_a**2 * float(np.einsum("ji,ji,j->", a, a, dt2))
     if gap is not None and has_gap(dt, 1.0 / gap[0]):          # gaps eq. (G1), on the steps with missing samples
+        tau3 = float(gap_variance(dt, 1.0 / gap[0], 1.0).sum())     # Σ τ_j³/3, scaled by q² below
         # isotropic, so Σ_j R_{j+1} V_j Rᵀ_{j+1} of eq. (2) is Σ_j V_j
-        cov = cov + float(gap_variance(dt, 1.0 / gap[0], gap[1]).sum()) * np.eye(3)
-        var_dv += float(gap_variance(dt, 1.0 / gap[0], gap[2]).sum())
+        cov = cov + gap[1] ** 2 * tau3 * np.eye(3)
+        var_dv += gap[2] ** 2 * tau3
     qk = q[:-1]
     qk = np.where(qk[:, :1] < 0, -qk, qk)
     return kRb, Rn, 0.5 * (cov + cov.T), float(t[-1] - t[0]), dv, float(np.sqrt(max(var_dv, 1e-12))), qk
