@@ -26,8 +26,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks.stream_arrival import BOOTSTRAP_S, arrivals, score, trial_paths  # noqa: E402
 from benchmarks.common import load_broad_trial  # noqa: E402
-from imugraph.graphs.stream import StreamOptions, StreamSmoother  # noqa: E402
-from imugraph.graphs.stream_run import bootstrap_calibration, weak_scale  # noqa: E402
+from imugraph.graphs.stream import StreamOptions  # noqa: E402
+from imugraph.graphs.stream_run import bootstrap_calibration, session_smoother  # noqa: E402
 
 
 def _rot(q: np.ndarray) -> np.ndarray:
@@ -62,12 +62,10 @@ def run(path: Path, seed: int, drop_s: float, overrides: dict, trace: tuple | No
     mag4 = s.mag.copy()
     mag4[np.arange(s.n) % 4 != 0] = np.nan
     order, injected = arrivals(s.n, s.rate, n_boot, rng, frozenset({"drop"}), drop_s)
-    g0 = float(np.median(np.linalg.norm(s.acc[:n_boot], axis=1)))
     opts = StreamOptions(**{"lag_s": 2.0, **overrides})
-    sm = StreamSmoother(cal, s.rate, opts, g0=g0, weak_scale=weak_scale(s, n_boot),
-                        start_window_s=float(s.t[n_boot - 1] - s.t[0]))
+    sm = session_smoother(s, cal, n_boot, opts)
     if trace:
-        print(f"velocity process: sigma_v {sm._sig_v:.3f} m/s, tau_v {sm._tau_v:.2f} s; g0 {g0:.3f}", flush=True)
+        print(f"velocity process: sigma_v {sm._sig_v:.3f} m/s, tau_v {sm._tau_v:.2f} s; g0 {sm._g:.3f}", flush=True)
     filtered = np.full((s.n, 4), np.nan)
     k_last = -1
     for i in order:

@@ -30,8 +30,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from benchmarks.common import broad_trials, load_broad_trial, print_table, trial_number  # noqa: E402
 from benchmarks.output import write_json  # noqa: E402
 from imugraph.evaluate import orientation_error  # noqa: E402
-from imugraph.graphs.stream import StreamOptions, StreamSmoother  # noqa: E402
-from imugraph.graphs.stream_run import bootstrap_calibration, weak_scale  # noqa: E402
+from imugraph.graphs.stream import StreamOptions  # noqa: E402
+from imugraph.graphs.stream_run import bootstrap_calibration, session_smoother  # noqa: E402
 
 BOOTSTRAP_S = 30.0
 DROP_S = 0.5          # length of each network drop
@@ -75,9 +75,7 @@ def arrivals(n: int, rate: float, start: int, rng: np.random.Generator,
 def stream(s, cal, n_boot: int, order: list[int], mag: np.ndarray, invalid_at: set[int],
            options: StreamOptions | None = None) -> dict:
     """Push the samples in `order` into a StreamSmoother (default: 2 s lag) set up as `stream_session` does."""
-    g0 = float(np.median(np.linalg.norm(s.acc[:n_boot], axis=1)))
-    sm = StreamSmoother(cal, s.rate, options or StreamOptions(lag_s=2.0), g0=g0, weak_scale=weak_scale(s, n_boot),
-                        start_window_s=float(s.t[n_boot - 1] - s.t[0]))
+    sm = session_smoother(s, cal, n_boot, options or StreamOptions(lag_s=2.0))
     filtered = np.full((s.n, 4), np.nan)
     bad_gyr = [float("nan"), 0.0, 0.0]
     for j, i in enumerate(order):

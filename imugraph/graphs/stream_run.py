@@ -116,6 +116,15 @@ def rest_gyro_bias(session: Session, rest_s: float = 2.0, min_fraction: float = 
     return part.gyr[rest].mean(axis=0)
 
 
+def session_smoother(session: Session, cal: Calibration, n_boot: int, options: StreamOptions) -> StreamSmoother:
+    """A StreamSmoother for `session` started as after a bootstrap over its first n_boot rows (0: none): gravity's
+    magnitude g0 from those rows (all rows without one), the weak prior's scale and the detector's learning window
+    from them."""
+    g0 = float(np.median(np.linalg.norm(session.acc[:n_boot or session.n], axis=1)))
+    return StreamSmoother(cal, session.rate, options, g0=g0, weak_scale=weak_scale(session, n_boot),
+                          start_window_s=float(session.t[n_boot - 1] - session.t[0]) if n_boot else 0.0)
+
+
 def weak_scale(session: Session, n: int) -> float | None:
     """s of the batch's weak prior D = s·I over the first n samples (the bootstrap window): the median |y| of its
     field samples, as `calibration.initial.weak_initial` computes it; None without one (n = 0 or no field)."""
@@ -177,10 +186,7 @@ def stream_session(session: Session, cal: Optional[Calibration] = None, options:
         start = time.perf_counter()
         cal, n_boot = bootstrap_calibration(session, bootstrap_s, options.keyframe_hz, allow_weak)
         boot_s = time.perf_counter() - start
-    n_g = n_boot or session.n
-    g0 = float(np.median(np.linalg.norm(session.acc[:n_g], axis=1)))
-    smoother = StreamSmoother(cal, session.rate, options, g0=g0, weak_scale=weak_scale(session, n_boot),
-                              start_window_s=float(session.t[n_boot - 1] - session.t[0]) if n_boot else 0.0)
+    smoother = session_smoother(session, cal, n_boot, options)
     say(f"streaming {session.n} samples ({'iSAM2' if options.lag_s is None else f'lag {options.lag_s:g} s'})")
     start, start_cpu = time.perf_counter(), time.process_time()
     push, out = smoother.push_floats, []
