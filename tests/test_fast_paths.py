@@ -8,7 +8,7 @@ import pytest
 
 from imugraph import keys
 from imugraph.calibration.disturbance import Window
-from imugraph.calibration.ml import _window_rotations
+from imugraph.graphs.orientation_init import window_orientations
 from imugraph.factors.gyro import exp_and_right_jacobian, keyframe_layout, preintegrate, right_jacobian
 from imugraph.factors.magnetometer import magnetometer_model
 from imugraph.factors.robust import Kernel
@@ -136,7 +136,7 @@ def test_window_rotations_equal_whole_session_interpolation(rng):
         full = quat_to_rotmat(sample_orientations(nRk, pre))
         windows = [Window(0, 10), Window(5, n), Window(n - 1, n), Window(stride - 1, min(stride + 1, n)),
                    Window(n // 3, n // 2)]
-        got = _window_rotations(windows, nRk, pre)
+        got = window_orientations(windows, nRk, pre)
         for w in windows:
             np.testing.assert_array_equal(got[w.start:w.stop], full[w.start:w.stop])
         outside = np.ones(n, bool)

@@ -33,9 +33,8 @@ from imugraph.calibration.acc_rate import update_acc_rate_error
 from imugraph.calibration.solution import marginal_covariances, per_sample_residuals  # noqa: F401 (public here)
 from imugraph.factors.velocity import gravity_from_velocity
 from imugraph.calibration.velocity_process import update_velocity_process
-from imugraph.geometry import quat_to_rotmat
 from imugraph.factors.theta import THETA_DIM, pack_theta, unpack_theta
-from imugraph.graphs.orientation_init import complementary_keyframes, sample_orientations
+from imugraph.graphs.orientation_init import complementary_keyframes, sample_orientations, window_orientations
 from imugraph.calibration.gyro_map import GyroMapState, coverage_gate
 from imugraph.calibration.initial import weak_initial  # noqa: F401  (re-exported: diagnose.fit uses it)
 from imugraph.factors.field import field_key
@@ -225,7 +224,7 @@ def calibrate(session: Session, options: Options | None = None, initial=None,
             if windows:
                 # windowed hard iron at the current orientations (linear given them), Kok's o + Δo_w
                 D_, o_, dip_ = unpack_theta(theta)
-                nRb = _window_rotations(windows, nRk, pre)
+                nRb = window_orientations(windows, nRk, pre)
                 n_nav = n_mag_from_dip(dip_)
                 if prob.block.field_offsets is not None:          # n + d_k of each sample's keyframe
                     n_nav = n_nav + prob.block.field_offsets[pre.sample_kf]
@@ -355,27 +354,6 @@ def _heading_stage(session, opt, pre, values, noise, g_used, theta, bias, seg, m
                            None if mag_state["w"] is None else mag_state["w"][ok])
     out, _ = optimize(stage.graph, stage.blocks + [heading], stage.values, stage.ordering, opt.solver)
     return keyframe_rotations(out, K)
-
-
-def _window_rotations(windows: list, nRk: np.ndarray, pre) -> np.ndarray:
-    """(N, 3, 3) per-sample nRb inside the disturbance windows (all that fit_offsets reads), NaN elsewhere.
-
-    Each window is interpolated by `sample_orientations` on the keyframes spanning it (plus the next
-    one, which the backward half of the blend uses), with sample indices taken from the window's first
-    keyframe: the same per-sample arithmetic as over the whole session, on a fraction of the samples.
-    """
-    n, K = len(pre.sample_kf), len(pre.kf_samples)
-    nRb = np.full((n, 3, 3), np.nan)
-    for w in windows:
-        if w.stop <= w.start:
-            continue
-        ka, kb = int(pre.sample_kf[w.start]), min(int(pre.sample_kf[w.stop - 1]) + 1, K - 1)
-        s0 = int(pre.kf_samples[ka])
-        sub = replace(pre, kf_samples=pre.kf_samples[ka:kb + 1] - s0, sample_kf=pre.sample_kf[s0:w.stop] - ka,
-                      kRb=pre.kRb[s0:w.stop], delta_R=pre.delta_R[ka:kb],
-                      gap_end=None if pre.gap_end is None else pre.gap_end[ka:kb])
-        nRb[w.start:w.stop] = quat_to_rotmat(sample_orientations(nRk[ka:kb + 1], sub)[w.start - s0:])
-    return nRb
 
 
 def _bias_segments(session: Session, kf: np.ndarray, segment_s: float) -> np.ndarray:

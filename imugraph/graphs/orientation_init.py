@@ -8,6 +8,8 @@ that linear accelerations and disturbances average out. Forward and backward pas
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import gtsam
 import numpy as np
 
@@ -118,3 +120,24 @@ def sample_orientations(nRk: np.ndarray, pre: Preintegration) -> np.ndarray:
     if pre.gap_end is not None and np.any(pre.gap_end):
         u = np.where(np.r_[pre.gap_end, False][k], 0.0, u)
     return rotmat_to_quat(nRk[k] @ expmap(u[:, None] * eps[k]) @ pre.kRb)
+
+
+def window_orientations(windows: list, nRk: np.ndarray, pre: Preintegration) -> np.ndarray:
+    """(N, 3, 3) per-sample nRb inside the disturbance windows (all that fit_offsets reads), NaN elsewhere.
+
+    Each window is interpolated by `sample_orientations` on the keyframes spanning it (plus the next
+    one, which the backward half of the blend uses), with sample indices taken from the window's first
+    keyframe: the same per-sample arithmetic as over the whole session, on a fraction of the samples.
+    """
+    n, K = len(pre.sample_kf), len(pre.kf_samples)
+    nRb = np.full((n, 3, 3), np.nan)
+    for w in windows:
+        if w.stop <= w.start:
+            continue
+        ka, kb = int(pre.sample_kf[w.start]), min(int(pre.sample_kf[w.stop - 1]) + 1, K - 1)
+        s0 = int(pre.kf_samples[ka])
+        sub = replace(pre, kf_samples=pre.kf_samples[ka:kb + 1] - s0, sample_kf=pre.sample_kf[s0:w.stop] - ka,
+                      kRb=pre.kRb[s0:w.stop], delta_R=pre.delta_R[ka:kb],
+                      gap_end=None if pre.gap_end is None else pre.gap_end[ka:kb])
+        nRb[w.start:w.stop] = quat_to_rotmat(sample_orientations(nRk[ka:kb + 1], sub)[w.start - s0:])
+    return nRb
