@@ -58,7 +58,6 @@ from imugraph.graphs.stream_calib import OnlineMagCalibration
 from imugraph.graphs.stream_calstate import CAL_KEY
 from imugraph.graphs.stream_field import field_key
 from imugraph.graphs.stream_kernels import StepBlocks, linear_step, split_noise_one
-from imugraph.graphs.stream_lag import window_rotations
 from imugraph.graphs.stream_online import OnlineCalibrationMixin
 from imugraph.graphs.stream_options import (SIGMA_WEAK_POSE, StreamOptions, StreamStats, acc_lead, make_solver,
                                             velocity_process)
@@ -382,27 +381,3 @@ class StreamSmoother(OnlineCalibrationMixin, KeyframeStartMixin, ArrivalMixin, S
             self._d = np.asarray(est_d, float)
         self._b_now = tuple(float(v) for v in self._b_gyr_est)
         self._q_nk = tuple(_quat(self._nRk).tolist())      # Python floats: the per-sample product
-
-    # ------------------------------------------------------------------ end
-    def finish(self) -> None:
-        """Close the last interval (its newest sample becomes the last keyframe, as `keyframe_layout`)."""
-        if self._finished:
-            return
-        if len(self._buf) >= 2:
-            last = self._buf.pop()
-            self._close(last[0])
-            self._buf = [last]
-        if self._chain and self._k > 0:
-            # the keyframes still in the window: their latest estimate (the others' is the one they left with)
-            for k, R in window_rotations(self._solver).items():
-                self._smoothed_kf.setdefault(k, R)
-        if (self._online is not None or self._calstate) and self._k > 0:
-            self._calibrate(self._kf_t[-1] - self._t0, flush=True)
-        if self.opt.lag_s is None and self._k > 0:
-            for _ in range(self.opt.final_updates):
-                self._solver.update()
-            # the end-of-stream smoothing: Levenberg–Marquardt on iSAM2's own factors from its estimate
-            # (iSAM2 relinearises only past a threshold and can stop short of the batch optimum), with every
-            # magnetometer factor re-issued with the final calibration when it was re-estimated online
-            self._final = self._final_lm(self._final_graph(), self._solver.calculateEstimate())
-        self._finished = True

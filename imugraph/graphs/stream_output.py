@@ -1,5 +1,6 @@
-"""The outputs of `StreamSmoother` (imugraph.graphs.stream): the smoothed keyframes and samples at the end, and
-the constant-memory pruning of the fixed lag's smoothed keyframes."""
+"""The outputs of `StreamSmoother` (imugraph.graphs.stream): the end of the stream (`finish`: the last interval, the
+window's keyframes, the end-of-stream smoothing), the smoothed keyframes and samples, and the constant-memory
+pruning of the fixed lag's smoothed keyframes."""
 
 from __future__ import annotations
 
@@ -9,10 +10,34 @@ import numpy as np
 from imugraph.errors import SessionError
 from imugraph.factors.gyro import Preintegration
 from imugraph.graphs.orientation_init import sample_orientations
+from imugraph.graphs.stream_lag import window_rotations
 
 
 class StreamOutputMixin:
     """Methods of StreamSmoother (state in StreamSmoother.__init__)."""
+
+    def finish(self) -> None:
+        """Close the last interval (its newest sample becomes the last keyframe, as `keyframe_layout`)."""
+        if self._finished:
+            return
+        if len(self._buf) >= 2:
+            last = self._buf.pop()
+            self._close(last[0])
+            self._buf = [last]
+        if self._chain and self._k > 0:
+            # the keyframes still in the window: their latest estimate (the others' is the one they left with)
+            for k, R in window_rotations(self._solver).items():
+                self._smoothed_kf.setdefault(k, R)
+        if (self._online is not None or self._calstate) and self._k > 0:
+            self._calibrate(self._kf_t[-1] - self._t0, flush=True)
+        if self.opt.lag_s is None and self._k > 0:
+            for _ in range(self.opt.final_updates):
+                self._solver.update()
+            # the end-of-stream smoothing: Levenberg–Marquardt on iSAM2's own factors from its estimate
+            # (iSAM2 relinearises only past a threshold and can stop short of the batch optimum), with every
+            # magnetometer factor re-issued with the final calibration when it was re-estimated online
+            self._final = self._final_lm(self._final_graph(), self._solver.calculateEstimate())
+        self._finished = True
 
     def _forget_smoothed(self, keep_from: int) -> None:
         """Without keep_history (constant memory): drop the smoothed keyframes before `keep_from` that the
