@@ -15,11 +15,13 @@ filtered and smoothed orientation error vs opt_quat over `movement` (imugraph.ev
 constant heading and time shift) on the samples each run delivered. Writes bench_out/stream_arrival.json.
 
     OPENBLAS_NUM_THREADS=1 .venv/bin/python benchmarks/stream_arrival.py [TRIALS] [--seed N]   # default 01,06,34
+        [--kinds drop] [--drop-s S] [--gap-walk Q_W,Q_A] [--opt KEY=VALUE ...]   (--opt: StreamOptions fields)
 """
 
 from __future__ import annotations
 
 import argparse
+import ast
 import sys
 from pathlib import Path
 
@@ -101,7 +103,9 @@ def score(q: np.ndarray, s) -> float:
     return orientation_error(q[idx], s.quat, s.movement & ok, s.rate).rms_deg
 
 
-def run_trial(path: Path, seed: int, kinds: frozenset, drop_s: float = DROP_S, gap_walk: tuple | None = None) -> list[dict]:
+def run_trial(path: Path, seed: int, kinds: frozenset, drop_s: float = DROP_S, gap_walk: tuple | None = None,
+              overrides: dict | None = None) -> list[dict]:
+    """overrides: StreamOptions fields set in every run (--opt; the 2 s lag unless lag_s is among them)."""
     s = load_broad_trial(path)
     name = f"{trial_number(path):02d}"
     cal, n_boot = bootstrap_calibration(s, BOOTSTRAP_S)
@@ -116,7 +120,10 @@ def run_trial(path: Path, seed: int, kinds: frozenset, drop_s: float = DROP_S, g
             ("arrival", order, mag4, invalid_at)]
     rows = []
     for label, ordr, mag, inv in runs:
-        opts = None if gap_walk is None else StreamOptions(lag_s=2.0, gap_rate_walk=gap_walk[0], gap_acc_walk=gap_walk[1])
+        extra = dict(overrides or {})
+        if gap_walk is not None:
+            extra.update(gap_rate_walk=gap_walk[0], gap_acc_walk=gap_walk[1])
+        opts = StreamOptions(**{"lag_s": 2.0, **extra}) if extra else None
         r = stream(s, cal, n_boot, ordr, mag, inv, opts)
         c = r["counts"]
         rows.append({"trial": name, "run": label, "filtered_deg": score(r["filtered"], s),
@@ -156,18 +163,21 @@ def main(argv=None) -> int:
                          "missing time trusted like measured time)")
     ap.add_argument("--kinds", default="swap,dup,invalid,drop",
                     help="arrival problems injected in the `arrival` run (comma separated subset)")
+    ap.add_argument("--opt", action="append", default=[], metavar="KEY=VALUE",
+                    help="StreamOptions field=value (Python literal), repeatable; e.g. position_sigma=0.3")
     a = ap.parse_args(argv)
+    overrides = {kv.split("=", 1)[0]: ast.literal_eval(kv.split("=", 1)[1]) for kv in a.opt}
     paths = trial_paths(a.trials)
     if not paths:
         return 2
     rows = [row for p in paths for row in run_trial(p, a.seed, frozenset(a.kinds.split(",")), a.drop_s,
                                                         None if a.gap_walk is None else
-                                                        tuple(float(x) for x in a.gap_walk.split(",")))]
+                                                        tuple(float(x) for x in a.gap_walk.split(",")), overrides)]
     cols = ["trial", "run", "filtered_deg", "smoothed_deg", "failed", "dup", "late_ins", "late_drop", "invalid",
             "gaps", "missing", "mag_samples", "injected"]
     print_table(rows, cols)
     write_json("stream_arrival.json", {"seed": a.seed, "drop_s": a.drop_s, "kinds": a.kinds, "gap_walk": a.gap_walk,
-                                       "rows": rows})
+                                       "opt": a.opt, "rows": rows})
     return 0
 
 

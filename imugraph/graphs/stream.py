@@ -54,6 +54,7 @@ from imugraph.graphs.stream_interval import (NAN3 as _NAN3, Q_ID, ArrivalMixin,
                                              interval_preintegration, lead_interval, qmul,
                                              row3 as _row3)
 from imugraph.graphs.orientation_init import triad
+from imugraph.graphs.stream_bridge import bridged_preintegration
 from imugraph.graphs.stream_calib import OnlineMagCalibration
 from imugraph.graphs.stream_calstate import CAL_KEY
 from imugraph.graphs.stream_field import field_key
@@ -62,13 +63,15 @@ from imugraph.graphs.stream_online import OnlineCalibrationMixin
 from imugraph.graphs.stream_options import (SIGMA_WEAK_POSE, StreamOptions, StreamStats, acc_lead, make_solver,
                                             velocity_process)
 from imugraph.graphs.stream_output import StreamOutputMixin
+from imugraph.graphs.stream_position import PositionMixin
 from imugraph.graphs.stream_realign import GapRealignMixin
 from imugraph.graphs.stream_start import KeyframeStartMixin, _quat
 
 __all__ = ["StreamOptions", "StreamSmoother", "StreamStats"]
 
 
-class StreamSmoother(OnlineCalibrationMixin, KeyframeStartMixin, ArrivalMixin, StreamOutputMixin, GapRealignMixin):
+class StreamSmoother(OnlineCalibrationMixin, KeyframeStartMixin, ArrivalMixin, StreamOutputMixin, GapRealignMixin,
+                     PositionMixin):
     """Push samples in arrival order; get the filtered orientation of each at once, the smoothed ones at the end.
 
     Args:
@@ -92,6 +95,7 @@ class StreamSmoother(OnlineCalibrationMixin, KeyframeStartMixin, ArrivalMixin, S
         self.stride = max(1, int(round(rate / options.keyframe_hz)))
         self._gap_step = keyframe_gap_step(1.0 / rate)    # a longer gap closes the interval (keyframe_layout)
         self._init_realign()                 # gap_realign_s (stream_realign)
+        self._init_position()                # position_sigma (stream_position)
         self._mid = self.stride // 2 + 1 if self.stride >= 2 else 0     # see _between_keyframes
         self._chain = options.lag_s is not None and options.fixed_lag_solver == "chain"
         self._maintained = not self._chain   # the chain lag's `maintain` ran in the open interval
@@ -182,6 +186,7 @@ class StreamSmoother(OnlineCalibrationMixin, KeyframeStartMixin, ArrivalMixin, S
             self._t0 = t
             self._kf_t.append(t)
         elif len(buf) >= self.stride or t - buf[-1][0] > self._gap_step:
+            self._row_next = row              # its rates end a gap's bridge (gap_bridge, stream_bridge)
             self._close(t)                    # this sample is keyframe k+1 (after a gap too: keyframe_layout)
             self._t_last = t
             self._buf = [row]
@@ -265,9 +270,11 @@ class StreamSmoother(OnlineCalibrationMixin, KeyframeStartMixin, ArrivalMixin, S
             self.stats.missing += int(np.sum(np.round(steps[gap] * self.rate) - 1))
         # the batch path's preintegration (factors.gyro.preintegrate, factors.velocity.velocity_increments)
         # of this one interval, equal to it (stream_interval)
-        kRb, delta_R, cov, dt_k, dv, sig_dv, q_kRb = interval_preintegration(
-            t, w, a, self._b_hat, self._sig_g, self.opt.gyro_rate_error, self._sig_acc, self.opt.acc_rate_error,
-            (self.rate, self.opt.gap_rate_walk, self.opt.gap_acc_walk))
+        pre = bridged_preintegration if self.opt.gap_bridge and gap.any() else interval_preintegration
+        kRb, delta_R, cov, dt_k, dv, sig_dv, q_kRb = pre(
+            t, w, a, *((self._row_next[1:4], self._row_next[4:7]) if pre is not interval_preintegration else ()),
+            self._b_hat, self._sig_g, self.opt.gyro_rate_error, self._sig_acc, self.opt.acc_rate_error,
+            (self.rate, self.opt.gap_rate_walk, self.opt.gap_acc_walk))    # stream_bridge (B1)–(B2) if gap_bridge
         # disturbance windows (Calibration.corrected; delay 0: a copy) only where one overlaps this interval
         hit = any(ts <= t[-2] and te >= t[0] for ts, te in self._windows)
         y = self._cal0.corrected(t[:-1], m_raw) if hit else m_raw
@@ -291,6 +298,8 @@ class StreamSmoother(OnlineCalibrationMixin, KeyframeStartMixin, ArrivalMixin, S
             graph.add(f.cloneWithNewNoiseModel(model))
         # v_{k+1} = φ v_k + w (stream_interval.gauss_markov_factor); blocks by Δt_k (stream_kernels.StepBlocks)
         graph.add(linear_step(keys.vel(k), keys.vel(k + 1), self._steps.velocity(dt_k)))
+        if self._pos_on:                             # bounded position (stream_position eq. K1–K2)
+            self._position_interval(graph, values, stamps, k, dt_k, t_next - self._t0)
         if self._field:                              # d_{k+1} = φ_k d_k + w_k (stream_field eq. 2)
             graph.add(linear_step(field_key(k), field_key(k + 1), self._steps.field(dt_k)))
             values.insert(field_key(k + 1), np.exp(-dt_k / self.opt.field_tau) * self._d)

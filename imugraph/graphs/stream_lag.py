@@ -149,9 +149,10 @@ _INDEX_MASK, _X = (1 << 56) - 1, ord("x")      # gtsam.Symbol's key layout (chr 
 
 
 def keyframe_group(key: int):
-    """The stream's grouping: keyframe index of a pose (x), velocity (v) or field perturbation (f) key; None for
-    gravity and the bias segments (in every clique of their span: eliminated last)."""
-    return key & _INDEX_MASK if chr(key >> 56) in "xvf" else None       # gtsam.Symbol: 8-bit chr, 56-bit index
+    """The stream's grouping: keyframe index of a pose (x), velocity (v), field perturbation (f) or bounded
+    position (p, stream_position) key; None for gravity and the bias segments (in every clique of their span:
+    eliminated last)."""
+    return key & _INDEX_MASK if chr(key >> 56) in "xvfp" else None       # gtsam.Symbol: 8-bit chr, 56-bit index
 
 
 def _key_list(keys) -> gtsam.KeyList:

@@ -120,6 +120,14 @@ class StreamOptions:
     gap_realign_pin_deg: float = 1.0
     gap_realign_hold: int = 3
     gap_realign_keep: bool = False     # also a lasting one-axis prior of σ_α (eq. R3) at the same rotation
+    # a bounded keyframe position p_k (stream_position eq. K1–K3: p_{k+1} = p_k + v_k Δt, stationary Gauss–Markov
+    # prior σ_p m, τ_p s; the batch's velocity_block (P1)), marginalised with the keyframe. None: off (task K,
+    # docs/gaps.md "Session 17, helper K").
+    position_sigma: float | None = None
+    position_tau: float = 30.0
+    # the rate and specific force across a gap bridged to the first sample after it (stream_bridge eq. B1, variance
+    # q² τ³/12, B2) instead of held (G1). False: held, as the batch path.
+    gap_bridge: bool = False
     acc_huber_k: float | None = 2.0
     acc_bias_sigma: float = 1e-4
     bias_segment_s: float = 5.0
@@ -243,6 +251,7 @@ def isam2_thresholds(rot_threshold: float) -> "gtsam.ISAM2ThresholdMap":
     m.insert(("f", np.full(3, 0.05)))      # field perturbation d_k (unit-field units; σ_d 0.003–0.015)
     m.insert(("c", np.full(13, 1e9)))      # θ (stream_calstate): its factors are linear containers, never relinearised
     m.insert(("w", np.full(3, 1e9)))       # window offsets Δo_w (stream_offsets): linear containers and a linear prior
+    m.insert(("p", np.full(3, 1e9)))       # bounded position p_k (stream_position): linear containers and a linear prior
     return m
 
 

@@ -42,6 +42,8 @@ class KeyframeStartMixin:
             values.insert(field_key(0), np.zeros(3))
             graph.add(field_start_prior(field_key(0), self.opt.field_sigma))
             stamps[field_key(0)] = 0.0
+        if self._pos_on:             # bounded position p_0 (stream_position eq. K3)
+            self._position_start(graph, values, stamps)
         if self._calstate:           # θ = (D, o, δ) as a state, with its prior (stream_calstate)
             self._add_cal_state(graph, values, stamps)
 
