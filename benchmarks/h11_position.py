@@ -28,6 +28,13 @@ from benchmarks.output import OUT_DIR  # noqa: E402
 from imugraph.calibration.ml import calibrate  # noqa: E402
 
 
+def _sigma(row: dict, name: str) -> str:
+    """", σp X" when the variant ran with a position state (Estimate.info["position_sigma"]), ", σd,y Y" the final
+    solve's cross-field σ of the field perturbation (Estimate.info["final_field_sigma"]); else ""."""
+    v, fy = row.get(name + "_sigma_p"), row.get(name + "_field_y")
+    return ("" if v is None else f", σp {v:.3g}") + ("" if fy is None else f", σd,y {fy:.3g}")
+
+
 def main(argv: list[str]) -> int:
     variants = {"base": []}
     rest = []
@@ -49,9 +56,13 @@ def main(argv: list[str]) -> int:
             est = calibrate(s, parse_options(opts), allow_weak=True)
             row[name] = error_parts(est.quat, s, mask)
             row[name + "_cpu"] = time.process_time() - t0
+            row[name + "_sigma_p"] = est.info.get("position_sigma")     # chosen / estimated σ_p (task J)
+            fs = est.info.get("final_field_sigma")
+            row[name + "_field_y"] = None if fs is None else float(np.broadcast_to(np.asarray(fs, float), (3,))[1])
         rows.append(row)
         print(f"{num} VQF {row['offline_vqf'][0]:.3f} | " + " | ".join(
-            f"{n} {row[n][0]:.3f} (i {row[n][1]:.3f} h {row[n][2]:.3f}, {row[n + '_cpu']:.1f} s)" for n in variants),
+            f"{n} {row[n][0]:.3f} (i {row[n][1]:.3f} h {row[n][2]:.3f}, {row[n + '_cpu']:.1f} s{_sigma(row, n)})"
+            for n in variants),
             flush=True)
     if not rows:
         return 2

@@ -121,7 +121,8 @@ def calibrate(session: Session, options: Options | None = None, initial=None,
     rest_mask = getattr(init, "rest", None) if opt.zero_velocity_at_rest else None
 
     vel_state = {"v": None, "s": None, "sigma": opt.velocity_sigma, "tau": opt.velocity_tau, "g": None,
-                 "rest": rest_mask, "ar2": None, "kappa_a": opt.acc_rate_error}
+                 "rest": rest_mask, "ar2": None, "kappa_a": opt.acc_rate_error,
+                 "pos_sigma": (opt.position_sigma or 1.0) if opt.estimate_position_sigma else opt.position_sigma}
     if opt.estimate_velocity_process == "hetero_ar2":   # motion intensity per interval (velocity_hetero.py)
         from imugraph.calibration.velocity_hetero import calibration_intensity
         vel_state["intensity"] = calibration_intensity(session.acc, g, skf, len(kf))
@@ -136,6 +137,7 @@ def calibrate(session: Session, options: Options | None = None, initial=None,
     gate, clean = coverage_gate(session, g, skf, len(kf) - 1, opt) if opt.gyro_map else ({"estimated": False}, None)
     gyro = GyroMapState(opt.gyro_map_sigma, clean if gate["estimated"] else None, session.meta.get("gyro_map_exclude"))
     rate = {"kappa": opt.gyro_rate_error}      # κ, re-estimated with estimate_gyro_rate_error
+    field_state = {"sigma": opt.field_sigma}   # σ_d of the final solve (Options.position_select_field may change it)
 
     def solve_round(bias, noise, nRk, theta, every=1, final=False, values0=None):
         """Preintegrate at the current bias, build the graph, solve it (one round of the ML loop);
@@ -156,7 +158,8 @@ def calibrate(session: Session, options: Options | None = None, initial=None,
                              acc_kernel=opt.acc_kernel, mag_kernel=opt.mag_kernel,
                              bias_segment=seg, bias_rw_sigma=opt.bias_rw, velocity=velocity, dt=session.dt,
                              mag_weights=mag_state["w"], values0=values0,
-                             field=None if opt.field_sigma is None else FieldModel(opt.field_sigma, opt.field_tau),
+                             field=None if field_state["sigma"] is None else FieldModel(field_state["sigma"],
+                                                                                        opt.field_tau),
                              gyro_map=gmap)
         values, info = optimize(prob.graph, prob.blocks, prob.values, prob.ordering,
                                 opt.solver if final else round_solver)
@@ -218,6 +221,12 @@ def calibrate(session: Session, options: Options | None = None, initial=None,
                                                              opt.estimate_velocity_process, opt.velocity_sigma,
                                                              opt.velocity_tau, opt.velocity_prior_strength,
                                                              opt.velocity_em_inner))
+            if opt.estimate_position_sigma and prob.velocity is not None and prob.velocity.position is not None:
+                from imugraph.calibration.position_process import update_position_sigma   # EM step of σ_p (J1)
+                from imugraph.graphs.velocity_block import pos_key
+                change = max(change, update_position_sigma(
+                    vel_state, prob.velocity, nRk, keyframe_vectors(values, pos_key, len(kf)), opt.position_tau,
+                    opt.position_em_inner, history[-1]))
             if opt.estimate_bias_rw:    # EM step of the gyro-bias random-walk density (calibration/bias_process.py)
                 from imugraph.calibration.bias_process import em_bias_rw
                 opt, change = em_bias_rw(opt, prob, values, pre, n_seg, history[-1], change)
@@ -279,7 +288,13 @@ def calibrate(session: Session, options: Options | None = None, initial=None,
     gate.setdefault("contraction", None)
 
     # final solve at the converged noise levels and bias, then marginals
-    pre, prob, values, info = solve_round(bias, noise, nRk, theta, final=True, values0=values)
+    if opt.position_select:      # σ_p by the Laplace marginal likelihood, "off" among the candidates (J2)
+        from imugraph.calibration.position_select import final_with_selection
+        (pre, prob, values, info), (bias, noise, nRk, theta, converged) = final_with_selection(
+            solve_round, ml_rounds, vel_state, opt, (bias, noise, nRk, theta, values, converged), len(kf), stride,
+            history, field_state, gyro)
+    else:
+        pre, prob, values, info = solve_round(bias, noise, nRk, theta, final=True, values0=values)
     nRk = keyframe_rotations(values, len(kf))
     theta = values.atVector(keys.CALIB)
     bias_segments = _bias_values(values, n_seg)
@@ -312,6 +327,7 @@ def calibrate(session: Session, options: Options | None = None, initial=None,
                      "acc_bias": (None if vel_state["s"] is None or vel_state["s"].shape[1] < 6
                                   else vel_state["s"][:, 3:].mean(axis=0)),
                      "velocity_sigma": vel_state["sigma"], "velocity_tau": vel_state["tau"],
+                     "position_sigma": vel_state.get("pos_sigma"), "final_field_sigma": field_state["sigma"],
                      "disturbance_windows": [w.as_dict(session.t) for w in windows], "keyframe_samples": kf,
                      "field_offsets": prob.block.field_offsets, "gyro_map": gyro.E,
                      "gyro_map_gate": gate, "gyro_rate_error": rate["kappa"]})
@@ -331,7 +347,7 @@ def _velocity_model(opt: Options, vel: dict) -> VelocityModel | None:
         return None
     return VelocityModel(vel["sigma"], vel["tau"], vel.get("kappa_a", opt.acc_rate_error), opt.acc_kernel, vel["s"],
                          opt.acc_bias, rest=vel["rest"], ar2=vel.get("ar2"),
-                         position=None if opt.position_sigma is None else (opt.position_sigma, opt.position_tau))
+                         position=None if vel.get("pos_sigma") is None else (vel["pos_sigma"], opt.position_tau))
 
 
 def _heading_stage(session, opt, pre, values, noise, g_used, theta, bias, seg, mag_state, vel):

@@ -96,6 +96,21 @@ class Options:
     #   field_sigma=(0.015, 0.006, 0.015): 0.606°, behind offline VQF only 02 (0.370 vs 0.366°), 16 (0.377 vs
     #   0.370°), 32 +0.017° (docs/results_issue2.md, session 16). Off: the σ_y setting was chosen on BROAD
     position_tau: float = 30.0        # τ_p, s: the position prior's correlation time
+    estimate_position_sigma: bool = False  # σ_p re-estimated per ML round by EM from the smoothed positions and
+    #   their posterior covariances (calibration/position_process.py (J1)), starting from position_sigma (1 m when
+    #   None); position_em_inner EM steps per round at the round's orientations. Do not use (benchmarks/j2_travel.py:
+    #   the held orientations hide the bent tilt; a simulated 220 m walk σ̂_p 0.44–0.51 m, 0.538 → 1.149°)
+    position_em_inner: int = 1        # EM steps of σ_p per ML round at the round's orientations
+    position_select: tuple | None = None  # candidate σ_p (m) for the final solve, 1e4 = "off": the one of largest
+    #   Laplace marginal likelihood (calibration/position_select.py (J2)) at the ML rounds' converged noise; "off"
+    #   winning gives the plain final solve. None: σ_p as position_sigma. (1e4, 1.0, 0.3, 0.1) with
+    #   position_select_rounds (benchmarks/h11_position.py, j2_travel.py, docs/results_issue2.md session 17): BROAD
+    #   0.647 → 0.632° (07 +0.072°: heading), with field_sigma=(0.015,0.006,0.015) 0.602°, 02/16 behind by 0.006°;
+    #   "off" on simulated walks/drives and the gaittoolbox walk (= the defaults exactly); CPU 2.3–3.0 s
+    position_select_field: tuple | None = None  # with position_select: candidate cross-field σ_d,y of the field
+    #   perturbation, scored by (J2) (+ the field prior's normaliser) at the chosen σ_p; None: field_sigma as set
+    position_select_rounds: bool = False  # with position_select: when a bound is chosen, the ML rounds run again
+    #   with it (noise levels, bias, windows re-estimated under the bound) before the final solve
     gap_model: bool = True            # steps over 1.5 T are missing time (factors/gaps.py: variance G1, a keyframe
     #   at gaps > 50 ms, the per-sample blend and start values restart there); False: trusted like measured time
     #   (before session 16; e.g. for a clock whose jitter is not missing data)
