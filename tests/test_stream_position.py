@@ -98,3 +98,28 @@ def test_bounded_position_helps_a_sensor_that_stays_in_place(solver):
         assert r.counts["failed_updates"] == 0
         err[sigma] = orientation_error(r.filtered, session.quat, None, RATE).rms_deg
     assert err[0.3] < 0.75 * err[None]
+
+
+def test_position_select_off_by_default_and_the_stream_uses_the_bootstraps_choice():
+    """StreamOptions.position_select (stream_run.select_position): off by default; on, the bootstrap batch's
+    chosen σ_p (its info "position_sigma", one of the candidates or None for "off") is the stream's
+    position_sigma, and stream_session gives exactly the stream run with that σ_p and that bootstrap."""
+    from imugraph.graphs.stream_run import bootstrap_calibration, select_position, stream_session
+
+    assert StreamOptions().position_select is None
+    session, _ = distorted_session(3, 30.0, RATE)
+    cands = (1e4, 1.0, 0.3)
+    info: dict = {}
+    opts = StreamOptions(lag_s=2.0, position_select=cands)
+    cal, n_boot, chosen = select_position(session, opts, 20.0, info=info)
+    assert chosen.position_sigma == info["position_sigma"]
+    assert chosen.position_sigma is None or chosen.position_sigma in cands[1:]
+    sel = [h["position_select"] for h in info["history"] if "position_select" in h]
+    assert len(sel) == 1 and len(sel[0]["scores"]) == len(cands)
+    # the default bootstrap is not the selecting one (different calibration options), but the same window
+    _, n_plain = bootstrap_calibration(session, 20.0)
+    assert n_boot == n_plain
+    r = stream_session(session, None, opts, 20.0)
+    ref = stream_session(session, None, chosen, 20.0, bootstrap=(cal, n_boot))
+    assert r.bootstrap_samples == n_boot
+    assert np.array_equal(r.filtered, ref.filtered) and np.array_equal(r.smoothed, ref.smoothed)

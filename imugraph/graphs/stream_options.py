@@ -125,6 +125,12 @@ class StreamOptions:
     # docs/gaps.md "Session 17, helper K").
     position_sigma: float | None = None
     position_tau: float = 30.0
+    # candidate σ_p (m, 1e4 = "off") chosen by the bootstrap batch (calibration.position_select eq. J2, with
+    # position_select_rounds) and used as position_sigma for the stream (stream_run.select_position; only when
+    # stream_session bootstraps itself: ignored with a given calibration or bootstrap). None: off (position_sigma as
+    # given). Not safe on a travelling sensor: a 30 s walk window chooses 1 m on 2 of 4 simulated walks
+    # (docs/gaps.md "Session 17, helper K2").
+    position_select: tuple | None = None
     # the rate and specific force across a gap bridged to the first sample after it (stream_bridge eq. B1, variance
     # q² τ³/12, B2) instead of held (G1). False: held, as the batch path.
     gap_bridge: bool = False

@@ -48,7 +48,7 @@ class StreamResult:
 
 def bootstrap_calibration(session: Session, bootstrap_s: float, keyframe_hz: float = 10.0,
                           allow_weak: bool = True, grow: float = 1.5, gyro_map: bool | None = None,
-                          overrides: dict | None = None) -> tuple[Calibration, int]:
+                          overrides: dict | None = None, info: dict | None = None) -> tuple[Calibration, int]:
     """ML calibration of the first seconds of the stream: (calibration, number of samples used).
 
     Starts with `bootstrap_s` seconds and, while that window holds too little rotation to identify D and o
@@ -65,6 +65,7 @@ def bootstrap_calibration(session: Session, bootstrap_s: float, keyframe_hz: flo
     gyro_map: estimate the gyro scale/misalignment E (`calibration.ml.Options.gyro_map`; None: its default,
     as the batch path); the stream applies (I + E) to every incoming gyro sample (`StreamSmoother.push`).
     overrides: further `calibration.ml.Options` fields (benchmarks: e.g. window_trial_verdict=False); None: defaults.
+    info: a dict updated with the accepted calibration's `info` (e.g. its chosen "position_sigma"); None: not kept.
 
     Raises:
         SessionError: a bootstrap window shorter than 2 s of data.
@@ -87,6 +88,8 @@ def bootstrap_calibration(session: Session, bootstrap_s: float, keyframe_hz: flo
                 opt = replace(opt, **overrides)
             est = calibrate(session.slice(0, n), opt, allow_weak=last and allow_weak)
             if last or b_rest is None or np.max(np.abs(est.calibration.gyro_bias - b_rest)) <= BIAS_TOL:
+                if info is not None:
+                    info.update(est.info)
                 return est.calibration, n
         except CalibrationError:
             if last:
@@ -114,6 +117,22 @@ def rest_gyro_bias(session: Session, rest_s: float = 2.0, min_fraction: float = 
     if rest.mean() < min_fraction:
         return None
     return part.gyr[rest].mean(axis=0)
+
+
+def select_position(session: Session, options: StreamOptions, bootstrap_s: float = 30.0,
+                    allow_weak: bool = True, info: dict | None = None) -> tuple[Calibration, int, StreamOptions]:
+    """StreamOptions.position_select: the bootstrap batch chooses σ_p among the candidates by the Laplace marginal
+    likelihood (calibration.position_select eq. J2, "off" = 1e4 a candidate, with position_select_rounds) and the
+    stream uses it: (calibration, bootstrap samples, options with position_sigma = the choice, None for "off").
+    Why the bootstrap: the stream cannot score a bound it has not yet run; the bootstrap's window is the only
+    stretch of the session a whole-posterior comparison can be made on before streaming (it sees only that window:
+    a sensor that starts travelling later is not seen travelling). info: updated with the bootstrap's `info`
+    (its history holds the candidates' scores under "position_select")."""
+    info = {} if info is None else info
+    cal, n_boot = bootstrap_calibration(session, bootstrap_s, options.keyframe_hz, allow_weak,
+                                        overrides={"position_select": tuple(options.position_select),
+                                                   "position_select_rounds": True}, info=info)
+    return cal, n_boot, replace(options, position_sigma=info.get("position_sigma"))
 
 
 def session_smoother(session: Session, cal: Calibration, n_boot: int, options: StreamOptions) -> StreamSmoother:
@@ -184,7 +203,11 @@ def stream_session(session: Session, cal: Optional[Calibration] = None, options:
     elif cal is None:
         say(f"bootstrap calibration on the first {bootstrap_s:g} s")
         start = time.perf_counter()
-        cal, n_boot = bootstrap_calibration(session, bootstrap_s, options.keyframe_hz, allow_weak)
+        if options.position_select:          # σ_p chosen by the bootstrap (select_position)
+            cal, n_boot, options = select_position(session, options, bootstrap_s, allow_weak)
+            say(f"bootstrap chose position_sigma {options.position_sigma}")
+        else:
+            cal, n_boot = bootstrap_calibration(session, bootstrap_s, options.keyframe_hz, allow_weak)
         boot_s = time.perf_counter() - start
     smoother = session_smoother(session, cal, n_boot, options)
     say(f"streaming {session.n} samples ({'iSAM2' if options.lag_s is None else f'lag {options.lag_s:g} s'})")
