@@ -57,6 +57,9 @@ def main(argv: list[str]) -> int:
             row[name] = error_parts(est.quat, s, mask)
             row[name + "_cpu"] = time.process_time() - t0
             row[name + "_sigma_p"] = est.info.get("position_sigma")     # chosen / estimated σ_p (task J)
+            row[name + "_select"] = [{k: h[k] for k in ("position_select", "position_select_field") if k in h}
+                                     for h in est.info.get("history", []) if "position_select" in h
+                                     or "position_select_field" in h]   # the (J2) scores (task J2)
             fs = est.info.get("final_field_sigma")
             row[name + "_field_y"] = None if fs is None else float(np.broadcast_to(np.asarray(fs, float), (3,))[1])
         rows.append(row)

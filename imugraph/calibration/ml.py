@@ -139,13 +139,21 @@ def calibrate(session: Session, options: Options | None = None, initial=None,
     rate = {"kappa": opt.gyro_rate_error}      # κ, re-estimated with estimate_gyro_rate_error
     field_state = {"sigma": opt.field_sigma}   # σ_d of the final solve (Options.position_select_field may change it)
 
-    def solve_round(bias, noise, nRk, theta, every=1, final=False, values0=None):
+    pre_memo = {}                              # the last preintegration without the gyro map (J2 CPU options)
+    def solve_round(bias, noise, nRk, theta, every=1, final=False, values0=None, solver=None):
         """Preintegrate at the current bias, build the graph, solve it (one round of the ML loop);
         values0: the previous round's solution, which holds exactly nRk, bias, θ and the velocities."""
-        g_c, b_rows = gyro.corrected(session.gyr), _per_sample_bias(bias, seg, skf)
         with_map = phase["map"] and (opt.gyro_map_final or not final)
-        pre = preintegrate(g_c, session.dt, kf, skf, b_rows, noise.gyr, rate["kappa"], keep_steps=with_map,
-                           gap_walk=GAP_RATE_WALK if opt.gap_model else None)
+        # (J2) candidates share bias, noise, κ and Ê: their preintegration is the same (read-only), reused
+        memo = (np.asarray(bias).tobytes(), np.asarray(noise.gyr).tobytes(), rate["kappa"], gyro.E.tobytes())
+        if (opt.position_select_stop or opt.position_select_thin > 1 or opt.position_select_max_iter) \
+                and not with_map and pre_memo.get("key") == memo:
+            pre = pre_memo["pre"]
+        else:
+            g_c, b_rows = gyro.corrected(session.gyr), _per_sample_bias(bias, seg, skf)
+            pre = preintegrate(g_c, session.dt, kf, skf, b_rows, noise.gyr, rate["kappa"], keep_steps=with_map,
+                               gap_walk=GAP_RATE_WALK if opt.gap_model else None)
+            pre_memo.update(key=None if with_map else memo, pre=pre)
         gmap = gyro.model(g_c, session.dt, pre, b_rows) if with_map else None
         if gmap is None and values0 is not None:       # the rounds' β_k and e are not in this graph
             values0 = without_map_keys(values0)
@@ -162,7 +170,7 @@ def calibrate(session: Session, options: Options | None = None, initial=None,
                                                                                         opt.field_tau),
                              gyro_map=gmap)
         values, info = optimize(prob.graph, prob.blocks, prob.values, prob.ordering,
-                                opt.solver if final else round_solver)
+                                solver or (opt.solver if final else round_solver))   # solver: (J2) candidates
         if gmap is not None:
             gyro.fold(values)
         if prob.block.with_field:      # residuals, noise levels and windows at the solution's field perturbation
@@ -198,7 +206,8 @@ def calibrate(session: Session, options: Options | None = None, initial=None,
                 break
             extra = None
             if prob.block.with_field and prob.block.mag is not None:   # d_k absorbs part of the field residuals
-                extra = {"mag": field_dof(prob.block.field_information(nRk, theta), pre.dt, opt.field_sigma,
+                sig_d = field_state["sigma"] if opt.position_select_field_rounds else opt.field_sigma   # (J2)
+                extra = {"mag": field_dof(prob.block.field_information(nRk, theta), pre.dt, sig_d,
                                           opt.field_tau)}
             block = solved_samples_block(prob.block) if opt.noise_skip_excluded else prob.block
             new = reestimate(block, nRk, theta, pre.cov, values, noise.gyr, extra)   # cov: AHRS factors' Σ

@@ -111,6 +111,22 @@ class Options:
     #   perturbation, scored by (J2) (+ the field prior's normaliser) at the chosen σ_p; None: field_sigma as set
     position_select_rounds: bool = False  # with position_select: when a bound is chosen, the ML rounds run again
     #   with it (noise levels, bias, windows re-estimated under the bound) before the final solve
+    position_select_field_rounds: bool = False  # with position_select_rounds and position_select_field: when a
+    #   bound is chosen, the cross-field σ_d,y is chosen by (J2) AFTER ML rounds run under the bound at each
+    #   candidate σ_d,y (its dof charge in the Σm re-estimate, ml.py), sequentially from field_sigma's σ_y upward,
+    #   stopping when the evidence drops; "off" keeps field_sigma (task J2, docs/results_issue2.md). BROAD 17
+    #   (h11_position.py): σ_y 0.003 kept on 10 of 12 bounded trials (0.006 worse by 4–38 nats), 0.006 on 34/36;
+    #   0.622°, 4 behind offline VQF, 07 +0.072°: the evidence does not support the looser σ_y of the field pair
+    position_select_stop: bool = False  # with position_select: candidates solved in the given order (loosest
+    #   first), stopping at the first whose evidence is below the previous one's (unimodal ln Z(σ_p)), and the
+    #   candidates' common gyro preintegration computed once (ml.py; the same arrays, so the same result): CPU.
+    #   Do not use: BROAD 01's ln Z is not unimodal (off > 1 > 0.3 < 0.1 m), the stop picks off instead of 0.1 m
+    position_select_thin: int = 1  # with position_select_rounds: the candidates' magnetometer thinned by this
+    #   further factor (> 1 also computes their common preintegration once, as position_select_stop): CPU.
+    #   2 or 4 on BROAD 01/02/24: choices kept, but LM 1–2 → 3 iterations per candidate, no CPU gain
+    position_select_max_iter: int | None = None  # with position_select_rounds: the candidates' LM iterations
+    #   capped (None: the rounds' solver); also computes their common preintegration once: CPU. 1 on BROAD 17:
+    #   every σ_p/σ_y choice unchanged, ln Z within 2.5 nats, errors within 0.001°, CPU 1.76–2.88 → 1.56–2.55 s
     gap_model: bool = True            # steps over 1.5 T are missing time (factors/gaps.py: variance G1, a keyframe
     #   at gaps > 50 ms, the per-sample blend and start values restart there); False: trusted like measured time
     #   (before session 16; e.g. for a clock whose jitter is not missing data)

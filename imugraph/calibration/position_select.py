@@ -26,12 +26,18 @@ round is (thinned magnetometer: cheaper) and a chosen bound runs the ML rounds a
 solve (on BROAD 02 the bound then also reaches the noise levels and bias: 0.436° → 0.404°); "off" gives exactly
 the defaults' final solve (tests/test_position_select.py). Options.position_select_field adds candidates for the
 field perturbation's cross-field σ (scored with that prior's normaliser, `field_half_logdet`): measured, mixed
-(docs/results_issue2.md session 17).
+(docs/results_issue2.md session 17). Task J2: Options.position_select_field_rounds scores σ_d,y instead after the
+bound's ML rounds (`field_after_rounds`: at their noise levels, then the rounds again at a chosen σ_d,y, whose dof
+charge the Σm re-estimate uses) — on BROAD the evidence keeps σ_y = 0.003 on 10 of the 12 bounded trials by 4–38
+nats; Options.position_select_max_iter=1 (one LM step per candidate from the converged state) keeps every choice
+and cuts ≈ 0.2–0.4 s CPU; position_select_stop (stop when ln Z drops) changes BROAD 01's choice: ln Z(σ_p) is not
+unimodal there (session 17, helper J2).
 """
 
 from __future__ import annotations
 
 import copy
+from dataclasses import replace
 
 import gtsam
 import numpy as np
@@ -149,15 +155,18 @@ def select_and_solve(solve_round, vel_state: dict, opt, state: tuple, K: int, hi
             sc = _score(out[1], out[2], sigma, opt, K, field_sigma)
         except RuntimeError:               # an indeterminate elimination: the candidate is not scored
             return
+        sc["lm_iterations"] = int(out[3].iterations)
         scores.append(sc)
         solved.append((sc, out, dict(vel_state), field_sigma, None if gyro is None else (gyro.E.copy(), gyro.step)))
 
     for sigma in opt.position_select:
         run(None if float(sigma) >= OFF_SIGMA else float(sigma), opt.field_sigma)
+        if opt.position_select_stop and len(scores) >= 2 and scores[-1]["log_z"] < scores[-2]["log_z"]:
+            break                          # the evidence dropped: ln Z(σ_p) taken as unimodal (CPU, task J2)
     if not scores:
         raise RuntimeError("position_select: no candidate could be scored")
     pick = choose(scores, EVIDENCE_MARGIN)
-    if opt.position_select_field and opt.field_sigma is not None:
+    if opt.position_select_field and opt.field_sigma is not None and not opt.position_select_field_rounds:
         sig = np.broadcast_to(np.asarray(opt.field_sigma, float), (3,))
         p_sigma = None if pick["sigma_p"] >= OFF_SIGMA else pick["sigma_p"]
         n0 = len(scores)
@@ -196,8 +205,15 @@ def final_with_selection(solve_round, ml_rounds, vel_state: dict, opt, state: tu
     vel0 = dict(vel_state)
     g0 = None if gyro is None else (gyro.E.copy(), gyro.step)
 
-    def candidate_solve(*args, **kw):
-        return solve_round(*args, **dict(kw, final=False, every=every))
+    solver = None                              # position_select_max_iter: the candidates' LM iterations capped
+    if opt.position_select_max_iter:
+        base = opt.solver if opt.round_relative_tol is None else replace(opt.solver,
+                                                                         relative_tol=opt.round_relative_tol)
+        solver = replace(base, max_iterations=int(opt.position_select_max_iter))
+
+    def candidate_solve(*args, **kw):          # position_select_thin: the candidates' magnetometer thinned further
+        return solve_round(*args, **dict(kw, final=False, every=every * max(1, int(opt.position_select_thin)),
+                                         solver=solver))
 
     _, _, values, _ = select_and_solve(candidate_solve, vel_state, opt, (bias, noise, nRk, theta, values0), K,
                                        history, field_state, gyro)
@@ -211,4 +227,57 @@ def final_with_selection(solve_round, ml_rounds, vel_state: dict, opt, state: tu
                                                                                    converged)
     bias, noise, nRk, theta, values, converged = ml_rounds(bias, noise, keyframe_rotations(values, K),
                                                            values.atVector(keys.CALIB), values)
+    if opt.position_select_field_rounds and opt.position_select_field and opt.field_sigma is not None:
+        bias, noise, nRk, theta, values, converged = field_after_rounds(
+            candidate_solve, ml_rounds, vel_state, opt, (bias, noise, nRk, theta, values, converged), K, history,
+            field_state, gyro)
     return solve_round(bias, noise, nRk, theta, final=True, values0=values), (bias, noise, nRk, theta, converged)
+
+
+def field_after_rounds(candidate_solve, ml_rounds, vel_state: dict, opt, state: tuple, K: int, history: list,
+                       field_state: dict, gyro=None):
+    """Options.position_select_field_rounds: the cross-field σ_d,y chosen under a chosen bound, at the noise levels
+    the ML rounds reached UNDER that bound (one alternation of a coordinate ascent: σ_d,y by (J2) at fixed noise,
+    so the measurement normalisers cancel between candidates; then the noise re-estimated at the chosen σ_d,y,
+    whose dof charge in the Σm re-estimate (ml.py, field_dof) it sets). Candidates above field_sigma's σ_y in
+    increasing order, each a thinned round solve from the same state, stopping when ln Z drops; a candidate
+    replaces the configured σ_y only with ln B ≥ EVIDENCE_MARGIN, and then the ML rounds run again with it.
+    Returns the (bias, noise, nRk, θ, values, converged) for the final solve; notes the scores in history."""
+    bias, noise, nRk, theta, values, converged = state
+    sig = np.broadcast_to(np.asarray(opt.field_sigma, float), (3,))
+    p_sigma = vel_state.get("pos_sigma")
+    saved = dict(vel_state)
+    g0 = None if gyro is None else (gyro.E.copy(), gyro.step)
+    scores = []
+
+    def restore():
+        vel_state.clear(); vel_state.update(saved)
+        if g0 is not None:
+            gyro.E, gyro.step = g0[0].copy(), g0[1]
+
+    def run(sy):
+        restore()
+        fs = (float(sig[0]), float(sy), float(sig[2]))
+        field_state["sigma"] = fs
+        out = candidate_solve(bias, noise, nRk, theta, values0=gtsam.Values(values))
+        try:
+            scores.append(_score(out[1], out[2], p_sigma, opt, K, fs))
+        except RuntimeError:               # an indeterminate elimination: not scored
+            return False
+        return True
+
+    ok = run(sig[1])
+    for sy in sorted(float(c) for c in opt.position_select_field if float(c) > float(sig[1])):
+        if not ok or not run(sy) or scores[-1]["log_z"] < scores[-2]["log_z"]:
+            break
+    restore()
+    field_state["sigma"] = opt.field_sigma
+    pick = max(scores[1:], key=lambda s: s["log_z"]) if len(scores) > 1 else None
+    chosen = pick is not None and ok and pick["log_z"] >= scores[0]["log_z"] + EVIDENCE_MARGIN
+    if history:
+        history[-1]["position_select_field"] = {"scores": scores, "chosen": pick["field_sigma"] if chosen else
+                                                [float(x) for x in sig]}
+    if not chosen:
+        return bias, noise, nRk, theta, values, converged
+    field_state["sigma"] = tuple(pick["field_sigma"])
+    return ml_rounds(bias, noise, nRk, theta, values)
