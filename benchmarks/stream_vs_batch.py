@@ -13,6 +13,8 @@ Per trial (read once):
                      (b) the stream's START calibration (`vs_start_deg`: the calibration the stream's orientation
                          factors were built with when θ is a pinned graph state — one model, two solvers),
                      (c) the whole-trial batch calibration (`vs_batch_cal_deg`: the batch calibrate + smooth path)
+                     (c') the same with the batch model's nav-field perturbation d_k (`vs_batch_field_deg`: what
+                         `imugraph smooth --calibration FILE` runs since session 16; (c) is smooth_fixed's default)
                      (d) the SAME MODEL as the stream's end graph (`same_deg`: one model, two solvers): smooth_fixed
                          with the calibration the stream's orientation factors hold (θ pinned at the START calibration
                          with calib_states; the end calibration for the refit, whose final graph re-issues its factors),
@@ -36,7 +38,7 @@ constant heading offset between the two; also the errors against the optical tru
 TRIALS: comma-separated BROAD trial numbers or "all" (default). --config: "default" = StreamOptions() as it
 is in the code, "states" = StreamOptions(calib_states=True, disturb_detect=True), "states_nofield" = the
 latter with field_sigma=None (the stream graph is then smooth_fixed's: attributes a gap to model or solver),
-"fixed_nofield" = online_calibration=False, field_sigma=None (only the solver differs). (Session 15's "default_exact",
+"fixed_nofield" = online_calibration=False, field_sigma=None (only the solver differs). "final_theta" = calib_final_theta=True (the end graph at the streamed θ; session 17, helper L). (Session 15's "default_exact",
 the end solve on exact magnetometer factors, is the stream's own behaviour since: stream_calstate.pinned_mag_factor.)
 bench_out/NAME (default
 stream_vs_batch.json) is rewritten with every row so far after each trial: an interrupted run keeps what it did.
@@ -62,7 +64,9 @@ CONFIGS = {"default": {}, "states": {"calib_states": True, "disturb_detect": Tru
            # attribution: the same without the nav-field perturbation d_k, i.e. exactly smooth_fixed's graph
            "states_nofield": {"calib_states": True, "disturb_detect": True, "field_sigma": None},
            # the solver alone: start calibration held fixed, no field perturbation (README's earlier 0.06° on 01)
-           "fixed_nofield": {"online_calibration": False, "field_sigma": None}}
+           "fixed_nofield": {"online_calibration": False, "field_sigma": None},
+           # session 17 (helper L): the end graph's magnetometer factors at the streamed θ instead of the pin θ₀
+           "final_theta": {"calib_final_theta": True}}
 
 
 def rms_between(q_a: np.ndarray, q_b: np.ndarray, mask: np.ndarray | None, rate: float,
@@ -165,6 +169,12 @@ def same_model(s, opts, r, sm, boot, kf: float) -> dict:
 
     calstate = bool(sm._calstate)
     cal = boot if (calstate or not opts.online_calibration) else r.calibration
+    if calstate and opts.calib_final_theta and sm._theta_end is not None:     # the end graph's θ (stream_online)
+        from dataclasses import replace
+
+        from imugraph.factors.theta import unpack_theta
+        D, o, dip = unpack_theta(sm._theta_end)
+        cal = replace(boot, D=D, o=o, dip_deg=float(np.rad2deg(dip)))
     K = sm._k + 1
     off = stream_offsets(sm, K)
     # rotation_tol_deg 0.001: solved to convergence (the CLI's 0.05° stops a step earlier; the target is 0.1°)
@@ -196,6 +206,12 @@ def run_trial(path: Path, configs: list[str], cache: str | None, bootstrap_s: fl
     q_start = smooth_fixed(s, boot, keyframe_hz=kf)
     q_full = smooth_fixed(s, full, keyframe_hz=kf)
     smooth_s = (time.perf_counter() - t0) / 2
+    # the batch path as the CLI runs it since session 16 (`smooth --calibration`, commands/calibrate.py): with the
+    # nav-field perturbation d_k of the batch model (Options.field_sigma/field_tau); its ML orientation agrees with
+    # this within 0.02–0.15° (benchmarks/l3_decompose.py --ml)
+    from imugraph.calibration.ml import Options
+    q_full_field = smooth_fixed(s, full, keyframe_hz=kf, field_sigma=Options().field_sigma,
+                                field_tau=Options().field_tau)
     rows = []
     for cfg in configs:
         opts = StreamOptions(lag_s=None, **CONFIGS[cfg])
@@ -218,6 +234,9 @@ def run_trial(path: Path, configs: list[str], cache: str | None, bootstrap_s: fl
             "vs_end_h_deg": rms_between(r.smoothed, q_end, s.movement, s.rate, heading=True),
             "vs_start_h_deg": rms_between(r.smoothed, q_start, s.movement, s.rate, heading=True),
             "vs_batch_cal_h_deg": rms_between(r.smoothed, q_full, s.movement, s.rate, heading=True),
+            "vs_batch_field_deg": rms_between(r.smoothed, q_full_field, s.movement, s.rate),
+            "vs_batch_field_h_deg": rms_between(r.smoothed, q_full_field, s.movement, s.rate, heading=True),
+            "batch_field_truth_deg": truth_err(q_full_field, s),
             "stream_truth_deg": truth_err(r.smoothed, s), "end_cal_truth_deg": truth_err(q_end, s),
             "start_cal_truth_deg": truth_err(q_start, s), "batch_cal_truth_deg": truth_err(q_full, s),
             **{f"{k}_deg": rms_between(r.smoothed, q, s.movement, s.rate) for k, q in same["q"].items()},
@@ -260,11 +279,12 @@ def main(argv: list[str] | None = None) -> int:
                   f"stream {r['stream_s']:.0f} s | SAME MODEL {r['same_deg']:.3f}° (heading-aligned "
                   f"{r['same_h_deg']:.3f}°; calibrated form {r['same_calform_deg']:.3f}, no offsets "
                   f"{r['same_nooffs_deg']:.3f}, no field {r.get('same_nofield_deg', float('nan')):.3f}, end θ "
-                  f"{r['same_endcal_deg']:.3f}°) batch truth {r['same_truth_deg']:.3f}° cpu {r['same_cpu_s']:.2f} s",
+                  f"{r['same_endcal_deg']:.3f}°) batch truth {r['same_truth_deg']:.3f}° cpu {r['same_cpu_s']:.2f} s | "
+                  f"vs batch with d_k {r['vs_batch_field_deg']:.3f}° (heading-aligned {r['vs_batch_field_h_deg']:.3f}°)",
                   flush=True)
         write_json(a.out, {"rows": rows, "configs": {c: CONFIGS[c] for c in configs}})
     cols = ["trial", "config", "vs_end_deg", "vs_start_deg", "vs_batch_cal_deg", "vs_end_h_deg", "vs_start_h_deg",
-            "vs_batch_cal_h_deg", "stream_truth_deg",
+            "vs_batch_cal_h_deg", "vs_batch_field_h_deg", "stream_truth_deg",
             "end_cal_truth_deg", "batch_cal_truth_deg", "failed_updates", "stream_s"]
     print_table(rows, ["trial", "config", "same_deg", "same_h_deg", "same_calform_deg", "same_nooffs_deg",
                        "same_nofield_deg", "same_endcal_deg", "window_keyframes", "stream_truth_deg", "same_truth_deg",
@@ -273,7 +293,7 @@ def main(argv: list[str] | None = None) -> int:
     for c in configs:
         sub = [r for r in rows if r["config"] == c]
         for k in ("vs_end_deg", "vs_start_deg", "vs_batch_cal_deg", "vs_end_h_deg", "vs_start_h_deg",
-                  "vs_batch_cal_h_deg", "same_deg", "same_h_deg", "same_calform_deg", "same_nooffs_deg",
+                  "vs_batch_cal_h_deg", "vs_batch_field_deg", "vs_batch_field_h_deg", "same_deg", "same_h_deg", "same_calform_deg", "same_nooffs_deg",
                   "same_nofield_deg", "same_endcal_deg"):
             v = np.array([r[k] for r in sub if k in r])
             if not v.size:

@@ -97,6 +97,7 @@ class OnlineCalibrationMixin:
         self._gated = 0                      # keyframes without information on θ (calib_gate)
         self._mag_okey: dict = {}            # keyframe → its window's offset key Δo_w (disturb_offsets)
         self._prior_mean = None              # of Λ_w: θ₀ (None), or the batch's weak prior centre (_init_disturb)
+        self._theta_end = None               # latest streamed θ of the graph's normal state (eq. 4; calib_final_theta)
 
     # ------------------------------------------------------------------ disturbances, the weak prior
     def _init_disturb(self, cal: Calibration, weak_scale: float | None, learn_s: float = 0.0) -> None:
@@ -187,6 +188,7 @@ class OnlineCalibrationMixin:
         except (RuntimeError, np.linalg.LinAlgError):       # counted as a failed update; no row
             self.stats.failed_updates += 1
             return
+        self._theta_end = theta              # before the majority swap: the θ the graph's factors are on
         white = calibration_of(self.cal, theta, cov).std
         if max(np.max(white["D"]), np.max(white["o"])) < self.opt.calib_lin_rel * self._online_scale:
             self._theta_lin = theta          # well determined: new factors linearised there (stream_calstate eq. 5)
@@ -303,8 +305,11 @@ class OnlineCalibrationMixin:
         if self._calstate and exact:     # the end-of-stream graph: exact at the pin θ₀, d_k and Δo_w free
             from imugraph.graphs.stream_calstate import pinned_mag_factor
 
+            # calib_final_theta: at the streamed θ (stream_calstate eq. 4, the flush's row) instead of θ₀, as the batch
+            # smooths with the θ it estimated (docs/stream.md "Session 17, helper L")
+            theta = self._theta_end if (self.opt.calib_final_theta and self._theta_end is not None) else self._theta0
             return pinned_mag_factor(pose_key(k), field_key(k) if self._field else None, self._mag_okey.get(k),
-                                     self._theta0, kRb, y, self._sig_y, self.opt.huber_k)
+                                     theta, kRb, y, self._sig_y, self.opt.huber_k)
         if self._calstate:       # on (pose_k, d_k, θ), linearised once (stream_calstate eq. 1–2)
             offs = self._offsets
             win = self._win_now if (no_theta and offs is not None) else None

@@ -157,6 +157,11 @@ class StreamOptions:
     calib_states: bool = True          # default since session 14 (README, docs/stream.md)
     calib_lin_rel: float = 0.01
     calib_gate: float | None = 0.3
+    # with calib_states under iSAM2 (keep_history): the end-of-stream graph's magnetometer factors at the streamed θ
+    # (stream_calstate eq. 4, at the flush) instead of the pin θ₀ — the smoothed output with the calibration the stream
+    # estimated, as the batch smooths with its own; the filtered output unchanged. False: θ₀ (docs/stream.md
+    # "Session 17, helper L").
+    calib_final_theta: bool = False
     field_sigma: float | tuple | None = (0.015, 0.003, 0.015)
     field_tau: float = 1.0
     lag_hold_s: float = 0.5
