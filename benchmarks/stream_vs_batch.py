@@ -162,19 +162,25 @@ def stream_with_recorder(s, opts, bootstrap_s, boot, n_boot):
         sr.StreamSmoother = real
 
 
+def end_graph_calibration(start, sm, opts):
+    """The calibration the stream's end graph holds its magnetometer factors at (θ a graph state): the streamed θ
+    with calib_final_theta (stream_online), else the start calibration θ₀."""
+    if sm._calstate and opts.calib_final_theta and sm._theta_end is not None:
+        from dataclasses import replace
+
+        from imugraph.factors.theta import unpack_theta
+        D, o, dip = unpack_theta(sm._theta_end)
+        return replace(start, D=D, o=o, dip_deg=float(np.rad2deg(dip)))
+    return start
+
+
 def same_model(s, opts, r, sm, boot, kf: float) -> dict:
     """Batch smooths of the stream's end model (module docstring, (d)) and its attribution variants:
     {"q": {column: (N, 4)}, "cpu_s": CPU s of the (d) smooth, "window_keyframes": keyframes with a Δo_w}."""
     from imugraph.graphs.cpp_smoother import smooth_fixed
 
     calstate = bool(sm._calstate)
-    cal = boot if (calstate or not opts.online_calibration) else r.calibration
-    if calstate and opts.calib_final_theta and sm._theta_end is not None:     # the end graph's θ (stream_online)
-        from dataclasses import replace
-
-        from imugraph.factors.theta import unpack_theta
-        D, o, dip = unpack_theta(sm._theta_end)
-        cal = replace(boot, D=D, o=o, dip_deg=float(np.rad2deg(dip)))
+    cal = end_graph_calibration(boot, sm, opts) if calstate or not opts.online_calibration else r.calibration
     K = sm._k + 1
     off = stream_offsets(sm, K)
     # rotation_tol_deg 0.001: solved to convergence (the CLI's 0.05° stops a step earlier; the target is 0.1°)

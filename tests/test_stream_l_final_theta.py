@@ -24,15 +24,16 @@ def _stream(session, cal, **opt):
 @pytest.fixture(scope="module")
 def runs():
     """Simulation, a start calibration 3 % of the field scale off in every entry of D and o; full iSAM2 with θ as a
-    pinned graph state (the defaults), the end graph at θ₀ (off) and at the streamed θ (on)."""
+    pinned graph state (the defaults), the end graph at θ₀ (off) and at the streamed θ (on, the default)."""
     session, truth = distorted_session(3, 60.0, 50.0)
     cal = truth.to_calibration()
     scale = np.cbrt(abs(np.linalg.det(cal.D)))
     rng = np.random.default_rng(0)
     start = replace(cal, D=cal.D + 0.03 * scale * rng.standard_normal((3, 3)),
                     o=cal.o + 0.03 * scale * rng.standard_normal(3))
-    off, q_off = _stream(session, start)
-    on, q_on = _stream(session, start, calib_final_theta=True)
+    off, q_off = _stream(session, start, calib_final_theta=False)
+    on, q_on = _stream(session, start)             # the default since session 17
+    assert StreamOptions().calib_final_theta
     return session, cal, start, (off, q_off), (on, q_on)
 
 
