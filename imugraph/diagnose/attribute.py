@@ -115,6 +115,11 @@ def fold_gaps(real, sim, folds: list, gap_opt: GapOptions = GapOptions()) -> lis
             if f.sum() >= 10 else None for f in folds]
 
 
+# S17-H (docs/diagnose.md §S17-H, `DiagnoseOptions.fold_fixed_structure`, default off): an effect whose fit
+# chooses a discrete structure (time_offset: which channel is late) is refitted in each fold with the structure
+# of its all-sample fit held (`Effect.fit_fold`), so that every fold scores the model the verdict would name.
+FOLD_FIXED_STRUCTURE = False
+
 SUPPORT_PAD_S = 1.0        # a claimed window is scored with this margin (ramps, edge error)
 MIN_SUPPORT_S = 4.0        # a support shorter than this (summed over the folds) is not scored apart
 
@@ -181,12 +186,21 @@ def evaluate_effect(effect, real, sim, null_gap: dict, folds: list, opt: Attribu
     before = {c: [] for c in CHANNELS}
     after = {c: [] for c in CHANNELS}
     weights = []
+    fold_sizes = []
     ll = GainAccumulator()                                                                       # (A4)
     own, own_ll = OwnCostAccumulator(), OwnCostAccumulator()      # (J5), (J5'): the joint fit's own scores
     for fold, test, b in zip(folds, scored, base):
         if b is None:
             continue
-        corr = effect.fit(fitted, ~fold, window=window)
+        if FOLD_FIXED_STRUCTURE and hasattr(effect, "fit_fold"):       # S17-H (T11): the named model's structure
+            corr = effect.fit_fold(fitted, ~fold, window, full)
+        else:
+            corr = effect.fit(fitted, ~fold, window=window)
+        if hasattr(effect, "size"):                                  # the size on this fold's training samples
+            try:
+                fold_sizes.append(float(effect.size(corr, fitted).get("value", np.nan)))
+            except (KeyError, TypeError, ValueError, IndexError):
+                fold_sizes.append(float("nan"))
         raw = corr.raw_residuals(real if ext is None else ext)
         ll.add(real.residuals, raw, ~fold if support is None or rest is None else ~fold & support, test)
         if (getattr(corr, "deltas", None) or {}).get("heldout") is not None:
@@ -228,7 +242,9 @@ def evaluate_effect(effect, real, sim, null_gap: dict, folds: list, opt: Attribu
                         own_gain=own_gain, own_per_channel=own_per,
                         own_folds=own.fold_gains(n_params) or None, own_ll_gain=own_ll_gain,
                         own_ll_folds=own_ll.fold_gains(n_params) or None,
-                        own_shrink=own_shrink, gap_shrink=gap_shrink)
+                        own_shrink=own_shrink, gap_shrink=gap_shrink,
+                        own_excess={c: own.base[c] / own.n[c] - own.e0.get(c, 0.0) for c in CHANNELS
+                                    if own.n[c]} if own.folds else None, fold_sizes=fold_sizes or None)
 
 
 def _failed(name, effect, exc) -> EffectResult:
@@ -335,6 +351,9 @@ def attribute(real, sim, null_gap: dict, effects: dict, opt: AttributionOptions 
     ranked = _rank(list(results.values()))
     for r in ranked:
         r.significant = significant(r, null_gap, opt)
+    from imugraph.diagnose import local_check
+    if local_check.LOCAL_CHECK:                                          # (V'), S17-H
+        local_check.check_locals(ranked, real, folds, effects, say)
     return ranked
 
 
@@ -374,6 +393,7 @@ def verdict(results: list, null_gap: dict, opt: AttributionOptions = Attribution
     effect's physical threshold, `EffectResult.relevant`); "none" when there is none. Among several, a
     localised one (scored by (A3) on its support: it explains what sets part of the recording apart from
     the rest of the same recording) comes first, then the best-ranked (A2) global one (V)."""
-    ok = [r for r in results if significant(r, null_gap, opt) and r.relevant]
+    ok = [r for r in results if significant(r, null_gap, opt) and r.relevant
+          and not getattr(r, "explained_by", None)]                                                # (V')
     local = [r for r in ok if r.support_fraction < LOCAL_FRACTION]
     return (local or ok)[0].name if ok else NONE

@@ -121,6 +121,12 @@ def model_arguments(p: argparse.ArgumentParser) -> None:
         ("--vibration-band-windows", "S16-F (V3)-(V4): vibration's windows re-localised on the fitted band, "
                                      "narrow-band excess only (DiagnoseOptions.vibration_band_windows; default on "
                                      "since session 16)"),
+        ("--fold-fixed-structure", "S17-H (T11): cross-validation folds refit an effect with the discrete structure "
+                                   "of its all-sample fit held (time_offset's channel; DiagnoseOptions."
+                                   "fold_fixed_structure; default off)"),
+        ("--local-check", "S17-H (V'): a localised verdict leaves when a global effect on its channel explains its "
+                          "support at least as well by the held-out log score (DiagnoseOptions.local_check; "
+                          "default off)"),
     ]
     for flag, text in switches:
         p.add_argument(flag, action=argparse.BooleanOptionalAction, default=None, help=text)
@@ -149,7 +155,9 @@ def diagnose_options(args: argparse.Namespace, **fields):
                         magnet_step_refit=getattr(args, "magnet_step_refit", None),
                         saturation_censor=getattr(args, "saturation_censor", None),
                         saturation_area=getattr(args, "saturation_area", None),
-                        vibration_band_windows=getattr(args, "vibration_band_windows", None), **fields)   # None: the defaults
+                        vibration_band_windows=getattr(args, "vibration_band_windows", None),
+                        fold_fixed_structure=getattr(args, "fold_fixed_structure", None),
+                        local_check=getattr(args, "local_check", None), **fields)   # None: the defaults
     if getattr(args, "cross_gap", None) is not None:                        # S16 (G1')
         o = replace(o, gap=replace(o.gap, cross_weight=float(args.cross_gap)))
     if getattr(args, "cross_form", None) is not None:

@@ -94,11 +94,30 @@ def run_case(session: Session, truth_name: str, truth: dict, case_id: str, diagn
             "host_excess": None if truth_name != NONE else _host_excess(d),
             "loglik": None if won is None else {k: won.get(k) for k in ("loglik_base_per_channel",
                                                                         "loglik_ext_per_channel")},
-            "host_loglik": None if truth_name != NONE else _host_loglik(d)}
+            "host_loglik": None if truth_name != NONE else _host_loglik(d),
+            "scores": _scores(d)}
     if windowed and verdict == truth_name and won is not None:
         case["estimated_window"] = [won.get("t_start"), won.get("t_end")]
         case["iou"] = interval_iou((truth["t_start"], truth["t_end"]), (won.get("t_start"), won.get("t_end")))
     return case
+
+
+def _scores(d: dict) -> list:
+    """Every effect's decision numbers (miss analysis, §S17-H): name, stage, channel, (A2), (A1), the
+    log score (A4) and its worst fold, the own-cost shrink (J6), size/threshold, significant, relevant."""
+    out = []
+    for e in d.get("effects", []):
+        s = e.get("size") or {}
+        folds = e.get("own_cost_gain_per_fold") or e.get("loglik_gain_per_fold") or []
+        out.append({"name": e.get("name"), "stage": e.get("stage"), "channel": e.get("channel"),
+                    "penalised": e.get("penalised_shrink"), "shrink": e.get("shrink"),
+                    "loglik_gain": e.get("loglik_gain"),
+                    "own_gain": e.get("own_cost_gain"), "min_fold": min(folds) if folds else None,
+                    "size": s.get("value"), "threshold": s.get("threshold"), "unit": s.get("unit"),
+                    "significant": e.get("significant"), "relevant": e.get("relevant"),
+                    "support_fraction": e.get("support_fraction"), "t_start": e.get("t_start"),
+                    "t_end": e.get("t_end")})
+    return out
 
 
 def _host_excess(d: dict) -> dict:

@@ -48,6 +48,9 @@ class EffectResult:
     own_ll_folds: list | None = None      # (J5') per fold
     own_shrink: float = float("nan")      # (J6): share of the base model's held-out excess cost removed
     gap_shrink: float = float("nan")      # (A1) always (`shrink` is (J6) for an effect judged by (J5)/(J6))
+    own_excess: dict | None = None        # (J6) per channel: the base model's held-out cost per row − E0 (S17-H)
+    fold_sizes: list | None = None        # the effect's size fitted on each fold's training samples (S17-H)
+    explained_by: dict | None = None      # (V') S17-H: a global effect explains this localised one's support
 
     @property
     def relevant(self) -> bool:
@@ -63,12 +66,13 @@ class EffectResult:
                 "size": self.size or {}, "relevant": self.relevant, "significant": self.significant,
                 "stage": self.stage, "support_fraction": self.support_fraction, "decisive": self.decisive,
                 "loglik_gain": self.loglik_gain, "loglik_gain_per_channel": self.loglik_per_channel or {},
-                "loglik_gain_per_fold": self.loglik_folds or [],
+                "loglik_gain_per_fold": self.loglik_folds or [], "size_per_fold": self.fold_sizes or [],
                 "loglik_base_per_channel": self.loglik_base or {}, "loglik_ext_per_channel": self.loglik_ext or {},
                 **({"own_cost_gain": self.own_gain, "own_cost_gain_per_channel": self.own_per_channel or {},
                     "own_cost_gain_per_fold": self.own_folds, "own_cost_shrink": self.own_shrink,
-                    "gap_shrink": self.gap_shrink,
+                    "gap_shrink": self.gap_shrink, "own_excess_per_channel": self.own_excess or {},
                     "own_loglik_gain": self.own_ll_gain,
                     "own_loglik_gain_per_fold": self.own_ll_folds or []} if self.own_folds else {}),
                 **({"screen": self.screen} if self.screen else {}),
+                **({"explained_by": self.explained_by} if self.explained_by else {}),
                 **({"error": self.error} if self.error else {})}

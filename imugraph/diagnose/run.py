@@ -61,6 +61,12 @@ class DiagnoseOptions:
         vibration_band_windows: S16-F (V3)–(V4): vibration's windows re-localised on the fitted band, and kept
             only when their excess power above the motion band lies mostly in it (a broadband transient of the
             host is not a vibration); None: the module flag `vibration.BAND_WINDOWS` (default True since session 16).
+        fold_fixed_structure: S17-H (T11): an effect's cross-validation folds refit its parameters with the
+            discrete structure of its all-sample fit held (time_offset: the late channel; `Effect.fit_fold`);
+            None: the module flag `attribute.FOLD_FIXED_STRUCTURE` (default False).
+        local_check: S17-H (V'): a localised verdict leaves when a significant, relevant global effect on its
+            channel scores at least its held-out log score on its support (imugraph/diagnose/local_check.py);
+            None: the module flag `local_check.LOCAL_CHECK` (default False).
     """
 
     keyframe_hz: float = 5.0
@@ -77,6 +83,8 @@ class DiagnoseOptions:
     saturation_censor: bool | None = None
     saturation_area: bool | None = None
     vibration_band_windows: bool | None = None
+    fold_fixed_structure: bool | None = None
+    local_check: bool | None = None
     gap: GapOptions = field(default_factory=GapOptions)
     attribution: AttributionOptions = field(default_factory=AttributionOptions)
 
@@ -158,6 +166,8 @@ def model_switches(options: DiagnoseOptions):
     # (option field, module, module flags it sets, converter): the boolean ones take bool(value)
     pkg = "imugraph.diagnose."
     table = [("vibration_band_windows", "effects.vibration", ("BAND_WINDOWS",), bool),
+             ("fold_fixed_structure", "attribute", ("FOLD_FIXED_STRUCTURE",), bool),
+             ("local_check", "local_check", ("LOCAL_CHECK",), bool),
              ("gyro_delay_model", "effects.time_offset", ("GYRO_DELAY_MODEL",), bool),
              ("magnet_ramps", "effects.magnetic_disturbance", ("RAMPS",), bool),
              ("saturation_area", "effects.saturation", ("CENSOR_AREA",), bool),

@@ -244,7 +244,16 @@ class TimeOffset(Effect):
         return replace_session(session, **{c: y}, name_suffix="+time_offset",
                                meta={"injected": {self.name: truth}}), truth
 
-    def fit(self, fit, train, window=None) -> Correction:
+    def fit_fold(self, fit, train, window, full) -> Correction:
+        """S17-H (T11), `attribute.FOLD_FIXED_STRUCTURE`: a cross-validation fold's fit of the model the
+        all-sample fit `full` chose — its channel held, τ refitted on the fold's training samples. The
+        channel is the model's structure (which sensor is late), not a parameter: left free, a fold can
+        land on another channel's near-zero candidate and score a different model than the one named
+        (harness seed 2 case 008, 06 + 10.6 ms gyro delay: folds' τ 4.3–4.5 samples on acc, one fold 0.03 on
+        another candidate, its log score −0.01: (A4'') failed on the fold that fitted something else)."""
+        return self.fit(fit, train, window, candidates=(full.channel,))
+
+    def fit(self, fit, train, window=None, candidates=("mag", "acc", "gyr")) -> Correction:
         train = check_train(fit, train)
         s = fit.session
         pred = fit.predicted()
@@ -252,7 +261,7 @@ class TimeOffset(Effect):
         base_cost = _cost(fit, fit.residuals, train, channels)
         best = None
         ref = gyro_referenced_delays(fit, train)                                    # (T2)
-        for c in ("mag", "acc", "gyr"):
+        for c in candidates:
             tau = 0.0
             for _ in range(2):
                 r = TimeOffsetCorrection(self.name, {"channel": c, "tau_s": tau}, 2).raw_residuals(fit)

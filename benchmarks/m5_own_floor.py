@@ -1,0 +1,62 @@
+"""Benchmark (issue 5, §S17-H): the floor E0 of the joint gyro fit's excess cost (J6) — nominal against measured.
+
+(J6) S = gain / Σ_c max(0, C_base,c/n − E0_c) with E0_c = ½ Σ_axis (σ_c/σ_row)² the cost per row the model's
+own noise would give (effects/joint.py `heldout_cost`). For harness cases (replayed: same draw as
+benchmarks/diagnose_harness.py --seed S --cases ...) print per channel: E0 nominal, the base cost per row
+of the real crop (J1 at p = 0, all rows), and the same for a simulation from the fit (the data the model
+itself produces, fitted the same way: what "no excess" actually costs).
+
+    .venv/bin/python benchmarks/m5_own_floor.py --seed 2 --cases 006,019,022
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+import numpy as np
+
+
+def cost_per_row(fit_sig, r: np.ndarray) -> float:
+    from imugraph.diagnose.effects.joint import _cost
+
+    ok = np.all(np.isfinite(r), axis=1)
+    return _cost(r[ok] / fit_sig) / max(int(ok.sum()), 1)
+
+
+def main(argv=None) -> int:
+    from imugraph.diagnose.bench import add_arguments, broad_sessions, simulated_session
+    from imugraph.diagnose.effects import EFFECTS, joint
+    from imugraph.diagnose.fit import base_options, fit_base, fit_simulation, simulate_from_fit
+    from imugraph.diagnose.harness import run_harness
+
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    add_arguments(p)
+    a = p.parse_args(argv)
+    sessions = broad_sessions([t for t in a.trials.split(",") if t], a.duration, a.data_dir)
+    sessions += [simulated_session(a.seed * 100 + i, a.duration, a.rate) for i in range(a.sims)]
+
+    def fn(session):
+        real = fit_base(session, base_options(5.0))
+        rng = np.random.default_rng(0)
+        simA = fit_simulation(simulate_from_fit(real, rng, name="A"), real)
+        sig = joint._sigmas(real)
+        z = np.zeros((real.n, 3))
+        r_real = joint.null_residuals(real, z)
+        r_sim = joint.null_residuals(simA, z)
+        for c in ("gyr", "acc", "mag"):
+            e0 = 0.5 * float(np.sum((np.asarray(real.sigma[c], float) / sig[c]) ** 2))
+            print(f"  {session.name[:28]:<28} {c}: E0 nominal {e0:.4f}  real J1(p=0) {cost_per_row(sig[c], r_real[c]):.4f}"
+                  f"  real calibrate {cost_per_row(sig[c], real.residuals[c]):.4f}"
+                  f"  sim J1(p=0) {cost_per_row(sig[c], r_sim[c]):.4f}  sim calibrate {cost_per_row(sig[c], simA.residuals[c]):.4f}",
+                  flush=True)
+        return {"verdict": "none", "effects": []}
+
+    names = [n.strip() for n in a.effects.split(",")] if a.effects else list(EFFECTS)
+    run_harness(sessions, names, a.n, np.random.default_rng(a.seed), clean=not a.no_clean, diagnose_fn=fn,
+                only=[c.strip() for c in (a.cases or "").split(",") if c.strip()] or None, hosts=a.hosts)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

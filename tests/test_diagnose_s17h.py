@@ -1,0 +1,113 @@
+"""S17-H (issue 5, docs/diagnose.md §S17-H): time_offset's folds with the all-sample fit's channel held (T11),
+the switch that enables it (default off), and the per-fold sizes the attribution records."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from imugraph.diagnose import attribute
+from imugraph.diagnose.attribute import AttributionOptions, evaluate_effect, fold_masks
+from imugraph.diagnose.bench import simulated_session
+from imugraph.diagnose.effects import time_offset as to
+from imugraph.diagnose.effects.base import replace_session, shift_signal
+from imugraph.diagnose.fit import fit_base, fit_simulation, simulate_from_fit
+from imugraph.diagnose.run import DiagnoseOptions, model_switches, null_fold_gap
+
+TAU = 0.03           # injected accelerometer delay, s (3 samples at 100 Hz)
+
+
+@pytest.fixture(scope="module")
+def fits():
+    s = simulated_session(11, 40.0, 100.0)
+    real = fit_base(replace_session(s, acc=shift_signal(s.t, s.acc, TAU)))
+    rng = np.random.default_rng(0)
+    sim = fit_simulation(simulate_from_fit(real, rng, name="A"), real)
+    null = fit_simulation(simulate_from_fit(real, rng, name="B"), real)
+    return real, sim, null
+
+
+def test_switch_is_off_by_default_and_restored():
+    assert DiagnoseOptions().fold_fixed_structure is None
+    assert attribute.FOLD_FIXED_STRUCTURE is False
+    with model_switches(DiagnoseOptions(fold_fixed_structure=True)):
+        assert attribute.FOLD_FIXED_STRUCTURE is True
+    assert attribute.FOLD_FIXED_STRUCTURE is False
+
+
+def test_fit_fold_holds_the_channel_it_is_given(fits):
+    """fit_fold searches only the channel of the `full` correction it is handed, whatever fits best: held
+    at mag it returns a mag shift; held at acc it finds the injected accelerometer delay (sign: y(t) = h(t − τ), τ > 0)."""
+    real = fits[0]
+    train = np.ones(real.n, bool)
+    held_mag = to.TimeOffsetCorrection("time_offset", {"channel": "mag", "tau_s": 0.0}, 2, channel="mag")
+    held_acc = to.TimeOffsetCorrection("time_offset", {"channel": "acc", "tau_s": 0.0}, 2, channel="acc")
+    assert to.EFFECT.fit_fold(real, train, None, held_mag).channel == "mag"
+    c = to.EFFECT.fit_fold(real, train, None, held_acc)
+    assert c.channel == "acc"
+    # the first-order fit on the bent base fit underestimates τ (docs/diagnose.md §3: 8.9 ms for 21 ms), but
+    # it is a delay of the accelerometer of more than a sample, the relevance threshold
+    assert 1.0 / real.session.rate < c.params["tau_s"] <= TAU
+
+
+def test_folds_refit_the_named_channel_only(fits, monkeypatch):
+    """With the switch on, every fold's fit is asked for the all-sample fit's channel only (recorded on the
+    fit calls); with it off, every fold searches all channels. The fold sizes are recorded either way."""
+    real, sim, null = fits
+    opt = AttributionOptions()
+    folds = fold_masks(real.session.t, opt)
+    g_null = null_fold_gap(null, sim, real.sigma, folds, attribute.GapOptions())
+    calls = []
+    orig = to.TimeOffset.fit
+
+    def spy(self, fit, train, window=None, candidates=("mag", "acc", "gyr")):
+        calls.append(tuple(candidates))
+        return orig(self, fit, train, window, candidates)
+
+    monkeypatch.setattr(to.TimeOffset, "fit", spy)
+    for on in (False, True):
+        calls.clear()
+        monkeypatch.setattr(attribute, "FOLD_FIXED_STRUCTURE", on)
+        res = evaluate_effect(to.EFFECT, real, sim, g_null, folds, opt, null=null)
+        assert calls[0] == ("mag", "acc", "gyr")                                # the all-sample fit
+        assert len(calls) == 1 + len(folds)
+        want = (res.channel,) if on else ("mag", "acc", "gyr")
+        assert all(c == want for c in calls[1:]), calls
+        assert len(res.fold_sizes) == len(folds)
+        assert all(np.isfinite(res.fold_sizes))
+    assert res.channel == "acc"
+    assert min(res.fold_sizes) > 1.0                     # every fold finds a relevant delay on acc
+
+
+def _local(gain: float):
+    """A significant, relevant localised result on acc over 10–20 s whose own held-out gain there is `gain`."""
+    from imugraph.diagnose.result import EffectResult
+
+    return EffectResult("vibration", "acc", 1.0, 0.0, 1.0, 1.0, 5, 10.0, 20.0,
+                        {"windows": [{"t_start": 10.0, "t_end": 20.0}]}, size={"value": 1.0, "threshold": 0.3},
+                        support_fraction=0.3, loglik_per_channel={"gyr": 0.0, "acc": gain, "mag": 0.0},
+                        decisive=True, significant=True)
+
+
+@pytest.mark.parametrize("own_gain, explained", [(0.0, True), (1e3, False)])
+def test_local_check_gives_the_window_to_the_delay_that_explains_it(fits, own_gain, explained, monkeypatch):
+    """(V'): on the accelerometer-delayed simulation the delay's held-out acc gain on a 10–20 s window is
+    positive; a localised effect there that gains nothing leaves the verdict to time_offset, one that gains
+    more than any model could (10³ nats per sample) keeps it. With the switch off (V) is unchanged."""
+    from imugraph.diagnose import local_check
+
+    real, sim, null = fits
+    opt = AttributionOptions()
+    folds = fold_masks(real.session.t, opt)
+    g_null = null_fold_gap(null, sim, real.sigma, folds, attribute.GapOptions())
+    delay = evaluate_effect(to.EFFECT, real, sim, g_null, folds, opt, null=null)
+    delay.significant = True
+    assert delay.relevant and delay.support_fraction == 1.0
+    monkeypatch.setattr(attribute, "significant", lambda r, *a, **k: bool(r.significant))
+    loc = _local(own_gain)
+    assert attribute.verdict([delay, loc], g_null, opt) == "vibration"            # (V): the localised first
+    local_check.check_locals([delay, loc], real, folds, {"time_offset": to.EFFECT})
+    chk = local_check.global_gain_on_support(real, folds, loc, delay, to.EFFECT)
+    assert chk["global_gain"] > 0.0
+    assert (loc.explained_by is not None) == explained
+    assert attribute.verdict([delay, loc], g_null, opt) == ("time_offset" if explained else "vibration")
