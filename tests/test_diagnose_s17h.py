@@ -27,12 +27,12 @@ def fits():
     return real, sim, null
 
 
-def test_switch_is_off_by_default_and_restored():
+def test_switch_is_on_by_default_and_restored():
     assert DiagnoseOptions().fold_fixed_structure is None
-    assert attribute.FOLD_FIXED_STRUCTURE is False
-    with model_switches(DiagnoseOptions(fold_fixed_structure=True)):
-        assert attribute.FOLD_FIXED_STRUCTURE is True
-    assert attribute.FOLD_FIXED_STRUCTURE is False
+    assert attribute.FOLD_FIXED_STRUCTURE is True          # the default since session 17
+    with model_switches(DiagnoseOptions(fold_fixed_structure=False)):
+        assert attribute.FOLD_FIXED_STRUCTURE is False
+    assert attribute.FOLD_FIXED_STRUCTURE is True
 
 
 def test_fit_fold_holds_the_channel_it_is_given(fits):

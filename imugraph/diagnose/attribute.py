@@ -115,10 +115,10 @@ def fold_gaps(real, sim, folds: list, gap_opt: GapOptions = GapOptions()) -> lis
             if f.sum() >= 10 else None for f in folds]
 
 
-# S17-H (docs/diagnose.md §S17-H, `DiagnoseOptions.fold_fixed_structure`, default off): an effect whose fit
+# S17-H (docs/diagnose.md §S17-H, `DiagnoseOptions.fold_fixed_structure`, default on since session 17): an effect whose fit
 # chooses a discrete structure (time_offset: which channel is late) is refitted in each fold with the structure
 # of its all-sample fit held (`Effect.fit_fold`), so that every fold scores the model the verdict would name.
-FOLD_FIXED_STRUCTURE = False
+FOLD_FIXED_STRUCTURE = True
 
 SUPPORT_PAD_S = 1.0        # a claimed window is scored with this margin (ramps, edge error)
 MIN_SUPPORT_S = 4.0        # a support shorter than this (summed over the folds) is not scored apart

@@ -123,7 +123,7 @@ def model_arguments(p: argparse.ArgumentParser) -> None:
                                      "since session 16)"),
         ("--fold-fixed-structure", "S17-H (T11): cross-validation folds refit an effect with the discrete structure "
                                    "of its all-sample fit held (time_offset's channel; DiagnoseOptions."
-                                   "fold_fixed_structure; default off)"),
+                                   "fold_fixed_structure; default on since session 17)"),
         ("--local-check", "S17-H (V'): a localised verdict leaves when a global effect on its channel explains its "
                           "support at least as well by the held-out log score (DiagnoseOptions.local_check; "
                           "default off)"),

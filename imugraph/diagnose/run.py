@@ -63,7 +63,7 @@ class DiagnoseOptions:
             host is not a vibration); None: the module flag `vibration.BAND_WINDOWS` (default True since session 16).
         fold_fixed_structure: S17-H (T11): an effect's cross-validation folds refit its parameters with the
             discrete structure of its all-sample fit held (time_offset: the late channel; `Effect.fit_fold`);
-            None: the module flag `attribute.FOLD_FIXED_STRUCTURE` (default False).
+            None: the module flag `attribute.FOLD_FIXED_STRUCTURE` (default True since session 17).
         local_check: S17-H (V'): a localised verdict leaves when a significant, relevant global effect on its
             channel scores at least its held-out log score on its support (imugraph/diagnose/local_check.py);
             None: the module flag `local_check.LOCAL_CHECK` (default False).
