@@ -56,8 +56,10 @@ def test_bridge_variance_is_a_quarter_of_the_held_one():
     zero, sg = np.zeros(3), np.full(3, 0.005)
     got = bridged_preintegration(t, w, a, w1, a1, zero, sg, 0.0, sg, 0.0, (RATE, 3.0, 10.0))
     dense = bridged_preintegration(t, w, a, w1, a1, zero, sg, 0.0, sg, 0.0, (RATE, 0.0, 0.0))
-    assert np.allclose(got[2] - dense[2], 9.0 * tau**3 / 12 * np.eye(3), rtol=1e-9)    # q_ω = 3, τ = Δt − T
-    assert np.isclose(got[5] ** 2 - dense[5] ** 2, 100.0 * tau**3 / 12, rtol=1e-9)      # q_a = 10
+    step = t[-1] - t[-2]                                                    # the gap step Δt = τ + T
+    assert np.isclose(step, tau + T)
+    assert np.allclose(got[2] - dense[2], 9.0 * step**3 / 12 * np.eye(3), rtol=1e-9)   # q_ω = 3, over Δt (B2)
+    assert np.isclose(got[5] ** 2 - dense[5] ** 2, 100.0 * step**3 / 12, rtol=1e-9)     # q_a = 10
 
 
 @pytest.mark.parametrize("bridge", [False, True])

@@ -16,8 +16,8 @@ interval. Causal: nothing later than that first sample is used.
 
 How. Each gap step j (Δt_j > 1.5 T) is cut into m_j = round(Δt_j / T) sub-steps; sub-step i holds the rate (and
 the specific force) of (B1) at its midpoint, s = (i + ½) Δt_j / m_j. The dense interval is preintegrated as any
-other (stream_interval eq. 2–3, no gap term), then (B2) is added to Σ_ΔR (q_ω) and σ_Δv² (q_a) — the variance
-term of eq. (G1) divided by 4. Only the real rows' rotations kRb are returned (magnetometer rows, history).
+other (stream_interval eq. 2–3, no gap term), then (B2) with τ = Δt (the walk pinned at both measured samples)
+is added to Σ_ΔR (q_ω) and σ_Δv² (q_a). Only the real rows' rotations kRb are returned (magnetometer rows, history).
 The bridge's end on an interval's last step is the next keyframe's first row as pushed (gyro after the
 calibration's map; accelerometer not yet re-timed by δ, which is a fraction of a sample against a gap of many).
 """
@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from imugraph.factors.gaps import gap_steps, gap_variance
+from imugraph.factors.gaps import gap_steps
 from imugraph.graphs.stream_interval import interval_preintegration
 
 
@@ -68,7 +68,11 @@ def bridged_preintegration(t: np.ndarray, w: np.ndarray, a: np.ndarray, w_next, 
     t_d, w_d, a_d, real = bridge_rows(t, w, a, w_next, a_next, 1.0 / rate)
     kRb, delta_R, cov, dt_k, dv, sig_dv, q_kRb = interval_preintegration(t_d, w_d, a_d, b_hat, sigma_gyr, kappa,
                                                                          sigma_acc, kappa_a, None)
-    tau3_12 = float(gap_variance(t[1:] - t[:-1], 1.0 / rate, 1.0).sum()) / 4.0       # Σ τ³/12, (B2)
+    # (B2) over the whole gap step Δt: the walk is pinned at the two measured samples that span it (review R3; the
+    # held model's τ = Δt − T counts only the time past the nominal step). The sub-steps' white noise is counted as
+    # if measured (interval_preintegration, σ_g² per sub-step): understated by ≈ m/2, small against q_ω² Δt³/12.
+    st = t[1:] - t[:-1]
+    tau3_12 = float(np.sum(np.where(gap_steps(st, 1.0 / rate), st, 0.0) ** 3)) / 12.0   # Σ Δt³/12, (B2)
     cov = cov + q_w**2 * tau3_12 * np.eye(3)
     sig_dv = float(np.sqrt(sig_dv**2 + q_a**2 * tau3_12))
     return kRb[real], delta_R, cov, dt_k, dv, sig_dv, q_kRb[real]

@@ -131,7 +131,8 @@ def select_position(session: Session, options: StreamOptions, bootstrap_s: float
     info = {} if info is None else info
     cal, n_boot = bootstrap_calibration(session, bootstrap_s, options.keyframe_hz, allow_weak,
                                         overrides={"position_select": tuple(options.position_select),
-                                                   "position_select_rounds": True}, info=info)
+                                                   "position_select_rounds": True,
+                                                   "position_tau": options.position_tau}, info=info)
     return cal, n_boot, replace(options, position_sigma=info.get("position_sigma"))
 
 
