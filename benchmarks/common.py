@@ -88,6 +88,29 @@ def trial_number(path: str | Path) -> int:
     return int(m.group(1))
 
 
+def select_trials(spec: str) -> list[Path]:
+    """The BROAD trials named by a command line's "all" or "1,6,34" (numbers), in file order."""
+    paths = broad_trials()
+    if spec != "all":
+        want = {int(x) for x in spec.split(",")}
+        paths = [p for p in paths if trial_number(p) in want]
+    return paths
+
+
+def parse_variants(argv: Sequence[str]) -> tuple[dict, list]:
+    """`--variant "A=1;B=2"` (repeatable) out of argv: ({"base": [], "A=1;B=2": ["A=1", "B=2"], …}, the other
+    arguments in order). Each variant's items are `parse_options` strings."""
+    variants, rest, i = {"base": []}, [], 0
+    while i < len(argv):
+        if argv[i] == "--variant":
+            variants[argv[i + 1]] = [x for x in argv[i + 1].split(";") if x]
+            i += 2
+        else:
+            rest.append(argv[i])
+            i += 1
+    return variants, rest
+
+
 def trial_groups(root: Path | None = None) -> dict[str, list[int]]:
     """Map each BROAD group name (undisturbed, disturbed, rotation, fast, ...) to its trial numbers.
 

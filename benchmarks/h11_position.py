@@ -22,7 +22,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks.b1_try import vqf_cached  # noqa: E402
-from benchmarks.common import error_parts, iter_broad, parse_options  # noqa: E402
+from benchmarks.common import error_parts, iter_broad, parse_options, parse_variants  # noqa: E402
 from benchmarks.h4_decompose import CACHE  # noqa: E402
 from benchmarks.output import OUT_DIR  # noqa: E402
 from imugraph.calibration.ml import calibrate  # noqa: E402
@@ -36,16 +36,7 @@ def _sigma(row: dict, name: str) -> str:
 
 
 def main(argv: list[str]) -> int:
-    variants = {"base": []}
-    rest = []
-    i = 0
-    while i < len(argv):
-        if argv[i] == "--variant":
-            variants[argv[i + 1]] = [x for x in argv[i + 1].split(";") if x]
-            i += 2
-        else:
-            rest.append(argv[i])
-            i += 1
+    variants, rest = parse_variants(argv)
     select = set(rest[0].split(",")) if rest else None
     rows = []
     for num, s, mask in iter_broad(select):

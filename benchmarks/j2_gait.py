@@ -22,7 +22,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from benchmarks.common import error_parts, parse_options  # noqa: E402
+from benchmarks.common import error_parts, parse_options, parse_variants  # noqa: E402
 from benchmarks.output import OUT_DIR  # noqa: E402
 from imugraph.calibration.ml import calibrate  # noqa: E402
 from imugraph.config import data_dir  # noqa: E402
@@ -38,15 +38,7 @@ def _angle_deg(q1: np.ndarray, q2: np.ndarray) -> float:
 
 
 def main(argv: list[str]) -> int:
-    variants, rest = {"base": []}, []
-    i = 0
-    while i < len(argv):
-        if argv[i] == "--variant":
-            variants[argv[i + 1]] = [x for x in argv[i + 1].split(";") if x]
-            i += 2
-        else:
-            rest.append(argv[i])
-            i += 1
+    variants, rest = parse_variants(argv)
     segs = rest[0].split(",") if rest else list(SEGMENTS)
     root = data_dir() / "gaittoolbox" / "rawimu"
     if not root.is_dir():

@@ -46,7 +46,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from benchmarks.common import broad_trials, load_broad_trial, print_table, trial_number  # noqa: E402
+from benchmarks.common import load_broad_trial, print_table, select_trials, trial_number  # noqa: E402
 from benchmarks.output import write_json  # noqa: E402
 from benchmarks.stream_vs_batch import (calibrations, rms_between, stream_offsets,  # noqa: E402
                                         stream_with_recorder, truth_err)
@@ -179,10 +179,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--only", action="store_true", help="skip the smooth_fixed ladder and groups (stream rows only)")
     ap.add_argument("--out", default="l3_decompose.json")
     a = ap.parse_args(argv)
-    paths = broad_trials()
-    if a.trials != "all":
-        want = {int(x) for x in a.trials.split(",")}
-        paths = [p for p in paths if trial_number(p) in want]
+    paths = select_trials(a.trials)
     rows = []
     for p in paths:
         rows.append(run_trial(p, a.cache, not a.no_stream, a.ref, a.ml, a.feed, a.final_theta, only=a.only))

@@ -21,7 +21,7 @@ def _f(x, f="{:+.3f}"):
 
 
 def main(argv=None) -> int:
-    from imugraph.diagnose.bench import add_arguments, broad_sessions, diagnose_options, simulated_session
+    from imugraph.diagnose.bench import add_arguments, diagnose_options, harness_sessions
     from imugraph.diagnose.effects import EFFECTS
     from imugraph.diagnose.harness import run_harness
     from imugraph.diagnose.run import diagnose
@@ -29,8 +29,7 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     add_arguments(p)
     a = p.parse_args(argv)
-    sessions = broad_sessions([t for t in a.trials.split(",") if t], a.duration, a.data_dir)
-    sessions += [simulated_session(a.seed * 100 + i, a.duration, a.rate) for i in range(a.sims)]
+    sessions = harness_sessions(a)
     o = diagnose_options(a)
     kept = []
 

@@ -25,7 +25,7 @@ def cost_per_row(fit_sig, r: np.ndarray) -> float:
 
 
 def main(argv=None) -> int:
-    from imugraph.diagnose.bench import add_arguments, broad_sessions, simulated_session
+    from imugraph.diagnose.bench import add_arguments, harness_sessions
     from imugraph.diagnose.effects import EFFECTS, joint
     from imugraph.diagnose.fit import base_options, fit_base, fit_simulation, simulate_from_fit
     from imugraph.diagnose.harness import run_harness
@@ -33,8 +33,7 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     add_arguments(p)
     a = p.parse_args(argv)
-    sessions = broad_sessions([t for t in a.trials.split(",") if t], a.duration, a.data_dir)
-    sessions += [simulated_session(a.seed * 100 + i, a.duration, a.rate) for i in range(a.sims)]
+    sessions = harness_sessions(a)
 
     def fn(session):
         real = fit_base(session, base_options(5.0))

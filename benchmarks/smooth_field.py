@@ -25,7 +25,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from benchmarks.common import broad_trials, load_broad_trial, print_table, trial_number  # noqa: E402
+from benchmarks.common import load_broad_trial, print_table, select_trials, trial_number  # noqa: E402
 from benchmarks.output import write_json  # noqa: E402
 from imugraph.calibration.options import Options  # noqa: E402
 
@@ -57,10 +57,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--keyframe-hz", type=float, default=5.0)
     ap.add_argument("--out", default="smooth_field.json")
     a = ap.parse_args(argv)
-    paths = broad_trials()
-    if a.trials != "all":
-        want = {int(x) for x in a.trials.split(",")}
-        paths = [p for p in paths if trial_number(p) in want]
+    paths = select_trials(a.trials)
     rows = []
     for p in paths:
         s = load_broad_trial(p)

@@ -177,6 +177,18 @@ def diagnose_function(args: argparse.Namespace):
     return lambda session: diagnose(session, o)
 
 
+def harness_sessions(args: argparse.Namespace) -> list:
+    """The harness's host sessions from `add_arguments`' options: the BROAD trials (--trials, --duration) then
+    --sims simulated ones seeded seed·100 + i (may be empty)."""
+    trials = [t.strip() for t in (getattr(args, "trials", "") or "").split(",") if t.strip()]
+    duration = getattr(args, "duration", None)
+    sessions = broad_sessions(trials, duration, getattr(args, "data_dir", None))
+    seed = int(getattr(args, "seed", 0) or 0)
+    sessions += [simulated_session(seed * 100 + i, duration or 60.0, float(getattr(args, "rate", 285.714)))
+                 for i in range(int(getattr(args, "sims", 0) or 0))]
+    return sessions
+
+
 def run_bench_diagnose(args: argparse.Namespace) -> int:
     """Run the harness with the options of `add_arguments`; returns 0 (errors raise ImugraphError)."""
     import json
@@ -187,12 +199,8 @@ def run_bench_diagnose(args: argparse.Namespace) -> int:
     from imugraph.errors import SessionError
     from imugraph.io.writers import atomic_write_text, json_ready
 
-    trials = [t.strip() for t in (getattr(args, "trials", "") or "").split(",") if t.strip()]
-    duration = getattr(args, "duration", None)
-    sessions = broad_sessions(trials, duration, getattr(args, "data_dir", None))
+    sessions = harness_sessions(args)
     seed = int(getattr(args, "seed", 0) or 0)
-    sessions += [simulated_session(seed * 100 + i, duration or 60.0, float(getattr(args, "rate", 285.714)))
-                 for i in range(int(getattr(args, "sims", 0) or 0))]
     if not sessions:
         raise SessionError("--trials/--sims", "sessions", "no BROAD trial found and --sims 0",
                            "at least one session")
