@@ -165,7 +165,8 @@ def stream_with_recorder(s, opts, bootstrap_s, boot, n_boot):
 def end_graph_calibration(start, sm, opts):
     """The calibration the stream's end graph holds its magnetometer factors at (θ a graph state): the streamed θ
     with calib_final_theta (stream_online), else the start calibration θ₀."""
-    if sm._calstate and opts.calib_final_theta and sm._theta_end is not None:
+    if sm._calstate and opts.calib_final_theta and opts.lag_s is None and opts.keep_history \
+            and sm._theta_end is not None:          # only full iSAM2 rebuilds an end graph (stream_online)
         from dataclasses import replace
 
         from imugraph.factors.theta import unpack_theta

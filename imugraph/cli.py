@@ -129,7 +129,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--bootstrap-s", type=_positive(float), default=30.0, metavar="S",
                    help="seconds calibrated in batch before streaming (default 30)")
     p.add_argument("--calibration", metavar="FILE", default=None,
-                   help="calibration.json to hold fixed instead of the bootstrap")
+                   help="start calibration.json instead of the bootstrap (re-estimated online unless --fixed-calibration; the smoothed output of a full iSAM2 run uses the streamed one)")
     p.add_argument("--fixed-calibration", action="store_true",
                    help="hold the start calibration fixed (no online re-estimation of D and o)")
     p.add_argument("--lag-solver", choices=("chain", "incremental", "batch"), default="chain",

@@ -1,5 +1,5 @@
 """S17-H (issue 5, docs/diagnose.md §S17-H): time_offset's folds with the all-sample fit's channel held (T11),
-the switch that enables it (default off), and the per-fold sizes the attribution records."""
+the switch that enables it (default on since session 17), and the per-fold sizes the attribution records."""
 
 from __future__ import annotations
 
@@ -111,3 +111,15 @@ def test_local_check_gives_the_window_to_the_delay_that_explains_it(fits, own_ga
     assert chk["global_gain"] > 0.0
     assert (loc.explained_by is not None) == explained
     assert attribute.verdict([delay, loc], g_null, opt) == ("time_offset" if explained else "vibration")
+
+
+def test_fit_fold_held_at_a_channel_without_a_candidate_returns_no_shift():
+    """Review R4: on a clean simulation every mag τ of a fold falls within ½ sample (the base model's remainder,
+    T5), which left no candidate and raised; held at mag, a fold now gets τ = 0 on mag (no gain: (A4'') fails)."""
+    s = simulated_session(11, 40.0, 100.0)
+    real = fit_base(s)
+    held = to.TimeOffsetCorrection("time_offset", {"channel": "mag", "tau_s": 0.006}, 2, channel="mag")
+    for fold in fold_masks(s.t, AttributionOptions()):
+        c = to.EFFECT.fit_fold(real, ~fold, None, held)
+        assert c.channel == "mag"
+        assert abs(c.params["tau_s"]) * s.rate <= 0.5 or c.params["tau_s"] == 0.0

@@ -188,7 +188,7 @@ class OnlineCalibrationMixin:
         except (RuntimeError, np.linalg.LinAlgError):       # counted as a failed update; no row
             self.stats.failed_updates += 1
             return
-        self._theta_end = theta              # before the majority swap: the θ the graph's factors are on
+        self._theta_end = theta              # before the majority swap: the normal state's streamed θ (calib_final_theta)
         white = calibration_of(self.cal, theta, cov).std
         if max(np.max(white["D"]), np.max(white["o"])) < self.opt.calib_lin_rel * self._online_scale:
             self._theta_lin = theta          # well determined: new factors linearised there (stream_calstate eq. 5)
@@ -275,7 +275,8 @@ class OnlineCalibrationMixin:
 
     def _final_graph(self) -> gtsam.NonlinearFactorGraph:
         """iSAM2's factors; with history, the magnetometer factors rebuilt exact: with the final calibration
-        (online refit), or at the pinned θ₀ on (pose_k, d_k, Δo_w) when θ is a graph state (calib_states)."""
+        (online refit), or on (pose_k, d_k, Δo_w) when θ is a graph state (calib_states): at the streamed θ (the normal
+        state's last estimate, calib_final_theta, the default since session 17) or at the pinned θ₀."""
         factors = self._solver.getFactorsUnsafe()
         # θ pinned (calib_states): the factors were linearised once when their interval closed (at the filtered
         # pose, d_k and θ_lin); re-issued exact at θ₀ (stream_calstate.pinned_mag_factor) — BROAD, 17 trials:

@@ -45,7 +45,8 @@ class StreamOptions:
         calib_states: with online_calibration under iSAM2 or the chain lag, θ = (D, o, dip) is a state of the
             graph in every magnetometer factor, pinned at the start calibration, and the streamed calibration is
             what the data say about it jointly with the orientations (`imugraph.graphs.stream_calstate` eq. 3–4,
-            weak prior calib_prior_rel × scale; the orientations keep the start calibration); the refit options
+            weak prior calib_prior_rel × scale; the filtered orientations keep the start calibration, the end-of-stream
+            smoothing uses the streamed one with calib_final_theta); the refit options
             above then do not apply. True (default since session 14, with disturb_detect and disturb_offsets: all 17
             BROAD trials within 3 reported std of the batch calibration, filtered 1.27° vs 1.45°; README, issue 3).
             False: the closed-form refit on fixed orientations (stream_calib), whose swapped-in refits do reach

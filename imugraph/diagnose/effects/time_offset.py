@@ -295,6 +295,11 @@ class TimeOffset(Effect):
                 cost = _relative_cost(fit, res, train, channels)
                 if best is None or cost < best[0]:
                     best = (cost, corr, res)
+        if best is None:    # a held channel (fit_fold) whose every τ is the base model's remainder (T5): τ = 0, a
+            #                 fold that does not support the named model scores ≈ 0 and fails (A4'') (review R4)
+            c = candidates[0]
+            corr = TimeOffsetCorrection(self.name, {"channel": c, "tau_s": 0.0}, 2, channel=c)
+            best = (None, corr, corr.raw_residuals(fit))
         _, corr, res = best
         if corr.channel == "gyr":
             corr.deltas["d_omega"] = np.nan_to_num(shift_signal(s.t, s.gyr, -corr.params["tau_s"]) - s.gyr)
