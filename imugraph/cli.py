@@ -144,6 +144,9 @@ def build_parser() -> argparse.ArgumentParser:
                    "(needs --calib-states --disturb)")
     p.add_argument("--weak-prior", action=argparse.BooleanOptionalAction, default=None,
                    help="when D, o are not identifiable, hold them with the batch's weak prior")
+    p.add_argument("--calib-json-end-graph", action=argparse.BooleanOptionalAction, default=None,
+                   help="calibration.json holds what the end-of-stream graph used (streamed θ, each window's final "
+                   "offset as a disturbance), so `smooth --calibration` reproduces orientation.npz (full iSAM2 only)")
     _common(p, default_out, data_dir=True)
     _keyframes(p, default=10.0)        # StreamOptions.keyframe_hz: what the stream benchmarks measure
 

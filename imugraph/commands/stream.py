@@ -9,10 +9,12 @@ found and the keyframes / field samples they flagged (`disturbances`, `disturbed
 
 Writes (DESIGN.md): orientation.npz (smoothed, at the end), orientation_filtered.npz (the estimate available
 when each sample arrived), calibration.json (the calibration at the end; with StreamOptions.calib_states the streamed D, o,
-dip estimated with the orientations, imugraph.graphs.stream_calstate), calibration_history.json (the start
-calibration and one row per online refit: t, D, o, dip_deg, std, ...), timing.json (updates, seconds,
-p50_ms, p99_ms, plus max_ms, realtime_factor, the CPU-time figures, the between-keyframe steps'
-p50/p99/max, bootstrap_seconds, bootstrap_samples and the arrival counters; docs/stream.md).
+dip estimated with the orientations, imugraph.graphs.stream_calstate; with the end-of-stream graph of full iSAM2 what
+it used: the normal state's streamed θ and each detector window's final Δo_w as a modelled `disturbances` entry, so
+`smooth --calibration` reproduces orientation.npz, with StreamOptions.calib_json_end_graph; the majority swap's
+hard iron is the last history row's), calibration_history.json (the start calibration and one row per online
+refit: t, D, o, dip_deg, std, ...), timing.json (updates, seconds, p50_ms, p99_ms, plus max_ms, realtime_factor,
+the CPU-time figures, the between-keyframe steps' p50/p99/max, bootstrap_seconds, bootstrap_samples and the arrival counters; docs/stream.md).
 """
 
 from __future__ import annotations
@@ -51,7 +53,8 @@ def run_stream(args: argparse.Namespace) -> int:
                             calib_states=_flag(args, "calib_states", StreamOptions.calib_states),
                             disturb_detect=_flag(args, "disturb", StreamOptions.disturb_detect),
                             calib_weak_prior=_flag(args, "weak_prior", StreamOptions.calib_weak_prior),
-                            disturb_offsets=_flag(args, "disturb_offsets", StreamOptions.disturb_offsets))
+                            disturb_offsets=_flag(args, "disturb_offsets", StreamOptions.disturb_offsets),
+                            calib_json_end_graph=_flag(args, "calib_json_end_graph", StreamOptions.calib_json_end_graph))
     with progress.library_output():
         result = stream_session(session, cal, options, bootstrap_s=args.bootstrap_s, say=progress.say)
     write_orientation_npz(out / "orientation.npz", result.t, result.smoothed)

@@ -98,6 +98,7 @@ class OnlineCalibrationMixin:
         self._mag_okey: dict = {}            # keyframe → its window's offset key Δo_w (disturb_offsets)
         self._prior_mean = None              # of Λ_w: θ₀ (None), or the batch's weak prior centre (_init_disturb)
         self._theta_end = None               # latest streamed θ of the graph's normal state (eq. 4; calib_final_theta)
+        self._end_cal = None                 # its calibration (no majority swap): calibration.json after the end graph
 
     # ------------------------------------------------------------------ disturbances, the weak prior
     def _init_disturb(self, cal: Calibration, weak_scale: float | None, learn_s: float = 0.0) -> None:
@@ -189,6 +190,7 @@ class OnlineCalibrationMixin:
             self.stats.failed_updates += 1
             return
         self._theta_end = theta              # before the majority swap: the normal state's streamed θ (calib_final_theta)
+        cov_end = cov
         white = calibration_of(self.cal, theta, cov).std
         if max(np.max(white["D"]), np.max(white["o"])) < self.opt.calib_lin_rel * self._online_scale:
             self._theta_lin = theta          # well determined: new factors linearised there (stream_calstate eq. 5)
@@ -201,7 +203,10 @@ class OnlineCalibrationMixin:
             f = np.sqrt(np.maximum(V, 1.0))
             s = np.r_[np.repeat(f, 3), f, f.max()]
             cov = cov * s[:, None] * s[None, :]
+            cov_end = cov_end * s[:, None] * s[None, :]
         cal = self._streamed_cal = calibration_of(self.cal, theta, cov)
+        # the end graph's calibration (normal state, no swap; `_end_calibration`): the streamed one without a majority
+        self._end_cal = cal if major is None else calibration_of(self.cal, self._theta_end, cov_end)
         self._cal_hist.append({"t": float(elapsed), "D": cal.D.tolist(), "o": cal.o.tolist(), "dip_deg": cal.dip_deg,
                                "std": {"D": cal.std["D"].tolist(), "o": cal.std["o"].tolist(), "dip_deg": cal.std["dip_deg"]},
                                "whiteness": None if V is None else V.tolist(),
@@ -272,6 +277,33 @@ class OnlineCalibrationMixin:
         s0 = self._online.cal0.std
         return not s0 or not self.opt.calib_beat_start or (np.all(np.asarray(std["D"]) <= np.asarray(s0.get("D", np.inf)))
                           and np.all(np.asarray(std["o"]) <= np.asarray(s0.get("o", np.inf))))
+
+    def _end_calibration(self) -> None:
+        """After the end-of-stream smoothing: `self.cal` (calibration.json) becomes what the end graph used — the normal
+        state's streamed θ (calib_final_theta) as D, o, dip and each detector window's final Δo_w as a modelled
+        `disturbances` entry (the batch's format, calibration.result), one per run of consecutive keyframes whose
+        factor carried it: y_j − Δo_w for j in the run (stream_offsets eq. 1; Calibration.corrected), so that
+        `smooth --calibration` sees the field the end graph saw (options.calib_json_end_graph). Without windows and a
+        majority swap: unchanged.
+        The majority swap's hard iron stays in calibration_history.json's last row (normal_window)."""
+        opt = self.opt
+        if not (self._calstate and opt.calib_json_end_graph and opt.calib_final_theta and self._theta_end is not None
+                and self._final is not None and self._mag_index and self._end_cal is not None):
+            return
+        rows = []
+        for k in sorted(self._mag_okey):            # runs of consecutive keyframes with the same Δo_w key
+            okey = self._mag_okey[k]
+            if rows and rows[-1][0] == okey and rows[-1][2] == k - 1:
+                rows[-1][2] = k
+            else:
+                rows.append([okey, k, k])
+        added = []
+        for okey, k0, k1 in rows:
+            t = np.concatenate(self._hist_t[k0:k1 + 1])
+            added.append({"t_start": float(t.min()), "t_end": float(t.max()),
+                          "offset": np.asarray(self._final.atVector(okey), float).tolist(), "modelled": True,
+                          "left_out": [], "window": int(gtsam.Symbol(okey).index()), "source": "stream"})
+        self.cal = replace(self._end_cal, disturbances=list(self.cal.disturbances) + added)
 
     def _final_graph(self) -> gtsam.NonlinearFactorGraph:
         """iSAM2's factors; with history, the magnetometer factors rebuilt exact: with the final calibration

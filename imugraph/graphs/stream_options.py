@@ -165,6 +165,11 @@ class StreamOptions:
     # calibration (simulation with θ₀ 3 % off: smoothed 1.72° → 0.17°; BROAD 17 vs the batch with d_k 0.447 → 0.348°,
     # vs truth 0.777° both).
     calib_final_theta: bool = True
+    # with calib_final_theta's end graph: calibration.json (StreamSmoother.cal after finish) holds what it used — the
+    # normal state's streamed θ and each detector window's final Δo_w as a modelled `disturbances` entry — instead of
+    # the majority swap's o without windows, so `smooth --calibration` reproduces the smoothed output (R4 scenario:
+    # 6.71° → 0.006°; tests/test_stream_calibration_json.py, docs/stream.md "Session 17, helper M1"). False: before.
+    calib_json_end_graph: bool = False
     field_sigma: float | tuple | None = (0.015, 0.003, 0.015)
     field_tau: float = 1.0
     lag_hold_s: float = 0.5

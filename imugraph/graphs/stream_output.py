@@ -38,6 +38,8 @@ class StreamOutputMixin:
             # (iSAM2 relinearises only past a threshold and can stop short of the batch optimum), with every
             # magnetometer factor re-issued with the final calibration when it was re-estimated online
             self._final = self._final_lm(self._final_graph(), self._solver.calculateEstimate())
+            if self._calstate:           # calibration.json: what the end graph used (stream_online._end_calibration)
+                self._end_calibration()
         self._finished = True
 
     def _forget_smoothed(self, keep_from: int) -> None:
