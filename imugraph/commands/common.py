@@ -104,7 +104,7 @@ class Scores:
 
     Attributes:
         norm_before: RMS of |b_mag|/median|b_mag| − 1 on the raw field (dimensionless).
-        norm_after: RMS of |D⁻¹(b_mag − o)| − 1 (dimensionless).
+        norm_after: RMS of |D⁻¹(b_mag − o)| − 1 (dimensionless; disturbance windows applied, field_norm_scores).
         orientation_rms_deg: RMS orientation error against the session's truth quat (best heading
             offset and time shift removed), degrees; None without truth.
     """
@@ -119,7 +119,10 @@ def field_norm_scores(session: Session, cal: Calibration) -> tuple[float, float]
 
     Args:
         session: the recording (mag (N, 3), NaN rows where no sample).
-        cal: Calibration with apply(b_mag) = D⁻¹(b_mag − o).
+        cal: Calibration with apply(b_mag) = D⁻¹(b_mag − o); with disturbance windows the calibrated field is
+            that of the model (`Calibration.corrected`: a modelled window's offset removed, an unexplained
+            window's samples not scored) — a stream's calibration.json whose windows hold the majority of the
+            recording (StreamOptions.calib_json_end_graph) scored 98 % without them (docs/stream.md, helper M1).
 
     Returns:
         (before, after), dimensionless RMS of |field| − 1.
@@ -128,7 +131,8 @@ def field_norm_scores(session: Session, cal: Calibration) -> tuple[float, float]
 
     valid = session.mag_valid
     raw_scale = float(np.median(np.linalg.norm(session.mag[valid], axis=1)))
-    return (field_norm_error(session.mag / raw_scale, valid), field_norm_error(cal.apply(session.mag), valid))
+    y = cal.corrected(session.t, session.mag) if cal.disturbances else session.mag
+    return (field_norm_error(session.mag / raw_scale, valid), field_norm_error(cal.apply(y), valid))
 
 
 def orientation_score(session: Session, quat: np.ndarray) -> Optional[float]:
