@@ -123,3 +123,57 @@ def test_fit_fold_held_at_a_channel_without_a_candidate_returns_no_shift():
         c = to.EFFECT.fit_fold(real, ~fold, None, held)
         assert c.channel == "mag"
         assert abs(c.params["tau_s"]) * s.rate <= 0.5 or c.params["tau_s"] == 0.0
+
+
+def _local_on(t0: float, t1: float, gain: float = 0.0):
+    """As `_local`, on the window t0–t1 s."""
+    loc = _local(gain)
+    loc.params = {"windows": [{"t_start": t0, "t_end": t1}]}
+    return loc
+
+
+@pytest.mark.parametrize("on", [True, False])
+def test_local_check_scores_the_global_effect_with_its_named_channel(fits, on, monkeypatch):
+    """S17-N1 (a): under T11 (V') fits the global effect in each fold as its own evaluation does — the
+    channel of its all-sample fit held (`fit_fold`); a free channel (all candidates) only with T11 off.
+    The delay's channel is given as mag (not the injected acc) so that holding it is visible in the calls."""
+    from imugraph.diagnose import local_check
+
+    real, sim, null = fits
+    opt = AttributionOptions()
+    folds = fold_masks(real.session.t, opt)
+    g_null = null_fold_gap(null, sim, real.sigma, folds, attribute.GapOptions())
+    delay = evaluate_effect(to.EFFECT, real, sim, g_null, folds, opt, null=null)
+    assert delay.channel == "acc"
+    calls = []
+    orig = to.TimeOffset.fit
+
+    def spy(self, fit, train, window=None, candidates=("mag", "acc", "gyr")):
+        calls.append(tuple(candidates))
+        return orig(self, fit, train, window, candidates)
+
+    monkeypatch.setattr(to.TimeOffset, "fit", spy)
+    monkeypatch.setattr(attribute, "FOLD_FIXED_STRUCTURE", on)
+    delay.channel = "mag"
+    loc = _local(0.0)
+    loc.channel = "mag"
+    chk = local_check.global_gain_on_support(real, folds, loc, delay, to.EFFECT)
+    assert chk is not None and calls
+    assert all(c == (("mag",) if on else ("mag", "acc", "gyr")) for c in calls), calls
+
+
+@pytest.mark.parametrize("t0, t1", [(0.0, 40.0), (5.0, 38.0), (10.0, 11.0)])
+def test_local_check_needs_the_support_that_a3_scores_apart(fits, t0, t1):
+    """S17-N1 (b): (V') compares the two gains only on a support that (A3) scores apart — at least
+    MIN_SUPPORT_S (4 s) with a complement of at least max(4 s, 0.2·n) (8 s of this 40 s recording):
+    (windows widened by SUPPORT_PAD_S = 1 s): the whole recording, a 5 s complement and a 3 s support are
+    not compared (None); a 12 s support with a 28 s complement is."""
+    from imugraph.diagnose import local_check
+
+    real, sim, null = fits
+    opt = AttributionOptions()
+    folds = fold_masks(real.session.t, opt)
+    g_null = null_fold_gap(null, sim, real.sigma, folds, attribute.GapOptions())
+    delay = evaluate_effect(to.EFFECT, real, sim, g_null, folds, opt, null=null)
+    assert local_check.global_gain_on_support(real, folds, _local_on(10.0, 20.0), delay, to.EFFECT) is not None
+    assert local_check.global_gain_on_support(real, folds, _local_on(t0, t1), delay, to.EFFECT) is None
