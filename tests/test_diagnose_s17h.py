@@ -27,6 +27,20 @@ def fits():
     return real, sim, null
 
 
+@pytest.fixture
+def fit_calls(monkeypatch):
+    """The candidate channels of every TimeOffset.fit call (a spy on the method), in call order."""
+    calls = []
+    orig = to.TimeOffset.fit
+
+    def spy(self, fit, train, window=None, candidates=("mag", "acc", "gyr")):
+        calls.append(tuple(candidates))
+        return orig(self, fit, train, window, candidates)
+
+    monkeypatch.setattr(to.TimeOffset, "fit", spy)
+    return calls
+
+
 def test_switch_is_on_by_default_and_restored():
     assert DiagnoseOptions().fold_fixed_structure is None
     assert attribute.FOLD_FIXED_STRUCTURE is True          # the default since session 17
@@ -50,21 +64,14 @@ def test_fit_fold_holds_the_channel_it_is_given(fits):
     assert 1.0 / real.session.rate < c.params["tau_s"] <= TAU
 
 
-def test_folds_refit_the_named_channel_only(fits, monkeypatch):
+def test_folds_refit_the_named_channel_only(fits, fit_calls, monkeypatch):
     """With the switch on, every fold's fit is asked for the all-sample fit's channel only (recorded on the
     fit calls); with it off, every fold searches all channels. The fold sizes are recorded either way."""
     real, sim, null = fits
     opt = AttributionOptions()
     folds = fold_masks(real.session.t, opt)
     g_null = null_fold_gap(null, sim, real.sigma, folds, attribute.GapOptions())
-    calls = []
-    orig = to.TimeOffset.fit
-
-    def spy(self, fit, train, window=None, candidates=("mag", "acc", "gyr")):
-        calls.append(tuple(candidates))
-        return orig(self, fit, train, window, candidates)
-
-    monkeypatch.setattr(to.TimeOffset, "fit", spy)
+    calls = fit_calls
     for on in (False, True):
         calls.clear()
         monkeypatch.setattr(attribute, "FOLD_FIXED_STRUCTURE", on)
@@ -133,7 +140,7 @@ def _local_on(t0: float, t1: float, gain: float = 0.0):
 
 
 @pytest.mark.parametrize("on", [True, False])
-def test_local_check_scores_the_global_effect_with_its_named_channel(fits, on, monkeypatch):
+def test_local_check_scores_the_global_effect_with_its_named_channel(fits, on, fit_calls, monkeypatch):
     """S17-N1 (a): under T11 (V') fits the global effect in each fold as its own evaluation does — the
     channel of its all-sample fit held (`fit_fold`); a free channel (all candidates) only with T11 off.
     The delay's channel is given as mag (not the injected acc) so that holding it is visible in the calls."""
@@ -145,14 +152,8 @@ def test_local_check_scores_the_global_effect_with_its_named_channel(fits, on, m
     g_null = null_fold_gap(null, sim, real.sigma, folds, attribute.GapOptions())
     delay = evaluate_effect(to.EFFECT, real, sim, g_null, folds, opt, null=null)
     assert delay.channel == "acc"
-    calls = []
-    orig = to.TimeOffset.fit
-
-    def spy(self, fit, train, window=None, candidates=("mag", "acc", "gyr")):
-        calls.append(tuple(candidates))
-        return orig(self, fit, train, window, candidates)
-
-    monkeypatch.setattr(to.TimeOffset, "fit", spy)
+    calls = fit_calls
+    calls.clear()                        # only local_check's fits from here on
     monkeypatch.setattr(attribute, "FOLD_FIXED_STRUCTURE", on)
     delay.channel = "mag"
     loc = _local(0.0)

@@ -16,7 +16,7 @@ from imugraph.graphs.cpp_smoother import smooth_fixed
 from imugraph.graphs.stream import StreamOptions
 from imugraph.graphs.stream_run import stream_session
 from imugraph.io.writers import json_ready
-from imugraph.sim.scenario import distorted_session
+from imugraph.sim.scenario import distorted_session, magnet_comes_off_session
 
 
 def _json_roundtrip(cal: Calibration) -> Calibration:
@@ -34,14 +34,7 @@ def _smooth_cli(session, cal: Calibration, keyframe_hz: float) -> np.ndarray:
 def magnet_off_at_14s():
     """R4's scenario (tests/test_stream_offsets.py, test_stream_same_model.py): the start calibration holds a magnet
     attached for the first 14 s of 42; the detector's window (14–42 s) is the majority of the recording."""
-    session, truth = distorted_session(3, 42.0, 50.0)
-    cal_true = truth.to_calibration()
-    scale = float(np.cbrt(abs(np.linalg.det(cal_true.D))))
-    delta = scale * np.array([0.3, -0.25, 0.35])
-    mag = session.mag.copy()
-    mag[session.t < session.t[0] + 14.0] += delta
-    s = session.with_mag(mag)
-    start = replace(cal_true, o=cal_true.o + delta)
+    s, start, _ = magnet_comes_off_session()
     opts = StreamOptions(lag_s=None, calib_json_end_graph=True)
     r = stream_session(s, None, opts, 10.0, bootstrap=(start, 0))
     r_off = stream_session(s, None, replace(opts, calib_json_end_graph=False), 10.0, bootstrap=(start, 0))

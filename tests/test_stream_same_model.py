@@ -9,7 +9,7 @@ import pytest
 from benchmarks.stream_vs_batch import end_graph_calibration, rms_between, stream_offsets, stream_with_recorder
 from imugraph.graphs.cpp_smoother import smooth_fixed
 from imugraph.graphs.stream import StreamOptions
-from imugraph.sim.scenario import distorted_session
+from imugraph.sim.scenario import distorted_session, magnet_comes_off_session
 
 RATE = 100.0
 
@@ -45,16 +45,7 @@ def test_same_model_with_disturbance_windows():
     (tests/test_stream_offsets.py's scenario, full iSAM2): the detector's windows get their own offset Δo_w, the
     end graph re-issues those keyframes' factors on (pose_k, d_k, Δo_w) (stream_calstate.pinned_mag_factor's offset
     branch), and smooth_fixed given the stream's final Δo_w (mag_offsets) agrees to < 0.01°."""
-    from dataclasses import replace
-
-    session, truth = distorted_session(3, 42.0, 50.0)
-    cal_true = truth.to_calibration()
-    scale = float(np.cbrt(abs(np.linalg.det(cal_true.D))))
-    delta = scale * np.array([0.3, -0.25, 0.35])
-    mag = session.mag.copy()
-    mag[session.t < session.t[0] + 14.0] += delta
-    s = session.with_mag(mag)
-    start = replace(cal_true, o=cal_true.o + delta)
+    s, start, _ = magnet_comes_off_session()
     opts = StreamOptions(lag_s=None)
     r, sm = stream_with_recorder(s, opts, 10.0, start, 0)
     assert r.counts["failed_updates"] == 0

@@ -92,3 +92,23 @@ def distorted_session(
     truth = Truth(D=params.D_unit, o=params.mag_o.copy(), dip_rad=dip_rad, gyro_bias=gyro_bias,
                   noise=noise, nRb=nRb, field_norm=float(field_norm))
     return session, truth
+
+
+def magnet_comes_off_session(seed: int = 3, duration_s: float = 42.0, rate_hz: float = 50.0,
+                             off_at_s: float = 14.0) -> tuple[Session, Calibration, Calibration]:
+    """A distorted session whose sensor carries an attached magnet (an extra hard iron Δ of 0.3–0.35 of the field
+    scale) until `off_at_s`, as BROAD 32's first minute does; the start calibration describes the magnet
+    (o₀ = o + Δ, as a bootstrap over that stretch would). The stream's disturbance-window tests use it.
+
+    Returns:
+        (session, start calibration (o + Δ), true calibration (o)).
+    """
+    from dataclasses import replace
+
+    session, truth = distorted_session(seed, duration_s, rate_hz)
+    cal_true = truth.to_calibration()
+    scale = float(np.cbrt(abs(np.linalg.det(cal_true.D))))
+    delta = scale * np.array([0.3, -0.25, 0.35])
+    mag = session.mag.copy()
+    mag[session.t < session.t[0] + off_at_s] += delta
+    return session.with_mag(mag), replace(cal_true, o=cal_true.o + delta), cal_true
