@@ -325,8 +325,10 @@ def calibrate(session: Session, options: Options | None = None, initial=None,
         **_velocity_process(opt, vel_state))
     residuals = per_sample_residuals(prob, nRk, theta, session)
     if opt.heading_only_orientation and prob.block.mag is not None:
-        nRk = _heading_stage(session, opt, pre, values, noise, g_used=vel_state["g"] or g,
-                             theta=theta, bias=bias_segments, seg=seg, mag_state=mag_state, vel=vel_state)
+        from imugraph.graphs.heading_block import heading_only_rotations
+        nRk = heading_only_rotations(session, opt, pre, values, noise, g_used=vel_state["g"] or g, theta=theta,
+                                     bias=bias_segments, seg=seg, mag_state=mag_state,
+                                     velocity=_velocity_model(opt, vel_state))
     quat = sample_orientations(nRk, pre)
     return Estimate(cal, session.t, quat, residuals,
                     {"history": history, "keyframes": len(kf), "stride": stride, "g": vel_state["g"] or g,
@@ -357,28 +359,6 @@ def _velocity_model(opt: Options, vel: dict) -> VelocityModel | None:
     return VelocityModel(vel["sigma"], vel["tau"], vel.get("kappa_a", opt.acc_rate_error), opt.acc_kernel, vel["s"],
                          opt.acc_bias, rest=vel["rest"], ar2=vel.get("ar2"),
                          position=None if vel.get("pos_sigma") is None else (vel["pos_sigma"], opt.position_tau))
-
-
-def _heading_stage(session, opt, pre, values, noise, g_used, theta, bias, seg, mag_state, vel):
-    """Orientations with θ known and the field used as heading only, from the joint solution."""
-    from imugraph.graphs.heading_block import HeadingBlock
-
-    K = len(pre.kf_samples)
-    nRk = keyframe_rotations(values, K)
-    velocity = _velocity_model(opt, vel)
-    no_mag = np.full_like(session.mag, np.nan)
-    stage = build_problem(pre, session.acc, no_mag, noise, g_used, nRk, bias, theta, estimate_theta=False,
-                          bias_prior_sigma=opt.bias_prior_sigma, acc_kernel=opt.acc_kernel,
-                          bias_segment=seg, bias_rw_sigma=opt.bias_rw, velocity=velocity, dt=session.dt)
-    D, o, _ = unpack_theta(theta)
-    y = mag_state["y"]
-    ok = np.all(np.isfinite(y), axis=1)
-    scale = float(np.cbrt(abs(np.linalg.det(D))))
-    heading = HeadingBlock(pre.sample_kf[ok], pre.kRb[ok], np.linalg.solve(D, (y[ok] - o).T).T,
-                           float(np.sqrt(np.mean(np.asarray(noise.mag) ** 2))) / scale, K, opt.mag_kernel,
-                           None if mag_state["w"] is None else mag_state["w"][ok])
-    out, _ = optimize(stage.graph, stage.blocks + [heading], stage.values, stage.ordering, opt.solver)
-    return keyframe_rotations(out, K)
 
 
 def _bias_segments(session: Session, kf: np.ndarray, segment_s: float) -> np.ndarray:

@@ -84,3 +84,28 @@ class HeadingBlock:
             gfg.push_back(gtsam.HessianFactor(keys.rot(int(k)), info[k] * np.outer(a[k], a[k]),
                                               -grad[k] * a[k], float(f[k])))
         return gfg
+
+
+def heading_only_rotations(session, opt, pre, values, noise, g_used, theta, bias, seg, mag_state, velocity):
+    """Keyframe orientations with θ known and the field used as heading only (HeadingBlock), from the joint
+    solution `values` (Options.heading_only_orientation; calibration.ml's last stage). velocity: the ML loop's
+    VelocityModel (or None)."""
+    from imugraph.factors.theta import unpack_theta
+    from imugraph.graphs.single_imu import build_problem, keyframe_rotations
+    from imugraph.graphs.solver import optimize
+
+    K = len(pre.kf_samples)
+    nRk = keyframe_rotations(values, K)
+    no_mag = np.full_like(session.mag, np.nan)
+    stage = build_problem(pre, session.acc, no_mag, noise, g_used, nRk, bias, theta, estimate_theta=False,
+                          bias_prior_sigma=opt.bias_prior_sigma, acc_kernel=opt.acc_kernel,
+                          bias_segment=seg, bias_rw_sigma=opt.bias_rw, velocity=velocity, dt=session.dt)
+    D, o, _ = unpack_theta(theta)
+    y = mag_state["y"]
+    ok = np.all(np.isfinite(y), axis=1)
+    scale = float(np.cbrt(abs(np.linalg.det(D))))
+    heading = HeadingBlock(pre.sample_kf[ok], pre.kRb[ok], np.linalg.solve(D, (y[ok] - o).T).T,
+                           float(np.sqrt(np.mean(np.asarray(noise.mag) ** 2))) / scale, K, opt.mag_kernel,
+                           None if mag_state["w"] is None else mag_state["w"][ok])
+    out, _ = optimize(stage.graph, stage.blocks + [heading], stage.values, stage.ordering, opt.solver)
+    return keyframe_rotations(out, K)
