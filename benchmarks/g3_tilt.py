@@ -26,15 +26,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks.stream_arrival import BOOTSTRAP_S, arrivals, score, trial_paths  # noqa: E402
 from benchmarks.common import load_broad_trial  # noqa: E402
+from imugraph.geometry import quat_to_rotmat  # noqa: E402
 from imugraph.graphs.stream import StreamOptions  # noqa: E402
 from imugraph.graphs.stream_run import bootstrap_calibration, session_smoother  # noqa: E402
-
-
-def _rot(q: np.ndarray) -> np.ndarray:
-    w, x, y, z = q / np.linalg.norm(q)
-    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-                     [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-                     [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
 
 
 def tilt_deg(nRb_est: np.ndarray, nRb_true: np.ndarray) -> float:
@@ -48,7 +42,7 @@ def realign_check(sm, s, row) -> str:
     by α* about n̂ (stream_realign eq. R2) — the test is right when the second is the smaller."""
     k, alpha, sig, applied, R_pred = row
     t = sm._kf_t[k]
-    R_true = _rot(s.quat[int(np.searchsorted(s.t, t))])
+    R_true = quat_to_rotmat(s.quat[int(np.searchsorted(s.t, t))])
     n = np.asarray(sm.cal.n_mag, float)
     R_alpha = gtsam.Rot3.Expmap(np.radians(alpha) * n / np.linalg.norm(n)).matrix() @ R_pred
     return (f"t {t - s.t[0]:.1f} s α* {alpha:.1f}° σ_α {sig:.1f}° applied {int(applied)} tilt predicted "
@@ -76,8 +70,8 @@ def run(path: Path, seed: int, drop_s: float, overrides: dict, trace: tuple | No
             t_k = sm._kf_t[-1]
             if trace[0] <= t_k - s.t[0] <= trace[1]:
                 j = int(np.searchsorted(s.t, t_k))
-                R_est = _rot(np.array(sm._q_nk))
-                R_true = _rot(s.quat[j])
+                R_est = quat_to_rotmat(np.array(sm._q_nk))
+                R_true = quat_to_rotmat(s.quat[j])
                 print(f"k {sm._k:5d} t {t_k - s.t[0]:8.2f} tilt {tilt_deg(R_est, R_true):7.2f}° "
                       f"|v| {np.linalg.norm(sm._v):6.2f} m/s  b_gyr {np.round(np.asarray(sm._b_gyr_est), 4)} rad/s", flush=True)
     sm.finish()

@@ -30,6 +30,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from benchmarks.common import load_broad_trial, trial_number  # noqa: E402
 from benchmarks.stream_arrival import BOOTSTRAP_S, arrivals, score, stream, trial_paths  # noqa: E402
 from imugraph.evaluate import orientation_error  # noqa: E402
+from imugraph.geometry import quat_conj, quat_mul  # noqa: E402
 from imugraph.graphs.stream import StreamOptions  # noqa: E402
 from imugraph.graphs.stream_run import bootstrap_calibration  # noqa: E402
 
@@ -42,13 +43,6 @@ def parse_variant(text: str) -> dict:
     return {kv.split("=", 1)[0].strip(): ast.literal_eval(kv.split("=", 1)[1]) for kv in text.split(";") if kv.strip()}
 
 
-def _qmul(p: np.ndarray, q: np.ndarray) -> np.ndarray:
-    pw, px, py, pz = p.T
-    qw, qx, qy, qz = q.T
-    return np.stack([pw * qw - px * qx - py * qy - pz * qz, pw * qx + px * qw + py * qz - pz * qy,
-                     pw * qy - px * qz + py * qw + pz * qx, pw * qz + px * qy - py * qx + pz * qw], axis=1)
-
-
 def per_sample_error(q: np.ndarray, s) -> np.ndarray:
     """(n,) degrees: angle of Rz(ψ)·nRb_est against opt_quat, ψ the run's best heading offset over `movement`
     (rows the run did not deliver: their nearest earlier delivered row, as stream_arrival.score)."""
@@ -59,8 +53,7 @@ def per_sample_error(q: np.ndarray, s) -> np.ndarray:
     psi = np.radians(orientation_error(qf, s.quat, s.movement & ok, s.rate).heading_offset_deg)
     rz = np.tile([np.cos(psi / 2), 0.0, 0.0, np.sin(psi / 2)], (len(qf), 1))
     ref = s.quat / np.linalg.norm(s.quat, axis=1, keepdims=True)
-    ref_conj = ref * np.array([1.0, -1.0, -1.0, -1.0])
-    e = _qmul(ref_conj, _qmul(rz, qf))
+    e = quat_mul(quat_conj(ref), quat_mul(rz, qf))
     return np.degrees(2.0 * np.arctan2(np.linalg.norm(e[:, 1:], axis=1), np.abs(e[:, 0])))
 
 

@@ -38,7 +38,8 @@ constant heading offset between the two; also the errors against the optical tru
 TRIALS: comma-separated BROAD trial numbers or "all" (default). --config: "default" = StreamOptions() as it
 is in the code, "states" = StreamOptions(calib_states=True, disturb_detect=True), "states_nofield" = the
 latter with field_sigma=None (the stream graph is then smooth_fixed's: attributes a gap to model or solver),
-"fixed_nofield" = online_calibration=False, field_sigma=None (only the solver differs). "final_theta" = calib_final_theta=True (the end graph at the streamed θ; session 17, helper L). (Session 15's "default_exact",
+"fixed_nofield" = online_calibration=False, field_sigma=None (only the solver differs). "start_theta" = calib_final_theta=False (the end graph at the start θ₀, the default before session 17; helper L's runs
+called the other side "final_theta", now the default). (Session 15's "default_exact",
 the end solve on exact magnetometer factors, is the stream's own behaviour since: stream_calstate.pinned_mag_factor.)
 bench_out/NAME (default
 stream_vs_batch.json) is rewritten with every row so far after each trial: an interrupted run keeps what it did.
@@ -66,7 +67,7 @@ CONFIGS = {"default": {}, "states": {"calib_states": True, "disturb_detect": Tru
            # the solver alone: start calibration held fixed, no field perturbation (README's earlier 0.06° on 01)
            "fixed_nofield": {"online_calibration": False, "field_sigma": None},
            # session 17 (helper L): the end graph's magnetometer factors at the streamed θ instead of the pin θ₀
-           "final_theta": {"calib_final_theta": True}}
+           "start_theta": {"calib_final_theta": False}}
 
 
 def rms_between(q_a: np.ndarray, q_b: np.ndarray, mask: np.ndarray | None, rate: float,

@@ -186,8 +186,7 @@ class StreamSmoother(OnlineCalibrationMixin, KeyframeStartMixin, ArrivalMixin, S
             self._t0 = t
             self._kf_t.append(t)
         elif len(buf) >= self.stride or t - buf[-1][0] > self._gap_step:
-            self._row_next = row              # its rates end a gap's bridge (gap_bridge, stream_bridge)
-            self._close(t)                    # this sample is keyframe k+1 (after a gap too: keyframe_layout)
+            self._close(row)                    # this sample is keyframe k+1 (after a gap too: keyframe_layout)
             self._t_last = t
             self._buf = [row]
             self._q_open = Q_ID
@@ -253,9 +252,15 @@ class StreamSmoother(OnlineCalibrationMixin, KeyframeStartMixin, ArrivalMixin, S
         return q if q[0] >= 0 else (-q[0], -q[1], -q[2], -q[3])
 
     # ------------------------------------------------------------------ keyframes
-    def _close(self, t_next: float) -> None:
-        """Interval k (the buffer) → keyframe k+1 (at t_next): its factors, then one solver update."""
+    def _isam(self):
+        """The iSAM2 instance holding the graph (the chain lag's inner one, or the solver itself)."""
+        return self._solver.isam if self._chain else self._solver
+
+    def _close(self, row_next) -> None:
+        """Interval k (the buffer) → keyframe k+1 (its first row row_next, at t_next): its factors, then one solver
+        update (row_next's rates end a gap's bridge: gap_bridge, stream_bridge)."""
         start, start_cpu = time.perf_counter(), time.thread_time()
+        t_next = row_next[0]
         n, k = len(self._buf), self._k
         rows = np.array(self._buf)
         t = np.array([r[0] for r in self._buf] + [t_next])
@@ -270,11 +275,13 @@ class StreamSmoother(OnlineCalibrationMixin, KeyframeStartMixin, ArrivalMixin, S
             self.stats.missing += int(np.sum(np.round(steps[gap] * self.rate) - 1))
         # the batch path's preintegration (factors.gyro.preintegrate, factors.velocity.velocity_increments)
         # of this one interval, equal to it (stream_interval)
-        pre = bridged_preintegration if self.opt.gap_bridge and gap.any() else interval_preintegration
-        kRb, delta_R, cov, dt_k, dv, sig_dv, q_kRb = pre(
-            t, w, a, *((self._row_next[1:4], self._row_next[4:7]) if pre is not interval_preintegration else ()),
-            self._b_hat, self._sig_g, self.opt.gyro_rate_error, self._sig_acc, self.opt.acc_rate_error,
-            (self.rate, self.opt.gap_rate_walk, self.opt.gap_acc_walk))    # stream_bridge (B1)–(B2) if gap_bridge
+        noise = (self._b_hat, self._sig_g, self.opt.gyro_rate_error, self._sig_acc, self.opt.acc_rate_error,
+                 (self.rate, self.opt.gap_rate_walk, self.opt.gap_acc_walk))
+        if self.opt.gap_bridge and gap.any():          # stream_bridge (B1)–(B2)
+            pre = bridged_preintegration(t, w, a, row_next[1:4], row_next[4:7], *noise)
+        else:
+            pre = interval_preintegration(t, w, a, *noise)
+        kRb, delta_R, cov, dt_k, dv, sig_dv, q_kRb = pre
         # disturbance windows (Calibration.corrected; delay 0: a copy) only where one overlaps this interval
         hit = any(ts <= t[-2] and te >= t[0] for ts, te in self._windows)
         y = self._cal0.corrected(t[:-1], m_raw) if hit else m_raw
@@ -355,7 +362,7 @@ class StreamSmoother(OnlineCalibrationMixin, KeyframeStartMixin, ArrivalMixin, S
                         self._forget_smoothed(k_new)
                 else:
                     self._solver.update(graph, values, list(remove), None, None, None, force)
-                isam = self._solver.isam if chain else self._solver
+                isam = self._isam()
                 est_pose = isam.calculateEstimatePose3(pose_key(k_new))
                 est_v = isam.calculateEstimateVector(keys.vel(k_new))
                 est_b = isam.calculateEstimateConstantBias(imu_bias_key(seg))

@@ -168,13 +168,13 @@ class OnlineCalibrationMixin:
         """The solver's latest estimate of a window offset Δo_w, None when it has left the solver."""
         if not self._offset_alive(key):
             return None
-        return (self._solver.isam if self._chain else self._solver).calculateEstimateVector(key)
+        return self._isam().calculateEstimateVector(key)
 
     def _record_state(self, elapsed: float) -> None:
         """A history row: the streamed θ and its std (stream_calstate eq. 4) from iSAM2's θ̂ and marginal covariance;
         with disturb_offsets, when a window is the majority, its hard iron (stream_offsets eq. 2)."""
         self._refit_due = False
-        isam = self._solver.isam if self._chain else self._solver
+        isam = self._isam()
         major = self._offsets.majority(self._offset_alive) if self._offsets is not None else None
         try:
             theta, cov = data_estimate(isam.calculateEstimateVector(CAL_KEY), isam.marginalCovariance(CAL_KEY),
@@ -217,11 +217,10 @@ class OnlineCalibrationMixin:
 
     def _keyframe_R(self, k: int) -> np.ndarray | None:
         """Latest estimate of keyframe k's nRb (the one it left the window with, under a lag)."""
-        chain = self._chain
-        if self.opt.lag_s is not None and (not chain or k in self._smoothed_kf):
+        if self.opt.lag_s is not None and (not self._chain or k in self._smoothed_kf):
             return self._smoothed_kf.get(k)
         try:           # iSAM2, or a keyframe still in the chain lag's window
-            return (self._solver.isam if chain else self._solver).calculateEstimatePose3(pose_key(k)).rotation().matrix()
+            return self._isam().calculateEstimatePose3(pose_key(k)).rotation().matrix()
         except RuntimeError:
             return None
 

@@ -22,8 +22,7 @@ class StreamOutputMixin:
             return
         if len(self._buf) >= 2:
             last = self._buf.pop()
-            self._row_next = last        # the end of a gap's bridge (gap_bridge, stream_bridge)
-            self._close(last[0])
+            self._close(last)
             self._buf = [last]
         if self._chain and self._k > 0:
             # the keyframes still in the window: their latest estimate (the others' is the one they left with)

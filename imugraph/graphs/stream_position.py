@@ -29,14 +29,12 @@ import gtsam
 import numpy as np
 
 from imugraph import keys
-from imugraph.graphs.velocity_block import POSITION_KIN_SIGMA
+from imugraph.graphs.velocity_block import POSITION_KIN_SIGMA, pos_key
 
 _EYE3, _ZERO3, _UNIT6 = np.eye(3), np.zeros(3), gtsam.noiseModel.Unit.Create(6)
 
 
-def position_key(k: int) -> int:
-    """Key of keyframe k's bounded position p_k (Vector3, nav frame, m); symbol "p" (velocity_block.pos_key)."""
-    return gtsam.symbol("p", int(k))
+position_key = pos_key   # keyframe k's bounded position p_k (Vector3, nav frame, m): the batch's key
 
 
 def position_blocks(dt_k: float, sigma_p: float, tau_p: float, sigma_kin: float = POSITION_KIN_SIGMA) -> tuple:

@@ -42,6 +42,8 @@ import math
 import gtsam
 import numpy as np
 
+from imugraph.graphs.cpp_velocity import pose_key
+
 _EPS_INFO = 1e-9       # information on the unconstrained axes of the anchor (rad⁻², m⁻²): keeps it positive definite
 
 
@@ -93,15 +95,10 @@ class GapRealignMixin:
         self._remove_next: list = []  # iSAM2 indices to remove in the next update
         self.realign_log: list = []   # per window: (keyframe, α* °, σ_α °, applied, predicted nRb)
 
-    def _isam(self):
-        return self._solver.isam if self._chain else self._solver
-
     def _realign_step(self, graph, values, k: int, ends_in_gap: bool, interval: tuple, R_next: np.ndarray,
                       rot_at: int) -> None:
         """Called in `_close` before the update of keyframe k+1 (graph: its new factors; rot_at: the position in
         it of interval k's rotation rows)."""
-        from imugraph.graphs.cpp_velocity import pose_key
-
         usable = self._chain or self.opt.lag_s is None
         if self._realign is not None and self._realign.add(*interval):
             alpha, sig = self._realign.solve(R_next, self.cal.n_mag, self._sig_v)
