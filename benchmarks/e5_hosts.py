@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from imugraph.diagnose.bench import DEFAULT_TRIALS, broad_sessions, simulated_session
+from imugraph.diagnose.bench import DEFAULT_TRIALS, harness_sessions
 
 
 def harness_hosts(doc: str, case: str) -> tuple[argparse.Namespace, list]:
@@ -14,6 +14,6 @@ def harness_hosts(doc: str, case: str) -> tuple[argparse.Namespace, list]:
     ap.add_argument("--cases", default=case)
     ap.add_argument("--duration", type=float, default=60.0)
     a = ap.parse_args()
-    sessions = broad_sessions(list(DEFAULT_TRIALS), a.duration) + \
-        [simulated_session(a.seed * 100 + i, a.duration, 285.714) for i in range(2)]
+    sessions = harness_sessions(argparse.Namespace(trials=",".join(DEFAULT_TRIALS), duration=a.duration,
+                                                   seed=a.seed, sims=2))
     return a, sessions

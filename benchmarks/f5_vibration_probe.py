@@ -18,12 +18,10 @@ import numpy as np
 
 def draw_cases(args):
     """[(case id, injected session, truth name, truth)] in the harness' order (bench.run_bench_diagnose)."""
-    from imugraph.diagnose.bench import broad_sessions, simulated_session
+    from imugraph.diagnose.bench import harness_sessions
     from imugraph.diagnose.effects import EFFECTS
 
-    trials = [t.strip() for t in args.trials.split(",") if t.strip()]
-    sessions = broad_sessions(trials, args.duration, None)
-    sessions += [simulated_session(args.seed * 100 + i, args.duration, 285.714) for i in range(args.sims)]
+    sessions = harness_sessions(args)
     rng = np.random.default_rng(args.seed)
     out, k = [], 0
     for name in EFFECTS:

@@ -156,6 +156,12 @@ def null_gaps(null, sim, sigma: dict, folds: list, gap_opt: GapOptions = GapOpti
     return out
 
 
+def scored_apart(support: np.ndarray, rate: float) -> bool:
+    """(A3)'s condition: the support and its complement ≥ MIN_SUPPORT_S, the complement also ≥ 0.2·n."""
+    min_n = MIN_SUPPORT_S * rate
+    return bool(support.sum() >= min_n and (~support).sum() >= max(min_n, 0.2 * len(support)))
+
+
 def evaluate_effect(effect, real, sim, null_gap: dict, folds: list, opt: AttributionOptions,
                     gap_opt: GapOptions = GapOptions(), window=None, base: list | None = None,
                     ext=None, null=None) -> EffectResult:
@@ -175,8 +181,7 @@ def evaluate_effect(effect, real, sim, null_gap: dict, folds: list, opt: Attribu
     frac = 1.0
     scored = folds                                   # held-out samples scored (training: outside the fold)
     rest = None                                      # (A3): the recording's own gap outside the support
-    if (support is not None and support.sum() >= MIN_SUPPORT_S * rate
-            and (~support).sum() >= max(MIN_SUPPORT_S * rate, 0.2 * real.n)):
+    if support is not None and scored_apart(support, rate):
         scored = [f & support for f in folds]                                                    # (A3)
         base = fold_gaps(real, sim, scored, gap_opt)
         null_gap = null_gaps(null, sim, real.sigma, scored, gap_opt)
@@ -243,8 +248,7 @@ def evaluate_effect(effect, real, sim, null_gap: dict, folds: list, opt: Attribu
                         own_folds=own.fold_gains(n_params) or None, own_ll_gain=own_ll_gain,
                         own_ll_folds=own_ll.fold_gains(n_params) or None,
                         own_shrink=own_shrink, gap_shrink=gap_shrink,
-                        own_excess={c: own.base[c] / own.n[c] - own.e0.get(c, 0.0) for c in CHANNELS
-                                    if own.n[c]} if own.folds else None, fold_sizes=fold_sizes or None)
+                        own_excess=own.excess() if own.folds else None, fold_sizes=fold_sizes or None)
 
 
 def _failed(name, effect, exc) -> EffectResult:

@@ -24,7 +24,6 @@ import numpy as np
 from imugraph.diagnose.score import GainAccumulator
 
 LOCAL_CHECK = False
-LOCAL_FRACTION = 0.5         # as attribute.LOCAL_FRACTION
 
 
 def global_gain_on_support(real, folds: list, local_res, global_res, effect) -> dict | None:
@@ -39,8 +38,7 @@ def global_gain_on_support(real, folds: list, local_res, global_res, effect) -> 
     c = local_res.channel
     if sup is None or not local_res.loglik_per_channel or c not in local_res.loglik_per_channel:
         return None
-    min_n = attribute.MIN_SUPPORT_S * real.session.rate
-    if not (sup.sum() >= min_n and (~sup).sum() >= max(min_n, 0.2 * real.n)):      # (A3)'s condition
+    if not attribute.scored_apart(sup, real.session.rate):                         # (A3)'s condition
         return None
     # S17-N1: under T11 (attribute.FOLD_FIXED_STRUCTURE) the folds fit the model the verdict names — the
     # all-sample fit's channel held (`fit_fold`) —, so E is scored here as in its own evaluation
@@ -65,6 +63,8 @@ def check_locals(ranked: list, real, folds: list, effects: dict, say=None) -> No
     """(V'): mark `explained_by` on each significant, relevant localised result (in verdict order) that a
     significant, relevant global effect on its channel explains at least as well; stops at the first one
     that is not explained (the verdict's)."""
+    from imugraph.diagnose.attribute import LOCAL_FRACTION
+
     say = say or (lambda _m: None)
     ok = [r for r in ranked if r.significant and r.relevant]
     glob = [r for r in ok if r.support_fraction >= LOCAL_FRACTION]

@@ -137,6 +137,10 @@ class OwnCostAccumulator(GainAccumulator):
         self._add_fold({c: (float(held["base"][c]), float(held["ext"][c]), int(held["n"][c]))
                         for c in CHANNELS if int(held["n"].get(c, 0))})
 
+    def excess(self) -> dict:
+        """channel → the base model's held-out cost per row − E0 (J6's denominator before max(0, ·))."""
+        return {c: self.base[c] / self.n[c] - self.e0.get(c, 0.0) for c in CHANNELS if self.n[c]}
+
     def shrink(self, n_params: int) -> float:
         """The fraction of the base model's held-out EXCESS cost that the effect removes, net of the BIC
         cost (J6) — (A2)'s "share of the channel's gap" in the estimator's own objective:
@@ -147,5 +151,5 @@ class OwnCostAccumulator(GainAccumulator):
         if not self.folds:
             return float("nan")
         gain, per, n = self.result(n_params)
-        excess = sum(max(0.0, self.base[c] / self.n[c] - self.e0.get(c, 0.0)) for c in CHANNELS if self.n[c])
+        excess = sum(max(0.0, e) for e in self.excess().values())
         return float(gain / excess) if excess > 0 else float("nan")

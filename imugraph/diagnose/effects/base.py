@@ -249,7 +249,12 @@ def detect_windows(t: np.ndarray, score: np.ndarray, *, smooth_s: float = 1.0, f
     if fin.sum() < 10:
         return []
     quiet = max(float(np.quantile(s[fin], quiet_q)), 1e-12)
-    flag = np.where(fin, s > factor * quiet, False)
+    return flag_windows(t, np.where(fin, s > factor * quiet, False), merge_s, min_s)
+
+
+def flag_windows(t: np.ndarray, flag: np.ndarray, merge_s: float, min_s: float) -> list:
+    """[(i_start, i_stop)] of the runs of `flag`, runs closer than `merge_s` merged, shorter than `min_s`
+    dropped, longest first."""
     a, b = runs(flag)
     merged = []
     for i0, i1 in zip(a, b):

@@ -142,11 +142,12 @@ def censored_values(fit, y_new: np.ndarray, rails: list) -> np.ndarray:
     k_of = _intervals(fit)
     w = 1.0 / np.asarray(fit.sigma["gyr"], float) ** 2
     y_out = y_new.copy()
+    on = _rail_samples(s.gyr, rails)
     clipped = np.zeros(fit.n, bool)
-    for _a, _sg, _lv, m in _rail_samples(s.gyr, rails):
+    for _a, _sg, _lv, m in on:
         clipped |= m
     delta = 1e-3
-    for a, sign, level, m in _rail_samples(s.gyr, rails):
+    for a, sign, level, m in on:
         if not m.any():
             continue
         r0 = gyro_exact(fit, y_out - s.gyr)["gyr"]

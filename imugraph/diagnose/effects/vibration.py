@@ -53,7 +53,7 @@ from __future__ import annotations
 import numpy as np
 
 from imugraph.diagnose.effects.base import (Correction, Effect, check_train, detect_windows, envelope,
-                                             noise_scale, psd_filter, random_window, replace_session,
+                                             flag_windows, noise_scale, psd_filter, random_window, replace_session,
                                              smooth, train_psd, window_mask)
 from imugraph.io.validate import runs
 
@@ -119,13 +119,7 @@ def band_windows(fit, f_lo_hz: float, f_hi_hz: float) -> list:
     q_above = float(np.quantile(p_above[ok], 0.2))
     flag = ok & (p_band > 4.0 * q_band)                                                              # (V3)
     flag &= (p_band - q_band) >= NARROW_SHARE * np.maximum(p_above - q_above, 0.0)                  # (V4)
-    merged = []
-    for i0, i1 in zip(*runs(flag)):
-        if merged and s.t[i0] - s.t[merged[-1][1] - 1] < 1.0:
-            merged[-1] = (merged[-1][0], int(i1))
-        else:
-            merged.append((int(i0), int(i1)))
-    found = sorted([w for w in merged if s.t[w[1] - 1] - s.t[w[0]] >= 2.0], key=lambda w: w[0] - w[1])
+    found = flag_windows(s.t, flag, merge_s=1.0, min_s=2.0)
     return [(float(s.t[i0]), float(s.t[i1 - 1])) for i0, i1 in found[:MAX_WINDOWS]]
 
 
