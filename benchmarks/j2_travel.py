@@ -28,7 +28,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from benchmarks.common import error_parts, parse_options  # noqa: E402
+from benchmarks.common import error_parts, parse_options, parse_variants  # noqa: E402
 from benchmarks.output import OUT_DIR  # noqa: E402
 from imugraph.calibration.ml import calibrate  # noqa: E402
 from imugraph.sim.distortion import random_distortion  # noqa: E402
@@ -89,18 +89,12 @@ def travel_session(seed: int, kind: str, duration_s: float = DURATION_S):
 
 
 def main(argv: list[str]) -> int:
-    variants, rest, kinds = {"base": []}, [], ["hand", "walk", "drive"]
-    i = 0
-    while i < len(argv):
-        if argv[i] == "--variant":
-            variants[argv[i + 1]] = [x for x in argv[i + 1].split(";") if x]
-            i += 2
-        elif argv[i] == "--kind":
-            kinds = argv[i + 1].split(",")
-            i += 2
-        else:
-            rest.append(argv[i])
-            i += 1
+    variants, rest = parse_variants(argv)
+    kinds = ["hand", "walk", "drive"]
+    while "--kind" in rest:                       # the last --kind wins, as before
+        i = rest.index("--kind")
+        kinds = rest[i + 1].split(",")
+        del rest[i:i + 2]
     seeds = [int(x) for x in rest[0].split(",")] if rest else [1, 2]
     rows = []
     for kind in kinds:

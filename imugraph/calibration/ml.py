@@ -131,6 +131,7 @@ def calibrate(session: Session, options: Options | None = None, initial=None,
 
     round_solver = opt.solver if opt.round_relative_tol is None else replace(
         opt.solver, relative_tol=opt.round_relative_tol)
+    round_every = max(1, stride // opt.round_min_samples)   # the rounds' magnetometer thinning
 
     if opt.gyro_map_fallback not in ("warm", "restart"):
         raise ValueError(f"Options.gyro_map_fallback: found {opt.gyro_map_fallback!r}, expected 'warm' or 'restart'")
@@ -146,8 +147,7 @@ def calibrate(session: Session, options: Options | None = None, initial=None,
         with_map = phase["map"] and (opt.gyro_map_final or not final)
         # (J2) candidates share bias, noise, κ and Ê: their preintegration is the same (read-only), reused
         memo = (np.asarray(bias).tobytes(), np.asarray(noise.gyr).tobytes(), rate["kappa"], gyro.E.tobytes())
-        if (opt.position_select_stop or opt.position_select_thin > 1 or opt.position_select_max_iter) \
-                and not with_map and pre_memo.get("key") == memo:
+        if not with_map and pre_memo.get("key") == memo:
             pre = pre_memo["pre"]
         else:
             g_c, b_rows = gyro.corrected(session.gyr), _per_sample_bias(bias, seg, skf)
@@ -193,7 +193,7 @@ def calibrate(session: Session, options: Options | None = None, initial=None,
             opt = replace(opt, bias_rw=(options or Options()).bias_rw)
         converged = False
         for outer in range(1, opt.max_outer + 1):
-            pre, prob, values, info = solve_round(bias, noise, nRk, theta, max(1, stride // opt.round_min_samples),
+            pre, prob, values, info = solve_round(bias, noise, nRk, theta, round_every,
                                                   values0=values)
             nRk = keyframe_rotations(values, len(kf))
             theta = values.atVector(keys.CALIB)
@@ -300,8 +300,8 @@ def calibrate(session: Session, options: Options | None = None, initial=None,
     if opt.position_select:      # σ_p by the Laplace marginal likelihood, "off" among the candidates (J2)
         from imugraph.calibration.position_select import final_with_selection
         (pre, prob, values, info), (bias, noise, nRk, theta, converged) = final_with_selection(
-            solve_round, ml_rounds, vel_state, opt, (bias, noise, nRk, theta, values, converged), len(kf), stride,
-            history, field_state, gyro)
+            solve_round, ml_rounds, vel_state, opt, (bias, noise, nRk, theta, values, converged), len(kf), round_every,
+            history, field_state, gyro, round_solver)
     else:
         pre, prob, values, info = solve_round(bias, noise, nRk, theta, final=True, values0=values)
     nRk = keyframe_rotations(values, len(kf))

@@ -113,6 +113,18 @@ def field_half_logdet(dt_k: np.ndarray, sigma_d, tau_d: float) -> float:
     return float(-np.sum(K * np.log(sig) + 0.5 * np.sum(np.log(np.maximum(1.0 - phi**2, 1e-300)))))
 
 
+def _snapshot(vel_state: dict, gyro):
+    """A function restoring vel_state and the GyroMapState's (Ê, step) to what they are now (candidates' start)."""
+    saved = dict(vel_state)
+    g0 = None if gyro is None else (gyro.E.copy(), gyro.step)
+
+    def restore():
+        vel_state.clear(); vel_state.update(saved)
+        if g0 is not None:
+            gyro.E, gyro.step = g0[0].copy(), g0[1]
+    return restore
+
+
 def _score(prob, values, sigma_p, opt, K, field_sigma):
     from imugraph import keys
     from imugraph.graphs.solver import keyframe_rotations, keyframe_vectors
@@ -137,17 +149,14 @@ def select_and_solve(solve_round, vel_state: dict, opt, state: tuple, K: int, hi
     gyro: the loop's GyroMapState (a round's solve folds Ê into it): restored before every candidate and set to
     the chosen one's. Notes the scores in history[-1]["position_select"]."""
     bias, noise, nRk, theta, values0 = state
-    g0 = None if gyro is None else (gyro.E.copy(), gyro.step)
-    saved = dict(vel_state)
+    restore = _snapshot(vel_state, gyro)
     field_state = {"sigma": opt.field_sigma} if field_state is None else field_state
     scores, solved = [], []
 
     def run(sigma, field_sigma):
-        vel_state.clear(); vel_state.update(saved)
+        restore()
         vel_state["pos_sigma"] = sigma
         field_state["sigma"] = field_sigma
-        if g0 is not None:
-            gyro.E, gyro.step = g0[0].copy(), g0[1]
         # a copy: build_problem inserts the position keys into the Values it is given
         start = None if values0 is None else gtsam.Values(values0)
         out = solve_round(bias, noise, nRk, theta, final=True, values0=start)
@@ -186,8 +195,8 @@ def select_and_solve(solve_round, vel_state: dict, opt, state: tuple, K: int, hi
     return out
 
 
-def final_with_selection(solve_round, ml_rounds, vel_state: dict, opt, state: tuple, K: int, stride: int,
-                         history: list, field_state: dict, gyro=None):
+def final_with_selection(solve_round, ml_rounds, vel_state: dict, opt, state: tuple, K: int, every: int,
+                         history: list, field_state: dict, gyro=None, round_solver=None):
     """ml.calibrate's final step with opt.position_select: returns (pre, prob, values, info) of the final solve and
     (bias, noise, nRk, θ, converged). Without opt.position_select_rounds the candidates are full final solves and
     the chosen one is returned. With it the candidates are solved as an ML round is (thinned magnetometer, the
@@ -201,15 +210,11 @@ def final_with_selection(solve_round, ml_rounds, vel_state: dict, opt, state: tu
         out = select_and_solve(solve_round, vel_state, opt, (bias, noise, nRk, theta, values0), K, history,
                                field_state, gyro)
         return out, (bias, noise, nRk, theta, converged)
-    every = max(1, stride // opt.round_min_samples)
-    vel0 = dict(vel_state)
-    g0 = None if gyro is None else (gyro.E.copy(), gyro.step)
+    restore = _snapshot(vel_state, gyro)
 
     solver = None                              # position_select_max_iter: the candidates' LM iterations capped
     if opt.position_select_max_iter:
-        base = opt.solver if opt.round_relative_tol is None else replace(opt.solver,
-                                                                         relative_tol=opt.round_relative_tol)
-        solver = replace(base, max_iterations=int(opt.position_select_max_iter))
+        solver = replace(round_solver, max_iterations=int(opt.position_select_max_iter))
 
     def candidate_solve(*args, **kw):          # position_select_thin: the candidates' magnetometer thinned further
         return solve_round(*args, **dict(kw, final=False, every=every * max(1, int(opt.position_select_thin)),
@@ -218,11 +223,7 @@ def final_with_selection(solve_round, ml_rounds, vel_state: dict, opt, state: tu
     _, _, values, _ = select_and_solve(candidate_solve, vel_state, opt, (bias, noise, nRk, theta, values0), K,
                                        history, field_state, gyro)
     if vel_state.get("pos_sigma") is None:     # "off": the defaults' state and final solve
-        sigma_d = field_state["sigma"]
-        vel_state.clear(); vel_state.update(vel0)
-        field_state["sigma"] = sigma_d
-        if g0 is not None:                     # the ML rounds' Ê, not a thinned candidate's
-            gyro.E, gyro.step = g0[0].copy(), g0[1]
+        restore()                              # the ML rounds' state and Ê, not a thinned candidate's
         return solve_round(bias, noise, nRk, theta, final=True, values0=values0), (bias, noise, nRk, theta,
                                                                                    converged)
     bias, noise, nRk, theta, values, converged = ml_rounds(bias, noise, keyframe_rotations(values, K),
@@ -246,14 +247,8 @@ def field_after_rounds(candidate_solve, ml_rounds, vel_state: dict, opt, state: 
     bias, noise, nRk, theta, values, converged = state
     sig = np.broadcast_to(np.asarray(opt.field_sigma, float), (3,))
     p_sigma = vel_state.get("pos_sigma")
-    saved = dict(vel_state)
-    g0 = None if gyro is None else (gyro.E.copy(), gyro.step)
+    restore = _snapshot(vel_state, gyro)
     scores = []
-
-    def restore():
-        vel_state.clear(); vel_state.update(saved)
-        if g0 is not None:
-            gyro.E, gyro.step = g0[0].copy(), g0[1]
 
     def run(sy):
         restore()

@@ -128,14 +128,20 @@ def _rot_prior(key_a: int, key_b: int, aRb: np.ndarray, sigma: float) -> gtsam.B
     return gtsam.BetweenFactorPose3(key_a, key_b, gtsam.Pose3(gtsam.Rot3(aRb), np.zeros(3)), model)
 
 
+def _end_rotations(pb, x: gtsam.Values, place: dict, c: Chain) -> tuple[np.ndarray, np.ndarray]:
+    """(K, 3, 3) segment orientations nRb = nRs bRsᵀ of the chain's sensed ends A, D in the solution `x`."""
+    sA, sD = pb.names.index(c.parent), pb.names.index(c.child)
+    RA = np.stack([x.atPose3(bf.pose_key(sA, k)).rotation().matrix() for k in range(pb.K)]) @ place[c.parent][0].T
+    RD = np.stack([x.atPose3(bf.pose_key(sD, k)).rotation().matrix() for k in range(pb.K)]) @ place[c.child][0].T
+    return RA, RD
+
+
 def tie_targets(pb, x: gtsam.Values, place: dict) -> dict:
     """{global link index: (K, 3, 3)} the ties (K2) of the first pass's solution `x`: nR_u = slerp(nR_A, nR_D,
     m/(n+1)) for link m = 1…n (the fixed target of (C4'))."""
     out = {}
     for c in pb.chains:
-        sA, sD = pb.names.index(c.parent), pb.names.index(c.child)
-        RA = np.stack([x.atPose3(bf.pose_key(sA, k)).rotation().matrix() for k in range(pb.K)]) @ place[c.parent][0].T
-        RD = np.stack([x.atPose3(bf.pose_key(sD, k)).rotation().matrix() for k in range(pb.K)]) @ place[c.child][0].T
+        RA, RD = _end_rotations(pb, x, place, c)
         qA, qD = rotmat_to_quat(RA), rotmat_to_quat(RD)
         n = len(c.links)
         for m in range(n):
@@ -147,12 +153,8 @@ def tie_angles(pb, x: gtsam.Values, place: dict) -> dict:
     """{global link index: (K,)} θ_k = |Log(nR_Aᵀ nR_D)| of the first pass, rad (the chain's total bend, C6)."""
     out = {}
     for c in pb.chains:
-        sA, sD = pb.names.index(c.parent), pb.names.index(c.child)
-        th = []
-        for k in range(pb.K):
-            RA = x.atPose3(bf.pose_key(sA, k)).rotation().matrix() @ place[c.parent][0].T
-            RD = x.atPose3(bf.pose_key(sD, k)).rotation().matrix() @ place[c.child][0].T
-            th.append(np.linalg.norm(gtsam.Rot3.Logmap(gtsam.Rot3(RA.T @ RD))))
+        RA, RD = _end_rotations(pb, x, place, c)
+        th = [np.linalg.norm(gtsam.Rot3.Logmap(gtsam.Rot3(RA[k].T @ RD[k]))) for k in range(pb.K)]
         for m in range(len(c.links)):
             out[c.first + m] = np.asarray(th)
     return out
@@ -204,14 +206,11 @@ def insert_initial(pb, x: gtsam.Values, place: dict) -> gtsam.Values:
     for c in pb.chains:
         for i, l in zip(c.levers, c.lever_nom):
             out.insert(chain_lever_key(i), np.asarray(l, float))
-        sA, sD = pb.names.index(c.parent), pb.names.index(c.child)
-        n = len(c.links)
+        sA, n = pb.names.index(c.parent), len(c.links)
+        RA, RD = _end_rotations(pb, x, place, c)
         for k in range(pb.K):
-            TA, TD = x.atPose3(bf.pose_key(sA, k)), x.atPose3(bf.pose_key(sD, k))
-            RA = TA.rotation().matrix() @ place[c.parent][0].T               # nRb = nRs bRsᵀ
-            RD = TD.rotation().matrix() @ place[c.child][0].T
-            qA, qD = rotmat_to_quat(RA), rotmat_to_quat(RD)
-            p = TA.transformFrom(np.asarray(c.lever_nom[0], float))
+            qA, qD = rotmat_to_quat(RA[k]), rotmat_to_quat(RD[k])
+            p = x.atPose3(bf.pose_key(sA, k)).transformFrom(np.asarray(c.lever_nom[0], float))
             for m in range(n):
                 R = gtsam.Rot3.Quaternion(*quat_slerp(qA, qD, np.array((m + 1) / (n + 1))))
                 out.insert(link_pose_key(c.first + m, k), gtsam.Pose3(R, p))

@@ -89,10 +89,10 @@ def estimate_placements(pb, x: gtsam.Values) -> tuple[dict, float]:
     kfs = kfs if kfs.size else np.array([0])            # (incremental: the N-pose keyframes seen so far)
     psi = npose_heading(pb, x, kfs)
     out = {}
+    chained = body_chain.chain_joints(pb)                # their parent-side lever is unused (prior only)
     for s, name in enumerate(pb.names):
         M = sum(rz(psi).T @ x.atPose3(bf.pose_key(s, k)).rotation().matrix() for k in kfs)
         bRs = project_so3(M)
-        chained = body_chain.chain_joints(pb)            # their parent-side lever is unused (prior only)
         b = [jt.b_parent if jt.parent == name else jt.b_child for j, jt in enumerate(pb.joints)
              if name in (jt.parent, jt.child) and not (jt.parent == name and j in chained)]
         ls = [x.atPoint3(bf.lever_key(i)) for i, (seg, j, _) in enumerate(pb.levers)
