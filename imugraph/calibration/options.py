@@ -118,14 +118,14 @@ class Options:
     #   (h11_position.py): σ_y 0.003 kept on 10 of 12 bounded trials (0.006 worse by 4–38 nats), 0.006 on 34/36;
     #   0.622°, 4 behind offline VQF, 07 +0.072°: the evidence does not support the looser σ_y of the field pair
     position_select_stop: bool = False  # with position_select: candidates solved in the given order (loosest
-    #   first), stopping at the first whose evidence is below the previous one's (unimodal ln Z(σ_p)), and the
-    #   candidates' common gyro preintegration computed once (ml.py; the same arrays, so the same result): CPU.
+    #   first), stopping at the first whose evidence is below the previous one's (unimodal ln Z(σ_p)): CPU (the
+    #   candidates' common gyro preintegration is computed once in every run since session 17's final read, ml.py).
     #   Do not use: BROAD 01's ln Z is not unimodal (off > 1 > 0.3 < 0.1 m), the stop picks off instead of 0.1 m
     position_select_thin: int = 1  # with position_select_rounds: the candidates' magnetometer thinned by this
-    #   further factor (> 1 also computes their common preintegration once, as position_select_stop): CPU.
+    #   further factor: CPU.
     #   2 or 4 on BROAD 01/02/24: choices kept, but LM 1–2 → 3 iterations per candidate, no CPU gain
     position_select_max_iter: int | None = None  # with position_select_rounds: the candidates' LM iterations
-    #   capped (None: the rounds' solver); also computes their common preintegration once: CPU. 1 on BROAD 17:
+    #   capped (None: the rounds' solver): CPU. 1 on BROAD 17:
     #   every σ_p/σ_y choice unchanged, ln Z within 2.5 nats, errors within 0.001°, CPU 1.76–2.88 → 1.56–2.55 s
     gap_model: bool = True            # steps over 1.5 T are missing time (factors/gaps.py: variance G1, a keyframe
     #   at gaps > 50 ms, the per-sample blend and start values restart there); False: trusted like measured time
