@@ -151,6 +151,9 @@ class StreamSmoother(OnlineCalibrationMixin, KeyframeStartMixin, ArrivalMixin, S
         self._field = options.field_sigma is not None          # nav-field perturbation d_k (stream_field)
         self._d = np.zeros(3)                # latest estimate of keyframe k's d_k
         self._finished = False
+        # end-of-stream model extensions, each (graph, values) -> (graph, values), applied in order to the end graph
+        # before its Levenberg–Marquardt (stream_output.finish); empty by default
+        self._end_extensions: list = []
 
     # ------------------------------------------------------------------ arrival
     def push(self, t: float, gyr, acc, mag=None) -> np.ndarray:

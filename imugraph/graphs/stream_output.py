@@ -36,7 +36,10 @@ class StreamOutputMixin:
             # the end-of-stream smoothing: Levenberg–Marquardt on iSAM2's own factors from its estimate
             # (iSAM2 relinearises only past a threshold and can stop short of the batch optimum), with every
             # magnetometer factor re-issued with the final calibration when it was re-estimated online
-            self._final = self._final_lm(self._final_graph(), self._solver.calculateEstimate())
+            graph, values = self._final_graph(), self._solver.calculateEstimate()
+            for extend in self._end_extensions:      # (graph, values) -> (graph, values), stream.py __init__
+                graph, values = extend(graph, values)
+            self._final = self._final_lm(graph, values)
             if self._calstate:           # calibration.json: what the end graph used (stream_online._end_calibration)
                 self._end_calibration()
         self._finished = True
