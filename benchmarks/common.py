@@ -182,22 +182,36 @@ def finite_mean(rows: Sequence[dict], key: str) -> float:
     return float(np.mean(vals)) if vals else float("nan")
 
 
-def parse_options(values: Sequence[str] | None, **fixed: Any):
-    """Options of imugraph.calibration.ml from `--opt FIELD=VALUE` strings (VALUE a Python literal), e.g.
-    `field_sigma=(0.015,0.003,0.015)`; unknown fields fail with the list of known ones."""
+def option_overrides(values: Sequence[str] | None, cls: type) -> dict:
+    """{FIELD: value} from `FIELD=VALUE` strings (VALUE a Python literal) for the options dataclass `cls`
+    (calibration Options, StreamOptions, ...); an unknown field or a missing `=` fails with the known fields."""
     import ast
     from dataclasses import fields as dc_fields
 
-    from imugraph.calibration.ml import Options
-
-    known = {f.name for f in dc_fields(Options)}
-    kw = dict(fixed)
+    known = {f.name for f in dc_fields(cls)}
+    kw = {}
     for item in values or []:
         name, sep, value = item.partition("=")
+        name = name.strip()
         if not sep or name not in known:
             raise SystemExit(f"--opt {item!r}: expected FIELD=VALUE with FIELD one of {sorted(known)}")
         kw[name] = ast.literal_eval(value)
-    return Options(**kw)
+    return kw
+
+
+def parse_options(values: Sequence[str] | None, **fixed: Any):
+    """Options of imugraph.calibration.ml from `--opt FIELD=VALUE` strings (VALUE a Python literal), e.g.
+    `field_sigma=(0.015,0.003,0.015)`; unknown fields fail with the list of known ones."""
+    from imugraph.calibration.ml import Options
+
+    return Options(**{**fixed, **option_overrides(values, Options)})
+
+
+def stream_overrides(values: Sequence[str] | None) -> dict:
+    """StreamOptions fields from `--opt FIELD=VALUE` strings (as `option_overrides`), e.g. `position_sigma=0.3`."""
+    from imugraph.graphs.stream_options import StreamOptions
+
+    return option_overrides(values, StreamOptions)
 
 
 def pop_opts(argv: list[str]) -> tuple[list[str], list[str]]:

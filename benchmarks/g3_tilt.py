@@ -15,7 +15,6 @@ heading-free), |v| and the gyro bias estimate.
 from __future__ import annotations
 
 import argparse
-import ast
 import sys
 from pathlib import Path
 
@@ -25,7 +24,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks.stream_arrival import BOOTSTRAP_S, arrivals, score, trial_paths  # noqa: E402
-from benchmarks.common import load_broad_trial  # noqa: E402
+from benchmarks.common import load_broad_trial, stream_overrides  # noqa: E402
 from imugraph.geometry import quat_to_rotmat  # noqa: E402
 from imugraph.graphs.stream import StreamOptions  # noqa: E402
 from imugraph.graphs.stream_run import bootstrap_calibration, session_smoother  # noqa: E402
@@ -93,7 +92,7 @@ def main(argv=None) -> int:
     ap.add_argument("--opt", action="append", default=[], help="StreamOptions field=value (Python literal)")
     ap.add_argument("--trace", default=None, help="T0,T1: per-keyframe states in this stream-time range")
     a = ap.parse_args(argv)
-    overrides = {kv.split("=", 1)[0]: ast.literal_eval(kv.split("=", 1)[1]) for kv in a.opt}
+    overrides = stream_overrides(a.opt)
     trace = None if a.trace is None else tuple(float(x) for x in a.trace.split(","))
     for p in trial_paths(a.trials):
         r = run(p, a.seed, a.drop_s, overrides, trace)

@@ -18,7 +18,6 @@ Scoring only: the estimator never sees the truth.
 from __future__ import annotations
 
 import argparse
-import ast
 import sys
 import time
 from pathlib import Path
@@ -27,7 +26,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from benchmarks.common import load_broad_trial, trial_number  # noqa: E402
+from benchmarks.common import load_broad_trial, stream_overrides, trial_number  # noqa: E402
 from benchmarks.stream_arrival import BOOTSTRAP_S, arrivals, score, stream, trial_paths  # noqa: E402
 from imugraph.evaluate import orientation_error  # noqa: E402
 from imugraph.geometry import quat_conj, quat_mul  # noqa: E402
@@ -40,7 +39,7 @@ REC_TOL_DEG, REC_MAX_S = 3.0, 20.0
 
 def parse_variant(text: str) -> dict:
     """"k=v;k=v" → {k: literal v}; "" → {}."""
-    return {kv.split("=", 1)[0].strip(): ast.literal_eval(kv.split("=", 1)[1]) for kv in text.split(";") if kv.strip()}
+    return stream_overrides([kv for kv in text.split(";") if kv.strip()])
 
 
 def per_sample_error(q: np.ndarray, s) -> np.ndarray:

@@ -21,7 +21,6 @@ constant heading and time shift) on the samples each run delivered. Writes bench
 from __future__ import annotations
 
 import argparse
-import ast
 import sys
 from pathlib import Path
 
@@ -29,7 +28,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from benchmarks.common import broad_trials, load_broad_trial, print_table, trial_number  # noqa: E402
+from benchmarks.common import broad_trials, load_broad_trial, print_table, stream_overrides, trial_number  # noqa: E402
 from benchmarks.output import write_json  # noqa: E402
 from imugraph.evaluate import orientation_error  # noqa: E402
 from imugraph.graphs.stream import StreamOptions  # noqa: E402
@@ -166,7 +165,7 @@ def main(argv=None) -> int:
     ap.add_argument("--opt", action="append", default=[], metavar="KEY=VALUE",
                     help="StreamOptions field=value (Python literal), repeatable; e.g. position_sigma=0.3")
     a = ap.parse_args(argv)
-    overrides = {kv.split("=", 1)[0]: ast.literal_eval(kv.split("=", 1)[1]) for kv in a.opt}
+    overrides = stream_overrides(a.opt)
     paths = trial_paths(a.trials)
     if not paths:
         return 2

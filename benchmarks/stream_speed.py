@@ -39,7 +39,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from benchmarks.common import broad_trials, load_broad_trial, peak_memory_mb, print_table, trial_number  # noqa: E402
+from benchmarks.common import broad_trials, load_broad_trial, peak_memory_mb, print_table, stream_overrides, trial_number  # noqa: E402
 from benchmarks.output import write_json  # noqa: E402
 from benchmarks.peers import timed, vqf_online  # noqa: E402
 from imugraph.io.writers import atomic_write_bytes  # noqa: E402
@@ -243,8 +243,7 @@ def main(argv=None) -> int:
     ap.add_argument("--opt", action="append", default=[], metavar="KEY=VALUE",
                     help="a further StreamOptions field (Python literal), e.g. disturb_learn_sigma=False")
     a = ap.parse_args(argv)
-    import ast
-    extra = {k: ast.literal_eval(v) for k, v in (x.split("=", 1) for x in a.opt)}
+    extra = stream_overrides(a.opt)
     every = a.trials == "all"
     wanted = set() if every else {int(x) for x in a.trials.split(",")}
     paths = [p for p in broad_trials() if every or trial_number(p) in wanted]
