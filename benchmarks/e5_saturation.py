@@ -21,22 +21,14 @@ from imugraph.diagnose.effects import saturation as sat
 from imugraph.diagnose.fit import base_options, fit_base
 from imugraph.diagnose.effects.base import replace_session
 from imugraph.diagnose.fit import fit_simulation
-from imugraph.diagnose.harness import run_harness
+from imugraph.diagnose.harness import draw_cases, run_harness
 from imugraph.diagnose.refit import refit_effect, rescale
 
 
 def main() -> None:
     a, sessions = harness_hosts(__doc__, "012")
-    hosts = {}
-    rng = np.random.default_rng(a.seed)
     # replay the draws to know each case's host (run_harness draws host, then injects)
-    k = 0
-    for name in EFFECTS:
-        for _ in range(2):
-            base = sessions[int(rng.integers(len(sessions)))]
-            k += 1
-            EFFECTS[name].inject(base, rng)
-            hosts[f"{k:03d}"] = base
+    hosts = {cid: host for cid, host, *_ in draw_cases(sessions, list(EFFECTS), 2, np.random.default_rng(a.seed))}
 
     def fn(s):
         cid = s.name.split("_")[-1]
@@ -75,7 +67,7 @@ def main() -> None:
             print(f"  {lab:13s} refit (F1) RMS {np.sqrt(np.nanmean(zr ** 2)):.2f}, one fit to the reconstruction "
                   f"{np.sqrt(np.nanmean(zc ** 2)):.2f}, host (unclipped) base fit {np.sqrt(np.nanmean(zh ** 2)):.2f}")
         from imugraph.factors.gyro import keyframe_layout
-        kf, _ = keyframe_layout(real.n, int(real.info["stride"]))
+        kf, _ = keyframe_layout(real.n, int(real.info["stride"]), s.dt)     # as the fit's layout (gaps)
         k_of = np.searchsorted(kf, np.arange(real.n), side="right") - 1
         in_iv = np.isin(k_of, np.unique(k_of[hit]))                     # keyframe intervals holding a rail sample
         for lab, m in (("interval∖rail", in_iv & ~hit), ("support∖interval", sup & ~in_iv)):

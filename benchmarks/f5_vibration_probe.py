@@ -17,20 +17,13 @@ import numpy as np
 
 
 def draw_cases(args):
-    """[(case id, injected session, truth name, truth)] in the harness' order (bench.run_bench_diagnose)."""
+    """[(case id, injected session, truth name, truth)] in the harness' order (harness.draw_cases)."""
+    from imugraph.diagnose import harness
     from imugraph.diagnose.bench import harness_sessions
     from imugraph.diagnose.effects import EFFECTS
 
-    sessions = harness_sessions(args)
-    rng = np.random.default_rng(args.seed)
-    out, k = [], 0
-    for name in EFFECTS:
-        for _ in range(args.n):
-            base = sessions[int(rng.integers(len(sessions)))]
-            k += 1
-            inj, truth = EFFECTS[name].inject(base, rng)
-            out.append((f"{k:03d}", inj, name, truth))
-    return out
+    cases = harness.draw_cases(harness_sessions(args), list(EFFECTS), args.n, np.random.default_rng(args.seed))
+    return [(cid, inj, name, truth) for cid, _host, inj, name, truth in cases]
 
 
 def main(argv=None) -> int:

@@ -235,19 +235,13 @@ def run_harness(sessions: Iterable, effects: Optional[Iterable[str]] = None, n_p
     cases = []
     t0 = time.perf_counter()
     k = 0
-    for name in names:
-        for _ in range(n_per_effect):
-            if hosts == "random" and len(sessions) > 1:
-                base = sessions[int(rng.integers(len(sessions)))]
-            else:
-                base = sessions[k % len(sessions)]
-            k += 1
-            injected, truth = EFFECTS[name].inject(base, rng)
-            if keep is not None and f"{k:03d}" not in keep:
-                continue
-            case = run_case(injected, name, truth, f"{k:03d}", fn)
-            cases.append(case)
-            say(_case_line(case))
+    for cid, _host, injected, name, truth in draw_cases(sessions, names, n_per_effect, rng, hosts):
+        k += 1
+        if keep is not None and cid not in keep:
+            continue
+        case = run_case(injected, name, truth, cid, fn)
+        cases.append(case)
+        say(_case_line(case))
     if clean:
         for base in sessions:
             k += 1
@@ -257,6 +251,23 @@ def run_harness(sessions: Iterable, effects: Optional[Iterable[str]] = None, n_p
             cases.append(case)
             say(_case_line(case))
     return summarise(cases, names, time.perf_counter() - t0)
+
+
+def draw_cases(sessions: list, names: Iterable[str], n_per_effect: int, rng: np.random.Generator,
+               hosts: str = "random"):
+    """The harness' injected cases in order, drawn from `rng` exactly as `run_harness` draws them (host, then
+    injection; every case drawn, so a replay of one case id sees the same random sequence): yields
+    (case id "001", …, host session, injected session, effect name, truth)."""
+    k = 0
+    for name in names:
+        for _ in range(n_per_effect):
+            if hosts == "random" and len(sessions) > 1:
+                base = sessions[int(rng.integers(len(sessions)))]
+            else:
+                base = sessions[k % len(sessions)]
+            k += 1
+            injected, truth = EFFECTS[name].inject(base, rng)
+            yield f"{k:03d}", base, injected, name, truth
 
 
 def summarise(cases: list, names: list, seconds: float = float("nan")) -> dict:
