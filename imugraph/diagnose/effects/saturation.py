@@ -198,10 +198,11 @@ class SaturationCorrection(Correction):
         rails = self.deltas["rails"]
         if rails.get("gyr"):
             y_new = reconstruct_peaks(s.t, s.gyr, rails["gyr"])
-            if CENSOR_AREA:
+            area, censor = self.deltas["censor"]      # the module flags at fit time (run.model_switches)
+            if area:
                 y_new = censored_values(fit, y_new, rails["gyr"])
             out = gyro_exact(fit, y_new - s.gyr)
-            if CENSOR_GYRO:
+            if censor:
                 out["gyr"] = censored_gyro(s.gyr, y_new, out["gyr"], rails["gyr"])
         for a, sign, level in rails.get("acc", []):
             out["acc"][on_rail(s.acc[:, a], level)] = np.nan                                  # censored
@@ -240,7 +241,8 @@ class Saturation(Effect):
         channel = "acc" if rails["acc"] and not rails["gyr"] else "gyr"
         params = {"rails": {c: [{"axis": a, "sign": sg, "level": lv} for a, sg, lv in v] for c, v in rails.items()},
                   "channel": channel}
-        corr = SaturationCorrection(self.name, params, n_params=n_rails, channel=channel, deltas={"rails": rails})
+        corr = SaturationCorrection(self.name, params, n_params=n_rails, channel=channel,
+                                    deltas={"rails": rails, "censor": (CENSOR_AREA, CENSOR_GYRO)})
         if rails["gyr"]:
             y_new = reconstruct_peaks(s.t, s.gyr, rails["gyr"])
             if CENSOR_AREA:                                     # (C1''): the refit's data carry the estimate
