@@ -18,6 +18,16 @@ entries (issue 4 found its axial rotation disagreeing with Vicon).
                                                  [--duration 20] [--seed 0] [--out diagnose_body.json]
     .venv/bin/python benchmarks/diagnose_body.py --absorption LeftLowerLeg --hosts xsens_lower --out absorption.json
         (how much of an injected drift / acc bias the base fit's own bias estimates take, docs §3)
+    .venv/bin/python benchmarks/diagnose_body.py --hosts real_walk --labels none --profile --dump-dir DIR
+        (cProfile of the cases: top functions by cumulative and own CPU time printed, the stats written to
+        bench_out/<out>.prof; --dump-dir: every case's full diagnosis.json (timing removed) into bench_out/DIR)
+    .venv/bin/python benchmarks/diagnose_body.py --compare DIR_A DIR_B
+        (the largest absolute difference of every number between the dumped diagnoses of two runs, and the
+        verdicts: a speed change that should not change results must print 0 differences)
+    .venv/bin/python benchmarks/diagnose_body.py ... --opt FIELD=VALUE
+        (a BodyDiagnoseOptions field, e.g. --opt refit_located_only=True; repeatable)
+    .venv/bin/python benchmarks/diagnose_body.py --hosts xsens_lower,cmu_lower,xsens_full,real_walk --diagnose-hosts real_walk
+        (the harness's real-walk cases only: the other hosts' cases are drawn, not diagnosed)
 Writes bench_out/<out>.
 """
 
@@ -63,8 +73,9 @@ def iou(a0, a1, b0, b1) -> float:
     return inter / union if union > 0 else 0.0
 
 
-def run_case(host: str, session, label: str, rng: np.random.Generator) -> dict:
-    from imugraph.diagnose.body.run import body_effects, diagnose_body
+def run_case(host: str, session, label: str, rng: np.random.Generator, options=None, dump: Path | None = None,
+             diagnose: bool = True) -> dict | None:
+    from imugraph.diagnose.body.run import BodyDiagnoseOptions, body_effects, diagnose_body
 
     truth = {"sensor": None, "t_start": None, "t_end": None, "params": {}}
     if label != "none":
@@ -72,13 +83,19 @@ def run_case(host: str, session, label: str, rng: np.random.Generator) -> dict:
         window = "random" if (label == "soft_tissue" and rng.random() < 0.5) else None
         session, truth = eff.inject(session, rng, window=window) if label == "soft_tissue" else \
             eff.inject(session, rng)
-    t0 = time.perf_counter()
-    d = diagnose_body(session)
-    secs = time.perf_counter() - t0
+    if not diagnose:                    # --diagnose-hosts: the case is drawn (the random stream advances) only
+        return None
+    t0, c0 = time.perf_counter(), time.process_time()
+    d = diagnose_body(session, options or BodyDiagnoseOptions())
+    secs, cpu = time.perf_counter() - t0, time.process_time() - c0
+    if dump is not None:
+        js = d.to_json()
+        js.pop("timing", None)
+        write_json(str(dump / f"{host}_{label}.json"), {"truth": truth, "diagnosis": js})
     top = next((e for e in d.effects if e["name"] == d.verdict and e["sensor"] == d.sensor), None)
     rec = {"host": host, "label": label, "truth": truth, "verdict": d.verdict, "sensor": d.sensor,
            "sensor_hit": d.sensor == truth.get("sensor") if label != "none" else d.sensor is None,
-           "seconds": secs, "timing": d.timing, "n_sensors": len(session.sensors),
+           "seconds": secs, "cpu_s": cpu, "timing": d.timing, "n_sensors": len(session.sensors),
            "duration_s": float(session.t[-1] - session.t[0]),
            "shrink": None if top is None else top["shrink"], "loglik_gain": None if top is None else top["loglik_gain"],
            "effects_top5": [{k: e[k] for k in ("name", "sensor", "channel", "loglik_gain", "loglik_gain_folds", "shrink",
@@ -92,7 +109,8 @@ def run_case(host: str, session, label: str, rng: np.random.Generator) -> dict:
         t_s, t_e = (mine[0]["t_start"], mine[0]["t_end"]) if mine else (None, None)
         rec["window_iou"] = iou(t_s, t_e, truth["t_start"], truth["t_end"])
     print(f"  {host:<12} {label:<19} → {d.verdict:<19} {str(d.sensor):<14} (true sensor {truth.get('sensor')}) "
-          f"shrink {rec['shrink'] if rec['shrink'] is None else round(rec['shrink'], 2)}  {secs:.1f} s", flush=True)
+          f"shrink {rec['shrink'] if rec['shrink'] is None else round(rec['shrink'], 2)}  {secs:.1f} s ({cpu:.1f} s CPU; "
+          f"{ {k: round(v, 1) for k, v in d.timing.items()} })", flush=True)
     return rec
 
 
@@ -108,7 +126,27 @@ def summary(records: list) -> dict:
     return {"confusion": conf, "top1_effect_and_sensor": len(correct) / max(len(injected), 1),
             "none_on_clean_simulations": sum(r["verdict"] == "none" for r in sims_none) / max(len(sims_none), 1),
             "window_iou": ious, "median_shrink_correct": float(np.median(shrinks)) if shrinks else None,
-            "seconds": [r["seconds"] for r in records]}
+            "seconds": [r["seconds"] for r in records], "cpu_s": [r["cpu_s"] for r in records]}
+
+
+def body_options(pairs: list):
+    """BodyDiagnoseOptions with FIELD=VALUE overrides (values as python literals); unknown fields fail."""
+    import ast
+    from dataclasses import fields, replace
+
+    from imugraph.diagnose.body.run import BodyDiagnoseOptions
+    opts = BodyDiagnoseOptions()
+    known = {f.name for f in fields(opts)}
+    for pair in pairs:
+        k, _, v = pair.partition("=")
+        if k not in known:
+            raise SystemExit(f"--opt {k}: not a BodyDiagnoseOptions field ({sorted(known)})")
+        try:
+            val = ast.literal_eval(v)
+        except (ValueError, SyntaxError):
+            val = v
+        opts = replace(opts, **{k: val})
+    return opts
 
 
 def absorption(host: str, sensor: str, duration: float, seed: int) -> list:
@@ -146,6 +184,56 @@ def absorption(host: str, sensor: str, duration: float, seed: int) -> list:
     return out
 
 
+def _numbers(x, path=""):
+    """(path, value) of every number / string / bool in a JSON tree (dict keys sorted, lists by index)."""
+    if isinstance(x, dict):
+        for k in sorted(x):
+            yield from _numbers(x[k], f"{path}.{k}")
+    elif isinstance(x, list):
+        for i, v in enumerate(x):
+            yield from _numbers(v, f"{path}[{i}]")
+    else:
+        yield path, x
+
+
+def compare(dir_a: str, dir_b: str) -> int:
+    """Largest absolute difference of every number between the dumped diagnoses of two runs (--dump-dir)."""
+    import json
+
+    from benchmarks.output import OUT_DIR
+    a_dir, b_dir = OUT_DIR / dir_a, OUT_DIR / dir_b
+    n_diff = 0
+    for fa in sorted(a_dir.glob("*.json")):
+        fb = b_dir / fa.name
+        if not fb.exists():
+            print(f"{fa.name}: missing in {dir_b}")
+            n_diff += 1
+            continue
+        ja, jb = json.loads(fa.read_text()), json.loads(fb.read_text())
+        for j in (ja, jb):                  # effects keyed by (effect, sensor), not by rank
+            j["diagnosis"]["effects"] = {f"{e['name']}@{e['sensor']}": e for e in j["diagnosis"]["effects"]}
+        va, vb = dict(_numbers(ja)), dict(_numbers(jb))
+        worst, where, other = 0.0, None, []
+        for k in sorted(set(va) | set(vb)):
+            x, y = va.get(k, "<missing>"), vb.get(k, "<missing>")
+            if isinstance(x, (int, float)) and isinstance(y, (int, float)) and not isinstance(x, bool):
+                d = abs(float(x) - float(y))
+                if d > worst:
+                    worst, where = d, k
+            elif x != y:
+                other.append((k, x, y))
+        da, db = ja["diagnosis"], jb["diagnosis"]
+        same2 = [k for k, e in da["effects"].items() if e["stage"] == 2 and db["effects"].get(k, {}).get("stage") == 2]
+        d2 = max((abs(float(va[p]) - float(vb[p])) for p in va if any(p.startswith(f".diagnosis.effects.{k}.")
+                  for k in same2) and isinstance(va[p], (int, float)) and isinstance(vb.get(p), (int, float))), default=0.0)
+        print(f"{fa.name}: {len(same2)} candidates refitted in both, max |Δ| of their numbers {d2:.3g}; verdict {da['verdict']}/{da['sensor']} vs {db['verdict']}/{db['sensor']}; "
+              f"{len(va)} values, max |Δ number| {worst:.3g} at {where}; {len(other)} non-numeric differences"
+              + (f" (first: {other[0]})" if other else ""))
+        n_diff += (worst > 0) + len(other)
+    print(f"{n_diff} case(s)/values differing")
+    return 0
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--hosts", default=",".join(HOSTS))
@@ -156,7 +244,18 @@ def main(argv=None) -> int:
     p.add_argument("--absorption", default=None, metavar="SENSOR",
                    help="instead of the harness: how much of an injected drift / acc bias on SENSOR the base "
                         "fit absorbs, per host (docs/diagnose_body.md §3)")
+    p.add_argument("--diagnose-hosts", default=None,
+                   help="diagnose only these of --hosts; the others' cases are drawn but not diagnosed, so the cases "
+                        "of the listed hosts are those of the full run")
+    p.add_argument("--profile", action="store_true", help="cProfile the harness cases (stats to bench_out/<out>.prof)")
+    p.add_argument("--dump-dir", default=None, help="write every case's diagnosis.json into bench_out/DIR")
+    p.add_argument("--compare", nargs=2, default=None, metavar=("DIR_A", "DIR_B"))
+    p.add_argument("--opt", action="append", default=[], metavar="FIELD=VALUE",
+                   help="a BodyDiagnoseOptions field (python literal value), repeatable")
     a = p.parse_args(argv)
+    if a.compare:
+        return compare(*a.compare)
+    options = body_options(a.opt)
     if a.absorption:
         recs = []
         for host in [h for h in a.hosts.split(",") if h]:
@@ -166,11 +265,34 @@ def main(argv=None) -> int:
         return 0
     rng = np.random.default_rng(a.seed)
     records = []
+    dump = Path(a.dump_dir) if a.dump_dir else None
+    prof = None
+    if a.profile:
+        import cProfile
+        prof = cProfile.Profile(time.process_time)          # CPU time, not wall (shared machine)
     for host in [h for h in a.hosts.split(",") if h]:
         base = host_session(host, a.duration, a.seed)
-        print(f"{host}: {len(base.sensors)} sensors, {base.n} samples, {base.rate:.0f} Hz", flush=True)
+        print(f"{host}: {len(base.sensors)} sensors, {base.n} samples, {base.rate:.0f} Hz"
+              + ("" if a.diagnose_hosts is None or host in a.diagnose_hosts.split(",") else " (drawn, not diagnosed)"),
+              flush=True)
         for label in [x for x in a.labels.split(",") if x]:
-            records.append(run_case(host, base, label, rng))
+            if prof is not None:
+                prof.enable()
+            rec = run_case(host, base, label, rng, options, dump,
+                           diagnose=a.diagnose_hosts is None or host in a.diagnose_hosts.split(","))
+            if rec is not None:
+                records.append(rec)
+            if prof is not None:
+                prof.disable()
+    if prof is not None:
+        import pstats
+
+        from benchmarks.output import OUT_DIR
+        OUT_DIR.mkdir(exist_ok=True)
+        prof.dump_stats(str(OUT_DIR / (Path(a.out).stem + ".prof")))
+        st = pstats.Stats(prof)
+        st.sort_stats("cumulative").print_stats(35)
+        st.sort_stats("tottime").print_stats(20)
     s = summary(records)
     print("\nconfusion (rows: injected, columns: verdict)")
     print(f"{'':<20}" + "".join(f"{c[:12]:>13}" for c in LABELS))
@@ -187,6 +309,7 @@ def main(argv=None) -> int:
               f"left thigh soft_tissue: G {lt.get('loglik_gain', float('nan')):+.3f}, shrink "
               f"{lt.get('shrink', float('nan')):.2f}, size {lt.get('size')}, significant {lt.get('significant')}, "
               f"relevant {lt.get('relevant')}, stage {lt.get('stage')}")
+    print(f"CPU per case: {[round(r['cpu_s'], 1) for r in records]} s, total {sum(r['cpu_s'] for r in records):.1f} s")
     path = write_json(a.out, {"issue": "5 (body)", "args": vars(a), "summary": s, "records": records})
     print(f"wrote {path}")
     return 0

@@ -91,12 +91,13 @@ def prescreen(real, sensor: str) -> dict:
             "ptp_deg_s": float(np.rad2deg(np.max(np.ptp(beta, axis=0))))}
 
 
-def extended_graph(pb, sensor: str):
-    """The base graph with sensor's bias random walk replaced by (BD1); returns (graph, drift key)."""
+def extended_graph(pb, sensor: str, graph=None):
+    """The base graph with sensor's bias random walk replaced by (BD1); returns (graph, drift key). graph: a
+    copy of the base graph of pb to modify (fit.problem_graph; None: full_graph(pb) is built)."""
     from imugraph.graphs.body import full_graph
 
     s = pb.names.index(sensor)
-    g = full_graph(pb)
+    g = full_graph(pb) if graph is None else graph
     first, dt, Bbar = segment_basis(pb)
     dkey = drift_key(s)
     walk = {(pb.bkey(s, int(first[m - 1])), pb.bkey(s, int(first[m]))): m for m in range(1, len(first))}
@@ -131,14 +132,14 @@ def refit_drift(real, sensor: str, max_iterations: int | None = MAX_ITERATIONS):
     """θ* of the base model extended by (BD1) on `sensor`, warm from the base solution: (BodyFit, params)."""
     from dataclasses import replace
 
-    from imugraph.diagnose.body.fit import _extract
+    from imugraph.diagnose.body.fit import _extract, problem_graph
     from imugraph.graphs.body import optimize
 
     pb = real.problem
     if max_iterations is not None:
         pb = replace(pb, opts=replace(pb.opts, max_iterations=int(max_iterations)))
     t0 = time.perf_counter()
-    g, dkey = extended_graph(pb, sensor)
+    g, dkey = extended_graph(pb, sensor, problem_graph(real))
     x0 = gtsam.Values(real.values)
     x0.insert(dkey, np.zeros(9))
     x, info = optimize(pb, g, x0)
@@ -173,13 +174,20 @@ class GraphDrift:
                               size={"value": ptp, "threshold": self.relevant, "unit": "°/s"})
 
 
-def graph_drift_candidates(real, sensors, a, b, sigma, opt, base: dict, score, say=print) -> list:
+def graph_drift_candidates(real, sensors, a, b, sigma, opt, base: dict, score, say=print, only=None) -> list:
     """(BD2) pre-screen on every sensor, then (BD1) refits of the best N_GRAPH (ΔC > MIN_PRESCREEN), each scored
-    by `score` (run.score_candidate) against the base fit. Returns the stage-2 results (prescreen attached)."""
+    by `score` (run.score_candidate) against the base fit. Returns the stage-2 results (prescreen attached).
+    only: a set of sensors (None: all): a picked sensor outside it is not refitted (its screened result stays;
+    BodyDiagnoseOptions.refit_located_only)."""
     from imugraph.diagnose.effects.gyro_bias_drift import RELEVANT_DEG_S
 
     pre = {n: prescreen(real, n) for n in sensors}
     picked = sorted((n for n in sensors if pre[n]["gain"] > MIN_PRESCREEN), key=lambda n: -pre[n]["gain"])[:N_GRAPH]
+    if only is not None:
+        for n in picked:
+            if n not in only:
+                say(f"drift graph refit on {n} skipped (no located gap; ΔC {pre[n]['gain']:.1f})")
+        picked = [n for n in picked if n in only]
     out = []
     for n in picked:
         try:

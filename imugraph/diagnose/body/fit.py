@@ -105,6 +105,7 @@ class BodyFit:
     info: dict = field(default_factory=dict)
     problem: object = field(default=None, repr=False)    # the body problem (graphs.body.BodyProblem) solved
     values: object = field(default=None, repr=False)     # its solution (gtsam.Values): warm starts (refit)
+    graph: object = field(default=None, repr=False)      # its graph (full_graph(problem)): reused by warm refits
 
     @property
     def names(self) -> list:
@@ -193,8 +194,58 @@ def fit_body(session, opts=None) -> BodyFit:
                            "a session without skeleton or sensors", "a body session (imugraph.io.body_session)")
     t0 = time.perf_counter()
     pb = build_problem(session, opts)
-    x, info = optimize(pb, full_graph(pb), pb.init)
-    return _extract(session, pb, x, info, t0)
+    graph = full_graph(pb)
+    x, info = optimize(pb, graph, pb.init)
+    return _extract(session, pb, x, info, t0, graph)
+
+
+def problem_graph(bfit: BodyFit):
+    """A copy of the graph bfit was solved on (the factors shared, the container new: a caller may replace
+    factors), or full_graph(problem) when it was not kept."""
+    import gtsam
+
+    from imugraph.graphs.body import full_graph
+
+    return full_graph(bfit.problem) if bfit.graph is None else gtsam.NonlinearFactorGraph(bfit.graph)
+
+
+def graph_with_sensor(graph0, pb, sensor: str):
+    """full_graph(pb) for a problem pb that differs from the one `graph0` was built for ONLY in `sensor`'s setup
+    and preintegration (fit.refit_body_warm): a copy of graph0 with that sensor's factors replaced — its bias
+    prior at k = 0 (the setup's start gyro bias) and its K − 1 ImuFactors — at the same positions, so the
+    factor order, and with it the elimination ordering and the solution, are those of a fresh full_graph(pb).
+    The factors are found by their keys (the prior: the single key B(s, 0); an ImuFactor: X(s,k−1), V(s,k−1),
+    X(s,k), V(s,k), B); None when the graph has other factor types on those keys (hinges, chains,
+    magnetometers: the caller then builds full_graph) or the count does not match."""
+    import gtsam
+
+    from imugraph.factors import body as bf
+    from imugraph.graphs.body import factors_at
+
+    o = pb.opts
+    if pb.bRs_fixed is not None or pb.chains is not None or o.use_mag:
+        return None
+    s = pb.names.index(sensor)
+    imu_at = {(bf.pose_key(s, k - 1), bf.vel_key(s, k - 1), bf.pose_key(s, k), bf.vel_key(s, k)): k
+              for k in range(1, pb.K)}
+    prior_key = pb.bkey(s, 0)
+    k0 = factors_at(pb, 0)                                   # the new bias prior, built as full_graph builds it
+    prior = [k0.at(i) for i in range(k0.size()) if list(k0.at(i).keys()) == [prior_key]]
+    g = gtsam.NonlinearFactorGraph(graph0)
+    found = 0
+    for i in range(g.size()):
+        f = g.at(i)
+        if f is None:
+            continue
+        keys = tuple(f.keys())
+        if len(keys) == 1 and keys[0] == prior_key and len(prior) == 1:
+            g.replace(i, prior[0])
+            found += 1
+        elif len(keys) == 5 and keys[:4] in imu_at:
+            k = imu_at[keys[:4]]
+            g.replace(i, gtsam.ImuFactor(*keys[:4], pb.bkey(s, k - 1), pb.pims[sensor][k - 1]))   # as factors_at
+            found += 1
+    return g if found == pb.K else None
 
 
 def refit_body_warm(base: BodyFit, session, sensor: str, max_iterations: int | None = None) -> BodyFit:
@@ -219,11 +270,13 @@ def refit_body_warm(base: BodyFit, session, sensor: str, max_iterations: int | N
     pims = dict(pb0.pims)
     pims[sensor] = sensor_pims(session.sensors[sensor], setups[sensor], pb0.kf, opts)
     pb = dc_replace(pb0, session=session, opts=opts, setups=setups, pims=pims, mag_dirs=None)
-    x, info = optimize(pb, full_graph(pb), base.values)
-    return _extract(session, pb, x, dict(info, warm_start=True), t0)
+    graph = graph_with_sensor(base.graph, pb, sensor) if base.graph is not None else None
+    graph = full_graph(pb) if graph is None else graph
+    x, info = optimize(pb, graph, base.values)
+    return _extract(session, pb, x, dict(info, warm_start=True), t0, graph)
 
 
-def _extract(session, pb, x, info: dict, t0: float) -> BodyFit:
+def _extract(session, pb, x, info: dict, t0: float, graph=None) -> BodyFit:
     """BodyFit (residuals (BR1)–(BR4) per sensor) of the solution x of problem pb."""
     from imugraph.factors import body as bf
     from imugraph.graphs.body_output import make_result
@@ -257,7 +310,7 @@ def _extract(session, pb, x, info: dict, t0: float) -> BodyFit:
     _add_joint_accelerations(session, result, pb, sensors, x)
     info = dict(info, seconds=time.perf_counter() - t0, keyframes=int(pb.K), npose=pb.npose_method,
                 npose_window=(float(t[pb.npose_idx[0]]), float(t[pb.npose_idx[-1]])))
-    return BodyFit(session, result, pb.kf, sensors, float(pb.opts.g), info, problem=pb, values=x)
+    return BodyFit(session, result, pb.kf, sensors, float(pb.opts.g), info, problem=pb, values=x, graph=graph)
 
 
 def _add_joint_accelerations(session, result, pb, sensors: dict, x) -> None:

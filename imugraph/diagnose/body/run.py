@@ -78,12 +78,27 @@ class BodyDiagnoseOptions:
     """seed: of the two simulations; effects: subset of the library (None: all); sensors: subset of sensors
     to attribute (None: all); body_options: the base model's BodyOptions (None: defaults); warm: the simulations'
     fits and stage 2's body solves start from the recording's solution (simulate.fit_simulation,
-    fit.refit_body_warm; False: cold fits from the gyro-integrated initial values, as the recording's)."""
+    fit.refit_body_warm; False: cold fits from the gyro-integrated initial values, as the recording's);
+    refit_located_only: stage 2 (the full refits of the best screened candidates and the drift graph refit)
+    only for candidates whose sensor has a located gap (`localise`: some channel's windowed gap above its
+    thresholds); the others keep their screened result (speed: docs/diagnose_body.md "Session 18, helper B";
+    False: every candidate N_REFIT / the best (BD2) sensor is refitted); n_refit: how many of the best screened
+    candidates (G > 0, not the drift) stage 2 refits (default N_REFIT = 3; each costs two warm body solves; the
+    candidates are refitted independently, so n_refit = 1 gives the first one's result of the default run);
+    keyframe_every: the body graph's keyframe spacing in samples for every fit of the diagnosis (base fit,
+    simulations, refits), replacing body_options' (None: the base model's, BodyOptions default 6): fewer
+    states per solve, but a different (coarser) user model and keyframe-interval residual time base;
+    keyframe_s: the same in seconds, keyframe_every = round(keyframe_s / median sample interval) (0.1 s: 6 at
+    60 Hz, the default there, 10 at 100 Hz); not together with keyframe_every."""
     seed: int = 0
     effects: tuple | None = None
     sensors: tuple | None = None
     body_options: object = None
     warm: bool = True
+    refit_located_only: bool = False
+    n_refit: int = N_REFIT
+    keyframe_every: int | None = None
+    keyframe_s: float | None = None
 
 
 @dataclass
@@ -196,11 +211,22 @@ def diagnose_body(session, options: BodyDiagnoseOptions = BodyDiagnoseOptions(),
     say = progress or (lambda m: None)
     opt = GapOptions()
     t0 = time.perf_counter()
-    real = fit_body(session, options.body_options)
+    bopts = options.body_options
+    every = options.keyframe_every
+    if options.keyframe_s is not None:
+        if every is not None:
+            raise ValueError("BodyDiagnoseOptions: keyframe_every and keyframe_s are exclusive")
+        every = max(1, int(round(float(options.keyframe_s) / float(np.median(np.diff(np.asarray(session.t, float)))))))
+    if every is not None:                                      # speed option (docstring): a coarser graph
+        from dataclasses import replace as dc_replace
+
+        from imugraph.graphs.body_model import BodyOptions
+        bopts = dc_replace(BodyOptions() if bopts is None else bopts, keyframe_every=int(every))
+    real = fit_body(session, bopts)
     say(f"base fit: {real.info['iterations']} LM iterations, {real.info['seconds']:.1f} s")
     rng = np.random.default_rng(options.seed)
-    a = fit_simulation(simulate_from_fit(real, rng, "+simA"), real, options.body_options, warm=options.warm)
-    b = fit_simulation(simulate_from_fit(real, rng, "+simB"), real, options.body_options, warm=options.warm)
+    a = fit_simulation(simulate_from_fit(real, rng, "+simA"), real, bopts, warm=options.warm)
+    b = fit_simulation(simulate_from_fit(real, rng, "+simB"), real, bopts, warm=options.warm)
     t_sim = time.perf_counter()
     say(f"simulations A and B fitted ({t_sim - t0:.1f} s so far)")
     sigma = model_sigma(a)
@@ -218,12 +244,18 @@ def diagnose_body(session, options: BodyDiagnoseOptions = BodyDiagnoseOptions(),
             results.append(r)
     results.sort(key=lambda r: -r["loglik_gain"])
     t_screen = time.perf_counter()
-    cands = [i for i, r in enumerate(results) if r["loglik_gain"] > 0 and r["name"] != "gyro_bias_drift"][:N_REFIT]
+    cands = [i for i, r in enumerate(results)
+             if r["loglik_gain"] > 0 and r["name"] != "gyro_bias_drift"][:options.n_refit]
+    located = {loc["sensor"] for loc in locations} if options.refit_located_only else None
     for i in cands:                                                          # stage 2 (body/refit.py)
         r = results[i]
+        if located is not None and r["sensor"] not in located:
+            r["refit_skipped"] = "no located gap"
+            say(f"refit {r['name']} on {r['sensor']} skipped (no located gap)")
+            continue
         eff = next(e for e in body_effects(options.effects) if e.name == r["name"])
         try:
-            theta = refit_effect(eff, real, r["sensor"], sigma[r["sensor"]], options.body_options,
+            theta = refit_effect(eff, real, r["sensor"], sigma[r["sensor"]], bopts,
                                  warm=options.warm)
             r2 = score_candidate(eff, real, a, b, sigma, r["sensor"], opt, theta, base=base[r["sensor"]])
         except (np.linalg.LinAlgError, RuntimeError, ValueError) as exc:   # keep the screened result
@@ -238,7 +270,7 @@ def diagnose_body(session, options: BodyDiagnoseOptions = BodyDiagnoseOptions(),
         say(f"refit {r['name']} on {r['sensor']}: G {r['loglik_gain']:+.3f} → {r2['loglik_gain']:+.3f}, "
             f"shrink {r['shrink']:.2f} → {r2['shrink']:.2f} (LM iterations per round {r2['refit_iterations']})")
     if any(e.name == "gyro_bias_drift" for e in body_effects(options.effects)):     # stage 2 of the drift: (BD1)
-        for r2 in graph_drift_candidates(real, sensors, a, b, sigma, opt, base, score_candidate, say):
+        for r2 in graph_drift_candidates(real, sensors, a, b, sigma, opt, base, score_candidate, say, only=located):
             i = next(i for i, r in enumerate(results) if r["name"] == r2["name"] and r["sensor"] == r2["sensor"])
             r2["screen"] = {k: results[i][k] for k in ("loglik_gain", "shrink", "size", "significant", "relevant")}
             results[i] = r2

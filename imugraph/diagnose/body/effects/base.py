@@ -132,6 +132,21 @@ def linear_fit(base: dict, columns: list, sigma: dict, train: np.ndarray) -> tup
     return theta, out
 
 
+def base_residuals(bfit: BodyFit, sensor: str) -> dict:
+    """`residuals_with(bfit, sensor)` (the sensor's residuals for its own measurements), computed once per fit
+    and sensor: every (BE1) column is a difference against it (soft_tissue asks for it per (f_n, ζ) grid point
+    against a refit θ*). Cached in bfit.info, keyed by the identity of the sensor's fit and measurements, so a
+    changed SensorFit or session recomputes it."""
+    from imugraph.diagnose.body.fit import residuals_with
+
+    cache = bfit.info.setdefault("_base_residuals", {})
+    sf, ses = bfit.sensors[sensor], bfit.session.sensors[sensor]
+    hit = cache.get(sensor)
+    if hit is None or hit[0] is not sf or hit[1] is not ses:
+        hit = cache[sensor] = (sf, ses, residuals_with(bfit, sensor))
+    return hit[2]
+
+
 def changed_columns(bfit: BodyFit, sensor: str, deltas: list, kind: str, key=None) -> list:
     """(BE1) columns for measurement changes `deltas` (list of (N, 3)) of the gyro (kind "gyr", first order by a
     small step) or the accelerometer ("acc", exact: linear). key: cache them in bfit.info under this key (the
@@ -142,8 +157,8 @@ def changed_columns(bfit: BodyFit, sensor: str, deltas: list, kind: str, key=Non
     if key is not None and (key, sensor) in cache:
         return cache[(key, sensor)]
 
-    base = residuals_with(bfit, sensor)
     ses = bfit.session.sensors[sensor]
+    base = base_residuals(bfit, sensor)
     cols = []
     for d in deltas:
         eps = 1e-3 / max(float(np.max(np.abs(d))), 1e-12) if kind == "gyr" else 1.0
