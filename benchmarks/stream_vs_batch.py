@@ -67,7 +67,16 @@ CONFIGS = {"default": {}, "states": {"calib_states": True, "disturb_detect": Tru
            # the solver alone: start calibration held fixed, no field perturbation (README's earlier 0.06° on 01)
            "fixed_nofield": {"online_calibration": False, "field_sigma": None},
            # session 17 (helper L): the end graph's magnetometer factors at the streamed θ instead of the pin θ₀
-           "start_theta": {"calib_final_theta": False}}
+           "start_theta": {"calib_final_theta": False},
+           # session 18 (helper W): the end graph's disturbance windows from the whole stream (stream_windows_end)
+           "windows_end": {"windows_end": True}, "windows_end_theta": {"windows_end": "theta"},
+           "velocity_end": {"velocity_end": "ar2"}, "velocity_end_gm": {"velocity_end": "gm"},   # session 18 (helper V)
+           "velocity_end_batch": {"velocity_end": "ar2_batch"},   # session 18 (helper V): at the batch's keyframe spacing
+           "velocity_end_batch_em": {"velocity_end": "ar2_batch_em"},   # the same, the AR(2) as the E-step's prior
+           "velocity_end_id": {"velocity_end": "ar2_batch_id"},   # the same, kept unless both variance bounds decide it
+           "gyro_map_end": {"gyro_map_end": True}, "gyro_map_split": {"gyro_map_end": "split"},
+           "gyro_map_batch_clean": {"gyro_map_end": "batch_clean"},
+           "gyro_map_velocity_end": {"gyro_map_end": True, "velocity_end": "ar2"}}   # session 18 (helper E, stream_gmap)
 
 
 def rms_between(q_a: np.ndarray, q_b: np.ndarray, mask: np.ndarray | None, rate: float,
@@ -183,6 +192,9 @@ def same_model(s, opts, r, sm, boot, kf: float) -> dict:
 
     calstate = bool(sm._calstate)
     cal = end_graph_calibration(boot, sm, opts) if calstate or not opts.online_calibration else r.calibration
+    if getattr(sm, "_gmap", None) is not None and sm._gmap.info.get("estimated"):    # gyro_map_end: the end graph's Ê
+        from dataclasses import replace
+        cal = replace(cal, gyro_map=sm._gmap.total(sm._final))
     K = sm._k + 1
     off = stream_offsets(sm, K)
     # rotation_tol_deg 0.001: solved to convergence (the CLI's 0.05° stops a step earlier; the target is 0.1°)
@@ -251,6 +263,7 @@ def run_trial(path: Path, configs: list[str], cache: str | None, bootstrap_s: fl
             "same_h_deg": rms_between(r.smoothed, same["q"]["same"], s.movement, s.rate, heading=True),
             "same_truth_deg": truth_err(same["q"]["same"], s), "same_cpu_s": same["cpu_s"],
             "window_keyframes": same["window_keyframes"],
+            "gyro_map_end": getattr(sm, "_gmap", None) and sm._gmap.info, "batch_gyro_map": np.asarray(full.gyro_map).tolist(),
             "failed_updates": r.counts.get("failed_updates"), "stream_s": stream_s, "smooth_s": smooth_s,
             "calibration_s": cal_s, "cached_calibrations": cached, "samples": s.n, "bootstrap_samples": n_boot,
             "keyframe_hz": kf})

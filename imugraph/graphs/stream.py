@@ -154,6 +154,17 @@ class StreamSmoother(OnlineCalibrationMixin, KeyframeStartMixin, ArrivalMixin, S
         # end-of-stream model extensions, each (graph, values) -> (graph, values), applied in order to the end graph
         # before its Levenberg–Marquardt (stream_output.finish); empty by default
         self._end_extensions: list = []
+        if options.windows_end and options.lag_s is None:     # the end graph's windows from the whole stream
+            from imugraph.graphs.stream_windows_end import attach
+            attach(self)
+        if options.velocity_end != "off" and options.lag_s is None:   # σ_v, τ_v by EM on the end graph (stream_velocity)
+            from imugraph.graphs.stream_velocity import VelocityEnd
+            self._end_extensions.append(VelocityEnd(self, options.velocity_end))
+        self._gmap = None                    # gyro_map_end: E estimated by the end graph (stream_gmap)
+        if options.gyro_map_end and options.lag_s is None and options.keep_history:
+            from imugraph.graphs.stream_gmap import EndGyroMap
+            self._gmap = EndGyroMap(self)
+            self._end_extensions.append(self._gmap.extend)
 
     # ------------------------------------------------------------------ arrival
     def push(self, t: float, gyr, acc, mag=None) -> np.ndarray:
@@ -344,6 +355,10 @@ class StreamSmoother(OnlineCalibrationMixin, KeyframeStartMixin, ArrivalMixin, S
             self._hist_t.append(t[:-1])
             if self.opt.lag_s is None:
                 self._hist_y.append(y)
+                if self.opt.windows_end:             # raw rows, no start windows (stream_windows_end)
+                    self._hist_raw.append(m_raw.copy())
+        if self._gmap is not None:           # J_k and E's coverage sums (stream_gmap)
+            self._gmap.interval(k, t, w, rows[:, 4:7], kRb, delta_R, bool(self.opt.gap_bridge and gap.any()))
         self._k = k + 1
         self._maintained = not self._chain
         if self._online is not None:

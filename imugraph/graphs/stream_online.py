@@ -386,7 +386,8 @@ class OnlineCalibrationMixin:
         from imugraph.graphs.solver import chain_ordering, optimize
 
         present = set(values.keys())
-        order = [key for k in range(self._k + 1) for key in (pose_key(k), keys.vel(k), field_key(k)) if key in present]
+        order = [key for k in range(self._k + 1) for key in (pose_key(k), keys.vel(k), field_key(k), gtsam.symbol("q", k))
+                 if key in present]        # q: stream_gmap's β_k (gyro_map_end), eliminated in the chain
         in_order = set(order)
         rest = [key for key in values.keys() if key not in in_order]
         return optimize(graph, [], values, chain_ordering(order, rest))[0]

@@ -1,0 +1,123 @@
+"""Session 18, helper V: the stream's end-of-stream EM of the velocity process (StreamOptions.velocity_end).
+
+benchmarks/stream_vs_batch.py's comparison (its `run_trial`, every column unchanged: `vs_batch_field_h_deg` the
+target, `same_deg`, `stream_truth_deg`, ...) plus, per row, the velocity process the stream's end graph used
+(`StreamSmoother.velocity_end_result`: σ̂_v, τ̂_v, outer solves, inner EM steps, CPU of the extension) next to the
+bootstrap's (the stream's start) and the whole-trial batch calibration's (`full`, compared, never fed).
+
+    OPENBLAS_NUM_THREADS=1 .venv/bin/python benchmarks/v18_velocity_end.py TRIALS
+        [--config default,velocity_end,velocity_end_gm] [--cache /tmp/A_cache] [--out v18_velocity_end.json]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+import benchmarks.stream_vs_batch as svb  # noqa: E402
+from benchmarks.common import broad_trials, trial_number  # noqa: E402
+from benchmarks.output import write_json  # noqa: E402
+
+_LAST: list = []
+
+
+def _recording(real):
+    """stream_with_recorder that also keeps the smoother's velocity_end_result and the stream's CPU time."""
+    def wrapped(s, opts, bootstrap_s, boot, n_boot):
+        t0 = time.process_time()
+        r, sm = real(s, opts, bootstrap_s, boot, n_boot)
+        _LAST.append({"velocity_end": getattr(sm, "velocity_end_result", None),
+                      "stream_cpu_s": time.process_time() - t0})
+        return r, sm
+    return wrapped
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("trials", nargs="?", default="7,30,34,36")
+    ap.add_argument("--config", default="default,velocity_end")
+    ap.add_argument("--cache", default="/tmp/A_cache")
+    ap.add_argument("--bootstrap-s", type=float, default=30.0)
+    ap.add_argument("--out", default="v18_velocity_end.json")
+    ap.add_argument("--summarise", default=None, help="comma-separated bench_out JSONs of earlier runs: print the "
+                    "per-trial table (the last row per trial and config; --config given: only those) and the "
+                    "per-config means over the trials every config has; no run")
+    a = ap.parse_args(argv)
+    if a.summarise:
+        return summarise(a.summarise.split(","), a.config.split(",") if a.config != ap.get_default("config") else None)
+    configs = a.config.split(",")
+    paths = broad_trials()
+    if a.trials != "all":
+        want = {int(x) for x in a.trials.split(",")}
+        paths = [p for p in paths if trial_number(p) in want]
+    svb.stream_with_recorder = _recording(svb.stream_with_recorder)
+    rows: list[dict] = []
+    for p in paths:
+        _LAST.clear()
+        new = svb.run_trial(p, configs, a.cache, a.bootstrap_s)
+        boot, _, full, _, _ = svb.calibrations(None, f"{trial_number(p):02d}", a.cache, a.bootstrap_s)
+        for r, extra in zip(new, _LAST):
+            ve = extra["velocity_end"] or {}
+            r.update(extra, sigma_boot=boot.velocity_sigma, tau_boot=boot.velocity_tau,
+                     sigma_full=full.velocity_sigma, tau_full=full.velocity_tau,
+                     sigma_end=ve.get("sigma"), tau_end=ve.get("tau"))
+            print(f"{r['trial']} {r['config']:16s} vs_batch_field_h {r['vs_batch_field_h_deg']:.3f}° same "
+                  f"{r['same_deg']:.3f}° truth {r['stream_truth_deg']:.3f}° (batch {r['batch_field_truth_deg']:.3f}°) | "
+                  f"σ_v boot {r['sigma_boot']:.3f} end {r['sigma_end'] or float('nan'):.3f} batch {r['sigma_full']:.3f}"
+                  f" | τ_v boot {r['tau_boot']:.3f} end {r['tau_end'] or float('nan'):.3f} batch {r['tau_full']:.3f} | "
+                  f"id {ve.get('identified')} outer {ve.get('outer')} inner {ve.get('inner')} ext cpu {ve.get('cpu_s', 0.0):.1f} s "
+                  f"stream cpu {r['stream_cpu_s']:.1f} s | load {os.getloadavg()[0]:.1f}", flush=True)
+        rows += new
+        write_json(a.out, {"rows": rows, "configs": {c: svb.CONFIGS[c] for c in configs}})
+    for c in configs:
+        sub = [r for r in rows if r["config"] == c]
+        v = np.array([r["vs_batch_field_h_deg"] for r in sub])
+        tr = np.array([r["stream_truth_deg"] for r in sub])
+        if v.size:
+            print(f"{c}: vs_batch_field_h mean {v.mean():.3f}°, ≤ 0.1°: {int((v <= 0.1).sum())}/{v.size}; "
+                  f"truth mean {tr.mean():.3f}°")
+    return 0
+
+
+def summarise(names: list[str], only: list[str] | None = None) -> int:
+    """Per trial and config (the last row wins): vs_batch_field_h, truth, σ̂_v/τ̂_v vs the batch's; per-config means
+    over the trials every config has."""
+    import json
+
+    from benchmarks.output import OUT_DIR
+
+    best: dict = {}
+    for n in names:
+        for r in json.loads((OUT_DIR / n).read_text())["rows"]:
+            if only is None or r["config"] in only:
+                best[(r["trial"], r["config"])] = r
+    configs = sorted({c for _, c in best})
+    trials = sorted({t for t, _ in best})
+    for t in trials:
+        cells = []
+        for c in configs:
+            r = best.get((t, c))
+            if r:
+                ve = r.get("velocity_end") or {}
+                cells.append(f"{c} {r['vs_batch_field_h_deg']:.3f}/{r['stream_truth_deg']:.3f}"
+                             + (f" (σ {ve['sigma']:.3f} τ {ve['tau']:.3f} id {ve.get('identified')})" if ve else ""))
+        r0 = next(best[(t, c)] for c in configs if (t, c) in best)
+        print(f"{t} batch σ {r0['sigma_full']:.3f} τ {r0['tau_full']:.3f} | " + " | ".join(cells))
+    common = [t for t in trials if all((t, c) in best for c in configs)]
+    for c in configs:
+        v = np.array([best[(t, c)]["vs_batch_field_h_deg"] for t in common])
+        tr = np.array([best[(t, c)]["stream_truth_deg"] for t in common])
+        print(f"{c} over {len(common)} trials: vs_batch_field_h mean {v.mean():.3f}°, ≤ 0.1°: {int((v <= 0.1).sum())}/"
+              f"{len(common)}; truth mean {tr.mean():.3f}°")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
