@@ -76,7 +76,10 @@ CONFIGS = {"default": {}, "states": {"calib_states": True, "disturb_detect": Tru
            "velocity_end_id": {"velocity_end": "ar2_batch_id"},   # the same, kept unless both variance bounds decide it
            "gyro_map_end": {"gyro_map_end": True}, "gyro_map_split": {"gyro_map_end": "split"},
            "gyro_map_batch_clean": {"gyro_map_end": "batch_clean"},
-           "gyro_map_velocity_end": {"gyro_map_end": True, "velocity_end": "ar2"}}   # session 18 (helper E, stream_gmap)
+           "gyro_map_velocity_end": {"gyro_map_end": True, "velocity_end": "ar2"},   # session 18 (helper E, stream_gmap)
+           # session 18 (lead): the three end-graph extensions together, with and without the gyro map
+           "end_wv": {"windows_end": "theta", "velocity_end": "ar2_batch_id"},
+           "end_all": {"windows_end": "theta", "velocity_end": "ar2_batch_id", "gyro_map_end": True}}
 
 
 def rms_between(q_a: np.ndarray, q_b: np.ndarray, mask: np.ndarray | None, rate: float,
@@ -187,16 +190,29 @@ def end_graph_calibration(start, sm, opts):
 
 def same_model(s, opts, r, sm, boot, kf: float) -> dict:
     """Batch smooths of the stream's end model (module docstring, (d)) and its attribution variants:
-    {"q": {column: (N, 4)}, "cpu_s": CPU s of the (d) smooth, "window_keyframes": keyframes with a Δo_w}."""
+    {"q": {column: (N, 4)}, "cpu_s": CPU s of the (d) smooth, "window_keyframes": keyframes with a Δo_w}.
+    With windows_end (the end graph rebuilt): θ and windows from stream_windows_end.end_calibration (the end θ, the
+    end windows with their final Δo_w or left out; no causal Δo_w), `same_causalwin` the earlier form (start θ /
+    streamed θ and the causal windows' offsets, stream_offsets) for comparison."""
+    from dataclasses import replace
+
     from imugraph.graphs.cpp_smoother import smooth_fixed
+    from imugraph.graphs.stream_windows_end import end_calibration
 
     calstate = bool(sm._calstate)
     cal = end_graph_calibration(boot, sm, opts) if calstate or not opts.online_calibration else r.calibration
     if getattr(sm, "_gmap", None) is not None and sm._gmap.info.get("estimated"):    # gyro_map_end: the end graph's Ê
-        from dataclasses import replace
         cal = replace(cal, gyro_map=sm._gmap.total(sm._final))
+    v = getattr(sm, "velocity_end_result", None)
+    if v and "skipped" not in v:                   # velocity_end: the end graph's σ̂_v, τ̂_v
+        cal = replace(cal, velocity_sigma=float(v["sigma"]), velocity_tau=float(v["tau"]))
     K = sm._k + 1
-    off = stream_offsets(sm, K)
+    cal_end = end_calibration(sm, cal) if opts.windows_end else None
+    off_causal = stream_offsets(sm, K)
+    cal_causal, off = cal, off_causal
+    if cal_end is not None:     # windows_end: end θ, END windows (Calibration.corrected); a factor per closed interval
+        cal, off = cal_end, np.full((K, 3), np.nan)
+        off[:len(sm._hist_raw)] = 0.0
     # rotation_tol_deg 0.001: solved to convergence (the CLI's 0.05° stops a step earlier; the target is 0.1°)
     base = dict(keyframe_hz=kf, field_sigma=opts.field_sigma, field_tau=opts.field_tau,
                 mag_model="raw" if calstate else "calibrated", mag_offsets=off, rotation_tol_deg=0.001)
@@ -204,11 +220,16 @@ def same_model(s, opts, r, sm, boot, kf: float) -> dict:
     q = {"same": smooth_fixed(s, cal, **base)}
     cpu_s = time.process_time() - t0
     q["same_calform"] = smooth_fixed(s, cal, **{**base, "mag_model": "calibrated"})
-    q["same_nooffs"] = smooth_fixed(s, cal, **{**base, "mag_offsets": None})
+    q["same_nooffs"] = smooth_fixed(s, cal if cal_end is None else replace(cal, disturbances=[]),
+                                    **{**base, "mag_offsets": None})
     if opts.field_sigma is not None:
         q["same_nofield"] = smooth_fixed(s, cal, **{**base, "field_sigma": None})
     q["same_endcal"] = smooth_fixed(s, r.calibration, **base)
     wk = int(np.sum(np.any(off != 0, axis=1) & np.all(np.isfinite(off), axis=1)))
+    if cal_end is not None:     # the earlier same-model smooth; keyframes with a sample in a modelled end window
+        q["same_causalwin"] = smooth_fixed(s, cal_causal, **{**base, "mag_offsets": off_causal})
+        wins = [(d["t_start"], d["t_end"]) for d in cal_end.disturbances if d["modelled"] and d["offset"] is not None]
+        wk = sum(any(t[0] <= b and t[-1] >= a for a, b in wins) for t in sm._hist_t)
     return {"q": q, "cpu_s": cpu_s, "window_keyframes": wk}
 
 
@@ -308,14 +329,14 @@ def main(argv: list[str] | None = None) -> int:
             "vs_batch_cal_h_deg", "vs_batch_field_h_deg", "stream_truth_deg",
             "end_cal_truth_deg", "batch_cal_truth_deg", "failed_updates", "stream_s"]
     print_table(rows, ["trial", "config", "same_deg", "same_h_deg", "same_calform_deg", "same_nooffs_deg",
-                       "same_nofield_deg", "same_endcal_deg", "window_keyframes", "stream_truth_deg", "same_truth_deg",
+                       "same_nofield_deg", "same_endcal_deg", "same_causalwin_deg", "window_keyframes", "stream_truth_deg", "same_truth_deg",
                        "same_cpu_s"])
     print_table(rows, cols)
     for c in configs:
         sub = [r for r in rows if r["config"] == c]
         for k in ("vs_end_deg", "vs_start_deg", "vs_batch_cal_deg", "vs_end_h_deg", "vs_start_h_deg",
                   "vs_batch_cal_h_deg", "vs_batch_field_deg", "vs_batch_field_h_deg", "same_deg", "same_h_deg", "same_calform_deg", "same_nooffs_deg",
-                  "same_nofield_deg", "same_endcal_deg"):
+                  "same_nofield_deg", "same_endcal_deg", "same_causalwin_deg"):
             v = np.array([r[k] for r in sub if k in r])
             if not v.size:
                 continue

@@ -108,6 +108,8 @@ def test_recovers_known_gyro_map(long_case):
     E_hat = np.array(info["E"])
     assert np.abs(E_hat - E_TRUE).max() < 1e-3, (E_hat, E_TRUE)
     assert np.allclose(sm_on._gmap.total(sm_on._final), E_hat, atol=1e-4)     # the final LM keeps it
+    assert np.allclose(sm_on.cal.gyro_map, sm_on._gmap.total(sm_on._final))   # calibration.json carries Ê
+    assert not np.any(sm_off.cal.gyro_map)
     err_off = orientation_error(q_off, s.quat, None, RATE).rms_deg
     err_on = orientation_error(q_on, s.quat, None, RATE).rms_deg
     print(f"\nsimulated E: smoothed vs truth off {err_off:.3f}°, on {err_on:.3f}°; max |Ê − E| {np.abs(E_hat - E_TRUE).max():.2e}")

@@ -46,7 +46,9 @@ def test_same_model_with_disturbance_windows():
     end graph re-issues those keyframes' factors on (pose_k, d_k, Δo_w) (stream_calstate.pinned_mag_factor's offset
     branch), and smooth_fixed given the stream's final Δo_w (mag_offsets) agrees to < 0.01°."""
     s, start, _ = magnet_comes_off_session()
-    opts = StreamOptions(lag_s=None)
+    # the causal windows' offsets in the end graph: the end-of-stream window re-derivation (windows_end, default since
+    # session 18) and velocity re-estimation off — smooth_fixed is given the causal Δo_w and the start's process
+    opts = StreamOptions(lag_s=None, windows_end=False, velocity_end="off")
     r, sm = stream_with_recorder(s, opts, 10.0, start, 0)
     assert r.counts["failed_updates"] == 0
     K = sm._k + 1

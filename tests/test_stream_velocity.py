@@ -226,7 +226,9 @@ def _session(seed: int, rate: float = 50.0, kf_hz: float = 10.0, duration: float
 
 
 def _stream(s, cal, **opt):
-    sm = StreamSmoother(cal, s.rate, StreamOptions(lag_s=None, **opt),
+    # this extension alone (windows_end, gyro_map_end are on by default since session 18); velocity_end as given
+    iso = {"lag_s": None, "windows_end": False, "velocity_end": "off", "gyro_map_end": False}
+    sm = StreamSmoother(cal, s.rate, StreamOptions(**{**iso, **opt}),
                         g0=float(np.median(np.linalg.norm(s.acc, axis=1))))
     q = np.array([sm.push(s.t[i], s.gyr[i], s.acc[i], s.mag[i]) for i in range(s.n)])
     sm.finish()
@@ -251,6 +253,8 @@ def test_stream_estimate_moves_to_the_truth(runs):
     r = on.velocity_end_result
     assert r["tau_start"] == 0.05 and abs(np.log(r["tau"] / TAU_V)) < np.log(1.6), r
     assert abs(r["sigma"] / SIGMA_V - 1) < 0.15, r
+    assert (on.cal.velocity_sigma, on.cal.velocity_tau) == (r["sigma"], r["tau"])   # calibration.json carries them
+    assert runs[1][0].cal.velocity_tau == 0.05                                       # off: the start's
 
 
 def test_stream_smoothed_output_improves_filtered_unchanged(runs):

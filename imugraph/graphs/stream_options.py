@@ -190,17 +190,19 @@ class StreamOptions:
     # session 18 (helper W): the end graph's (full iSAM2, keep_history) disturbance windows re-derived from the whole
     # stream with the batch's detector and trial verdict instead of the causal ones (stream_windows_end); "theta": also
     # θ = (D, o, dip) free in the end graph when a window is found (the window samples inform D, dip). False: before.
-    windows_end: bool | str = False
+    # The three end-graph extensions are the default since session 18 (17 BROAD trials, stream vs batch with d_k
+    # 0.348 → 0.171° mean, vs truth 0.777 → 0.646°: benchmarks/stream_vs_batch.py all --config default,end_all)
+    windows_end: bool | str = "theta"
     # session 18 (helper V): the end graph's (full iSAM2, keep_history) velocity process σ_v, τ_v re-estimated by EM from
     # the stream's own velocities with the batch's M-step and bounds (stream_velocity): "ar2_batch_id" (the batch's AR(2)
     # fit at the batch's 5-Hz keyframe spacing, first-order equivalent, kept unless both variance bounds decide it; also
     # "ar2_batch_em", "ar2_batch", "ar2", "gm"); "off": the start calibration's process, as before.
-    velocity_end: str = "off"
+    velocity_end: str = "ar2_batch_id"
     # session 18 (helper E): the end graph (full iSAM2, keep_history) estimates the gyro map E jointly with the
     # orientations, with the batch's gates (clean turns ≥ 15) and settling fallback (stream_gmap); "split": also kept
     # only when the two halves' clean intervals give the same E (stream_gmap.split_check); "batch_clean": E informed by
     # the batch's 0.2 s clean intervals only (stream_gmap.clean_as_batch). False: the start's E.
-    gyro_map_end: bool | str = False
+    gyro_map_end: bool | str = True
 
 
 @dataclass

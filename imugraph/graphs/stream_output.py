@@ -42,7 +42,23 @@ class StreamOutputMixin:
             self._final = self._final_lm(graph, values)
             if self._calstate:           # calibration.json: what the end graph used (stream_online._end_calibration)
                 self._end_calibration()
+            self._learned_content()
         self._finished = True
+
+    def _learned_content(self) -> None:
+        """calibration.json carries what the end graph estimated besides θ: the gyro map Ê (gyro_map_end, stream_gmap)
+        and the velocity process σ̂_v, τ̂_v (velocity_end, stream_velocity), as the batch's calibration does, so that
+        `smooth --calibration` applies them."""
+        from dataclasses import replace
+
+        changes = {}
+        if self._gmap is not None and self._gmap.info.get("estimated"):
+            changes["gyro_map"] = self._gmap.total(self._final)
+        v = getattr(self, "velocity_end_result", None)
+        if v is not None and "skipped" not in v:
+            changes.update(velocity_sigma=float(v["sigma"]), velocity_tau=float(v["tau"]))
+        if changes:
+            self.cal = replace(self.cal, **changes)
 
     def _forget_smoothed(self, keep_from: int) -> None:
         """Without keep_history (constant memory): drop the smoothed keyframes before `keep_from` that the
