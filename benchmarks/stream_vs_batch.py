@@ -78,7 +78,7 @@ CONFIGS = {"default": {}, "states": {"calib_states": True, "disturb_detect": Tru
            "gyro_map_batch_clean": {"gyro_map_end": "batch_clean"},
            "gyro_map_velocity_end": {"gyro_map_end": True, "velocity_end": "ar2"},   # session 18 (helper E, stream_gmap)
            # session 18 (lead): the three end-graph extensions together, with and without the gyro map
-           "end_wv": {"windows_end": "theta", "velocity_end": "ar2_batch_id"},
+           "end_wv": {"windows_end": "theta", "velocity_end": "ar2_batch_id", "gyro_map_end": False},
            "end_all": {"windows_end": "theta", "velocity_end": "ar2_batch_id", "gyro_map_end": True},
            # the default before session 18 (the three end-graph extensions off; end_all is the default since)
            "session17": {"windows_end": False, "velocity_end": "off", "gyro_map_end": False}}
