@@ -9,6 +9,7 @@ import pytest
 from imugraph.calibration.position_process import m_step, posterior_vp, vp_bands
 from imugraph.calibration.position_select import choose, prior_half_logdet
 from imugraph.graphs.velocity_block import VelocityBlock
+from sim_processes import gauss_markov_path
 
 
 def _block(K=6, seed=0):
@@ -84,11 +85,7 @@ def test_posterior_mean_solves_the_dense_normal_equations():
 def test_m_step_recovers_the_sigma_of_a_long_simulated_process():
     rng = np.random.default_rng(1)
     K, dt, tau, sigma = 20000, 0.2, 30.0, 0.8
-    phi = np.exp(-dt / tau)
-    p = np.zeros((K, 3))
-    p[0] = sigma * rng.standard_normal(3)
-    for k in range(K - 1):
-        p[k + 1] = phi * p[k] + sigma * np.sqrt(1 - phi**2) * rng.standard_normal(3)
+    p = gauss_markov_path(rng, K, dt, sigma, tau)
     got = m_step(p, np.zeros(K), np.zeros(K - 1), np.full(K - 1, dt), tau)
     assert got == pytest.approx(sigma, rel=0.1)
 

@@ -21,6 +21,7 @@ from imugraph.graphs.stream_velocity import (VelocityEnd, _with, chain_informati
                                              process_bands, process_chain, process_factors)
 from imugraph.sim.motion import random_rotation_motion
 from imugraph.sim.sensors import SensorParams, simulate_imu
+from sim_processes import gauss_markov_path
 
 BOUNDS = process_bounds("bounded", 0.5, 2.0)      # the batch's: σ_v ≥ 0.5 m/s, τ_v ≤ 2 s
 
@@ -146,11 +147,7 @@ def test_em_recovers_a_first_order_process():
     increments: EM from the start (0.5, 0.05) returns the simulated process within 6 %."""
     rng = np.random.default_rng(3)
     K, dt, sigma, tau = 4000, 0.1, 0.8, 0.6
-    phi = np.exp(-dt / tau)
-    v = np.zeros((K, 3))
-    v[0] = sigma * rng.standard_normal(3)
-    for k in range(K - 1):
-        v[k + 1] = phi * v[k] + sigma * np.sqrt(1 - phi**2) * rng.standard_normal(3)
+    v = gauss_markov_path(rng, K, dt, sigma, tau)
     _, s_hat, t_hat = _em("gm", v, dt, 0.05, rng, ("gm", 0.5, 0.05))
     assert abs(s_hat / sigma - 1) < 0.06 and abs(t_hat / tau - 1) < 0.06, (s_hat, t_hat)
 
@@ -173,11 +170,7 @@ def test_em_at_the_batch_spacing_recovers_a_first_order_process():
     velocity (σ_v 0.7 m/s, τ_v 0.4 s at 10 Hz): √γ_0 and −2Δt/ln ρ_1 recover the simulated process within 8 %."""
     rng = np.random.default_rng(5)
     K, dt, sigma, tau = 6000, 0.1, 0.7, 0.4
-    phi = np.exp(-dt / tau)
-    v = np.zeros((K, 3))
-    v[0] = sigma * rng.standard_normal(3)
-    for k in range(K - 1):
-        v[k + 1] = phi * v[k] + sigma * np.sqrt(1 - phi**2) * rng.standard_normal(3)
+    v = gauss_markov_path(rng, K, dt, sigma, tau)
     kind, s_hat, t_hat = _em("ar2", v, dt, 0.05, rng, ("gm", 0.5, 2.0), spacing=2)
     assert kind == "gm" and abs(s_hat / sigma - 1) < 0.08 and abs(t_hat / tau - 1) < 0.08, (s_hat, t_hat)
 
