@@ -26,6 +26,11 @@ Per trial (read once):
                          mag_model "calibrated"; `same_nooffs_deg` without the window offsets / factor mask;
                          `same_nofield_deg` without d_k; `same_endcal_deg` with the stream's END calibration θ (what
                          the orientations would be if the streamed θ were applied; the stream pins θ at the start).
+                         With windows_end (session 18, helper W2): θ, the windows and their Δo_w (or left-out rows)
+                         are the END graph's (stream_windows_end.end_calibration: the end θ, the end windows as
+                         `disturbances`; no causal Δo_w), σ̂_v, τ̂_v of velocity_end and Ê of gyro_map_end; the
+                         earlier form (causal windows' offsets) as `same_causalwin_deg`; `same_novel_deg` with the
+                         start's velocity process instead of σ̂_v, τ̂_v.
 Reported per trial and config: RMS angle (degrees) between the stream's smoothed orientation and each batch
 smooth over the `movement` mask, with no heading offset and no time shift removed
 (imugraph.evaluate.orientation_error(heading=False, max_shift=0)), and (`*_h_deg`) the same after removing one
@@ -81,7 +86,10 @@ CONFIGS = {"default": {}, "states": {"calib_states": True, "disturb_detect": Tru
            "end_wv": {"windows_end": "theta", "velocity_end": "ar2_batch_id", "gyro_map_end": False},
            "end_all": {"windows_end": "theta", "velocity_end": "ar2_batch_id", "gyro_map_end": True},
            # the default before session 18 (the three end-graph extensions off; end_all is the default since)
-           "session17": {"windows_end": False, "velocity_end": "off", "gyro_map_end": False}}
+           "session17": {"windows_end": False, "velocity_end": "off", "gyro_map_end": False},
+           # session 18 (helper W2): end_all with calibration.json = the end graph's (end θ, end windows; same_endcal)
+           "end_all_json": {"windows_end": "theta", "velocity_end": "ar2_batch_id", "gyro_map_end": True,
+                            "calib_json_end_graph": True}}
 
 
 def rms_between(q_a: np.ndarray, q_b: np.ndarray, mask: np.ndarray | None, rate: float,
@@ -205,9 +213,9 @@ def same_model(s, opts, r, sm, boot, kf: float) -> dict:
     cal = end_graph_calibration(boot, sm, opts) if calstate or not opts.online_calibration else r.calibration
     if getattr(sm, "_gmap", None) is not None and sm._gmap.info.get("estimated"):    # gyro_map_end: the end graph's Ê
         cal = replace(cal, gyro_map=sm._gmap.total(sm._final))
-    v = getattr(sm, "velocity_end_result", None)
+    v, cal_novel = getattr(sm, "velocity_end_result", None), None
     if v and "skipped" not in v:                   # velocity_end: the end graph's σ̂_v, τ̂_v
-        cal = replace(cal, velocity_sigma=float(v["sigma"]), velocity_tau=float(v["tau"]))
+        cal_novel, cal = cal, replace(cal, velocity_sigma=float(v["sigma"]), velocity_tau=float(v["tau"]))
     K = sm._k + 1
     cal_end = end_calibration(sm, cal) if opts.windows_end else None
     off_causal = stream_offsets(sm, K)
@@ -227,6 +235,9 @@ def same_model(s, opts, r, sm, boot, kf: float) -> dict:
     if opts.field_sigma is not None:
         q["same_nofield"] = smooth_fixed(s, cal, **{**base, "field_sigma": None})
     q["same_endcal"] = smooth_fixed(s, r.calibration, **base)
+    if cal_novel is not None:   # attribution: the start's velocity process instead of velocity_end's σ̂_v, τ̂_v
+        q["same_novel"] = smooth_fixed(s, replace(cal, velocity_sigma=cal_novel.velocity_sigma,
+                                                  velocity_tau=cal_novel.velocity_tau), **base)
     wk = int(np.sum(np.any(off != 0, axis=1) & np.all(np.isfinite(off), axis=1)))
     if cal_end is not None:     # the earlier same-model smooth; keyframes with a sample in a modelled end window
         q["same_causalwin"] = smooth_fixed(s, cal_causal, **{**base, "mag_offsets": off_causal})
@@ -331,14 +342,14 @@ def main(argv: list[str] | None = None) -> int:
             "vs_batch_cal_h_deg", "vs_batch_field_h_deg", "stream_truth_deg",
             "end_cal_truth_deg", "batch_cal_truth_deg", "failed_updates", "stream_s"]
     print_table(rows, ["trial", "config", "same_deg", "same_h_deg", "same_calform_deg", "same_nooffs_deg",
-                       "same_nofield_deg", "same_endcal_deg", "same_causalwin_deg", "window_keyframes", "stream_truth_deg", "same_truth_deg",
+                       "same_nofield_deg", "same_endcal_deg", "same_causalwin_deg", "same_novel_deg", "window_keyframes", "stream_truth_deg", "same_truth_deg",
                        "same_cpu_s"])
     print_table(rows, cols)
     for c in configs:
         sub = [r for r in rows if r["config"] == c]
         for k in ("vs_end_deg", "vs_start_deg", "vs_batch_cal_deg", "vs_end_h_deg", "vs_start_h_deg",
                   "vs_batch_cal_h_deg", "vs_batch_field_deg", "vs_batch_field_h_deg", "same_deg", "same_h_deg", "same_calform_deg", "same_nooffs_deg",
-                  "same_nofield_deg", "same_endcal_deg", "same_causalwin_deg"):
+                  "same_nofield_deg", "same_endcal_deg", "same_causalwin_deg", "same_novel_deg"):
             v = np.array([r[k] for r in sub if k in r])
             if not v.size:
                 continue

@@ -20,7 +20,9 @@ ON_S, OFF_S = 20.0, 35.0          # the magnet's stretch (s since the first samp
 
 
 def _stream(session, cal, **opt):
-    sm = StreamSmoother(cal, session.rate, StreamOptions(**{"lag_s": None, **opt}),
+    # this extension alone (velocity_end, gyro_map_end are on by default since session 18); windows_end as given
+    iso = {"lag_s": None, "windows_end": False, "velocity_end": "off", "gyro_map_end": False}
+    sm = StreamSmoother(cal, session.rate, StreamOptions(**{**iso, **opt}),
                         g0=float(np.median(np.linalg.norm(session.acc, axis=1))))
     q = np.array([sm.push(session.t[i], session.gyr[i], session.acc[i], session.mag[i]) for i in range(session.n)])
     sm.finish()
@@ -199,3 +201,66 @@ def test_theta_free_end_graph(magnet_window_start_off):
           f"{q_held:.4f}°, θ free {q_free:.4f}°")
     assert e_free < e_n
     assert q_free <= q_held * 1.01
+
+
+def _smooth_end_calibration(s, sm, cal):
+    """smooth_fixed of the stream's end model (benchmarks/stream_vs_batch.py same_model): `cal` with the stream's
+    keyframe rate, its d_k process, its raw θ-state factor form, a factor on every closed interval (none on the
+    last keyframe), solved to convergence; RMS angle (°) to the stream's smoothed output."""
+    from imugraph.graphs.cpp_smoother import smooth_fixed
+
+    o = sm.opt
+    K = sm._k + 1
+    off = np.full((K, 3), np.nan)
+    off[:len(sm._hist_raw)] = 0.0
+    q = smooth_fixed(s, cal, keyframe_hz=o.keyframe_hz, field_sigma=o.field_sigma, field_tau=o.field_tau,
+                     mag_model="raw", mag_offsets=off, rotation_tol_deg=0.001)
+    return orientation_error(sm.smoothed(), q, None, s.rate, heading=False, max_shift=0.0).rms_deg
+
+
+@pytest.mark.parametrize("mode", [True, "theta"])
+def test_end_calibration_reproduces_the_stream(magnet_window_start_off, mode):
+    """end_calibration (the end θ — free or θ_n held — and the end windows with their final Δo_w / left-out rows in
+    calibration.json's format) given to smooth_fixed reproduces the stream's smoothed output within 0.05° (one
+    model, two solvers); the calibration with the start's windows instead (none: the magnet unmodelled) does not."""
+    from imugraph.graphs.stream_calstate import CAL_KEY
+    from imugraph.graphs.stream_windows_end import end_calibration
+
+    s, cal, scale, held, free = magnet_window_start_off
+    sm = held if mode is True else free
+    start = sm._cal0
+    end = end_calibration(sm, start)
+    assert end is not None and [d["source"] for d in end.disturbances] == ["stream_end"]
+    assert end.disturbances[0]["modelled"]
+    th = np.asarray(sm._final.atVector(CAL_KEY)) if mode == "theta" else sm._end_extensions[-1]._theta
+    D, o, dip = unpack_theta(th)
+    assert np.allclose(end.D, D) and np.allclose(end.o, o) and np.isclose(end.dip_deg, np.rad2deg(dip))
+    if mode == "theta":                       # θ free moved away from the held θ_n
+        assert np.abs(th - sm._end_extensions[-1]._theta).max() > 1e-4 * scale
+    d_end = _smooth_end_calibration(s, sm, end)
+    d_nowin = _smooth_end_calibration(s, sm, replace(end, disturbances=[]))
+    print(f"windows_end={mode}: smooth_fixed(end_calibration) vs stream {d_end:.2e}°, without its windows "
+          f"{d_nowin:.4f}°")
+    assert d_end < 0.05
+    assert d_nowin > 0.05
+
+
+def test_calibration_json_is_the_end_graph(magnet_window_start_off):
+    """calib_json_end_graph with windows_end: StreamSmoother.cal (calibration.json) holds the end θ and the end windows
+    (end_calibration), not the causal detector's windows."""
+    from imugraph.calibration.result import Calibration
+    from imugraph.graphs.stream_windows_end import end_calibration
+
+    s, cal, scale, _, _ = magnet_window_start_off
+    rng = np.random.default_rng(0)
+    start = replace(cal, D=cal.D + 0.03 * scale * rng.standard_normal((3, 3)),
+                    o=cal.o + 0.03 * scale * rng.standard_normal(3))
+    sm, _ = _stream(s, start, windows_end="theta", calib_json_end_graph=True)
+    want = end_calibration(sm, sm._end_cal)
+    assert [d["source"] for d in sm.cal.disturbances] == ["stream_end"]
+    assert np.allclose(sm.cal.D, want.D) and np.allclose(sm.cal.o, want.o) and sm.cal.dip_deg == want.dip_deg
+    back = Calibration.from_dict(sm.cal.to_dict())            # the JSON round trip keeps the windows
+    assert back.disturbances[0]["offset"] == sm.cal.disturbances[0]["offset"]
+    d = _smooth_end_calibration(s, sm, back)
+    print(f"calibration.json (windows_end='theta') smoothed vs stream {d:.2e}°")
+    assert d < 0.05

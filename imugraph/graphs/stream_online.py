@@ -284,11 +284,18 @@ class OnlineCalibrationMixin:
         factor carried it: y_j − Δo_w for j in the run (stream_offsets eq. 1; Calibration.corrected), so that
         `smooth --calibration` sees the field the end graph saw (options.calib_json_end_graph). Without windows and a
         majority swap: unchanged.
-        The majority swap's hard iron stays in calibration_history.json's last row (normal_window)."""
+        The majority swap's hard iron stays in calibration_history.json's last row (normal_window).
+        With windows_end (when it rebuilt the end graph): the end θ and the END windows instead (std: the streamed θ's)."""
         opt = self.opt
         if not (self._calstate and opt.calib_json_end_graph and opt.calib_final_theta and self._theta_end is not None
                 and self._final is not None and self._mag_index and self._end_cal is not None):
             return
+        if opt.windows_end:                         # the end windows and end θ (stream_windows_end.end_calibration)
+            from imugraph.graphs.stream_windows_end import end_calibration
+            cal = end_calibration(self, self._end_cal)
+            if cal is not None:
+                self.cal = cal
+                return
         rows = []
         for k in sorted(self._mag_okey):            # runs of consecutive keyframes with the same Δo_w key
             okey = self._mag_okey[k]

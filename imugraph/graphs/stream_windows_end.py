@@ -49,7 +49,7 @@ from imugraph.factors.theta import pack_theta, unpack_theta
 from imugraph.graphs.cpp_velocity import pose_key
 from imugraph.graphs.stream_offsets import OFFSET_PRIOR_REL
 
-__all__ = ["END_KEY0", "EndWindows", "attach"]
+__all__ = ["END_KEY0", "EndWindows", "attach", "end_calibration"]
 
 END_KEY0 = 100000         # Δo_w keys of the end windows: offset-symbol indices from here (the causal ones count from 0)
 NORMAL, LEFT_OUT = -1, -2  # row labels besides a window's index
@@ -93,6 +93,21 @@ def attach(sm) -> None:
     extension appended to its end-of-stream list."""
     sm._hist_raw = []
     sm._end_extensions.append(EndWindows(sm))
+
+
+def end_calibration(sm, base):
+    """The calibration the end graph of a finished StreamSmoother used (`windows_end`), as a Calibration: `base` (the
+    rest: gyro bias, noise, lag, std, ...) with θ = (D, o, dip) the end θ — the end solution's θ when it was free
+    (windows_end="theta" with a modelled window), else θ_n, the held θ the factors used (module docstring) — and
+    `disturbances` = the END windows only in the batch's format (Window.as_dict): a modelled window with its FINAL
+    Δo_w (the end LM's value) and its left-out margin rows (`left_out`), an unexplained one `modelled: false`. The
+    start calibration's windows are not kept (the end graph does not apply them). Calibration.corrected then gives
+    the field of eq. (1): y_j − Δo_w in a modelled window, no sample where left out. None when the option did not
+    rebuild the end graph (off, no θ state, skipped) or before `finish`."""
+    ext = next((e for e in getattr(sm, "_end_extensions", ()) if isinstance(e, EndWindows)), None)
+    if ext is None or ext._theta is None or "skipped" in ext.report or getattr(sm, "_final", None) is None:
+        return None
+    return ext.calibration(sm._final, base)
 
 
 class EndWindows:
@@ -266,6 +281,21 @@ class EndWindows:
         from imugraph.graphs.stream_calstate import CAL_KEY
 
         return np.asarray(values.atVector(CAL_KEY), float)
+
+    def calibration(self, values, base):
+        """`end_calibration` at the end LM's solution `values` (θ if free, each modelled window's Δo_w key)."""
+        from dataclasses import replace
+
+        D, o, dip = unpack_theta(self._solved_theta(values))
+        out = []
+        for i, w in enumerate(self.windows):
+            d = w.as_dict(self.t)
+            key = gtsam.symbol("w", END_KEY0 + i)
+            if d["modelled"] and d["offset"] is not None and values.exists(key):   # eq. (1): the final Δo_w
+                d["offset"] = np.asarray(values.atVector(key), float).tolist()
+            out.append({**d, "window": END_KEY0 + i, "source": "stream_end"})
+        return replace(base, D=np.asarray(D, float), o=np.asarray(o, float), dip_deg=float(np.rad2deg(dip)),
+                       disturbances=out)
 
     def _undisturbed_scale(self, y, nRb, n_nav, D, o) -> float:
         """robust_scale of the residuals of the rows outside every window (calibration.rounds.undisturbed_rms)."""
