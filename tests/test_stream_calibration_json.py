@@ -35,7 +35,9 @@ def magnet_off_at_14s():
     """R4's scenario (tests/test_stream_offsets.py, test_stream_same_model.py): the start calibration holds a magnet
     attached for the first 14 s of 42; the detector's window (14–42 s) is the majority of the recording."""
     s, start, _ = magnet_comes_off_session()
-    opts = StreamOptions(lag_s=None, calib_json_end_graph=True)
+    # the causal windows' convention (the end-of-stream extensions off; with windows_end, the default since session
+    # 18, calibration.json is stream_windows_end.end_calibration: tests/test_stream_windows_end.py)
+    opts = StreamOptions(lag_s=None, calib_json_end_graph=True, windows_end=False, velocity_end="off", gyro_map_end=False)
     r = stream_session(s, None, opts, 10.0, bootstrap=(start, 0))
     r_off = stream_session(s, None, replace(opts, calib_json_end_graph=False), 10.0, bootstrap=(start, 0))
     return s, start, opts, r, r_off

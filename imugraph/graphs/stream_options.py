@@ -169,7 +169,10 @@ class StreamOptions:
     # normal state's streamed θ and each detector window's final Δo_w as a modelled `disturbances` entry — instead of
     # the majority swap's o without windows, so `smooth --calibration` reproduces the smoothed output (R4 scenario:
     # 6.71° → 0.006°; tests/test_stream_calibration_json.py, docs/stream.md "Session 17, helper M1"). False: before.
-    calib_json_end_graph: bool = False
+    # With windows_end: stream_windows_end.end_calibration (helper W2). Default since session 18: with the end windows
+    # the majority swap's calibration.json no longer described the end graph (BROAD 32: smooth --calibration 79° from
+    # the stream's smoothed output; with it 0.25°).
+    calib_json_end_graph: bool = True
     field_sigma: float | tuple | None = (0.015, 0.003, 0.015)
     field_tau: float = 1.0
     lag_hold_s: float = 0.5
