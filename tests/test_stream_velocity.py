@@ -13,10 +13,8 @@ import pytest
 from imugraph import keys
 from imugraph.calibration.result import Calibration
 from imugraph.calibration.velocity_process import process_bounds
-from imugraph.evaluate import orientation_error
 from imugraph.factors.velocity import ar2_residuals, ar2_stationary
 from imugraph.graphs.cpp_velocity import gauss_markov_factors
-from imugraph.graphs.stream import StreamOptions, StreamSmoother
 from imugraph.graphs.stream_velocity import (VelocityEnd, _with, chain_information, change, e_step, m_step,
                                              process_bands, process_chain, process_factors)
 from imugraph.sim.motion import random_rotation_motion
@@ -24,6 +22,7 @@ from imugraph.sim.sensors import SensorParams, simulate_imu
 from sim_processes import gauss_markov_path
 
 BOUNDS = process_bounds("bounded", 0.5, 2.0)      # the batch's: σ_v ≥ 0.5 m/s, τ_v ≤ 2 s
+from stream_runs import stream_isolated as _stream, truth_rms as _truth_rms
 
 
 def _dense(bands: np.ndarray) -> np.ndarray:
@@ -216,20 +215,6 @@ def _session(seed: int, rate: float = 50.0, kf_hz: float = 10.0, duration: float
     cal = Calibration(D=50.0 * np.eye(3), o=np.zeros(3), dip_deg=60.0, gyro_bias=p.gyro_bias.copy(), noise=noise,
                       converged=True)
     return s, cal
-
-
-def _stream(s, cal, **opt):
-    # this extension alone (windows_end, gyro_map_end are on by default since session 18); velocity_end as given
-    iso = {"lag_s": None, "windows_end": False, "velocity_end": "off", "gyro_map_end": False}
-    sm = StreamSmoother(cal, s.rate, StreamOptions(**{**iso, **opt}),
-                        g0=float(np.median(np.linalg.norm(s.acc, axis=1))))
-    q = np.array([sm.push(s.t[i], s.gyr[i], s.acc[i], s.mag[i]) for i in range(s.n)])
-    sm.finish()
-    return sm, q
-
-
-def _truth_rms(q, s):
-    return orientation_error(q, s.quat, None, s.rate, heading=False, max_shift=0.0).rms_deg
 
 
 @pytest.fixture(scope="module")

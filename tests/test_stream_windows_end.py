@@ -10,27 +10,13 @@ import pytest
 from imugraph.evaluate import orientation_error
 from imugraph.factors.theta import unpack_theta
 from imugraph.graphs.cpp_velocity import pose_key
-from imugraph.graphs.stream import StreamOptions, StreamSmoother
 from imugraph.graphs.stream_windows_end import END_KEY0, LEFT_OUT, NORMAL
 from imugraph.sim.scenario import distorted_session
 
 import gtsam
 
 ON_S, OFF_S = 20.0, 35.0          # the magnet's stretch (s since the first sample)
-
-
-def _stream(session, cal, **opt):
-    # this extension alone (velocity_end, gyro_map_end are on by default since session 18); windows_end as given
-    iso = {"lag_s": None, "windows_end": False, "velocity_end": "off", "gyro_map_end": False}
-    sm = StreamSmoother(cal, session.rate, StreamOptions(**{**iso, **opt}),
-                        g0=float(np.median(np.linalg.norm(session.acc, axis=1))))
-    q = np.array([sm.push(session.t[i], session.gyr[i], session.acc[i], session.mag[i]) for i in range(session.n)])
-    sm.finish()
-    return sm, q
-
-
-def _truth_rms(q, session):
-    return orientation_error(q, session.quat, None, session.rate, heading=False, max_shift=0.0).rms_deg
+from stream_runs import stream_isolated as _stream, truth_rms as _truth_rms
 
 
 @pytest.fixture(scope="module")
