@@ -131,22 +131,10 @@ def summary(records: list) -> dict:
 
 def body_options(pairs: list):
     """BodyDiagnoseOptions with FIELD=VALUE overrides (values as python literals); unknown fields fail."""
-    import ast
-    from dataclasses import fields, replace
-
+    from benchmarks.common import option_overrides
     from imugraph.diagnose.body.run import BodyDiagnoseOptions
-    opts = BodyDiagnoseOptions()
-    known = {f.name for f in fields(opts)}
-    for pair in pairs:
-        k, _, v = pair.partition("=")
-        if k not in known:
-            raise SystemExit(f"--opt {k}: not a BodyDiagnoseOptions field ({sorted(known)})")
-        try:
-            val = ast.literal_eval(v)
-        except (ValueError, SyntaxError):
-            val = v
-        opts = replace(opts, **{k: val})
-    return opts
+
+    return BodyDiagnoseOptions(**option_overrides(pairs, BodyDiagnoseOptions))
 
 
 def absorption(host: str, sensor: str, duration: float, seed: int) -> list:
@@ -272,14 +260,13 @@ def main(argv=None) -> int:
         prof = cProfile.Profile(time.process_time)          # CPU time, not wall (shared machine)
     for host in [h for h in a.hosts.split(",") if h]:
         base = host_session(host, a.duration, a.seed)
+        diagnose = a.diagnose_hosts is None or host in a.diagnose_hosts.split(",")
         print(f"{host}: {len(base.sensors)} sensors, {base.n} samples, {base.rate:.0f} Hz"
-              + ("" if a.diagnose_hosts is None or host in a.diagnose_hosts.split(",") else " (drawn, not diagnosed)"),
-              flush=True)
+              + ("" if diagnose else " (drawn, not diagnosed)"), flush=True)
         for label in [x for x in a.labels.split(",") if x]:
             if prof is not None:
                 prof.enable()
-            rec = run_case(host, base, label, rng, options, dump,
-                           diagnose=a.diagnose_hosts is None or host in a.diagnose_hosts.split(","))
+            rec = run_case(host, base, label, rng, options, dump, diagnose=diagnose)
             if rec is not None:
                 records.append(rec)
             if prof is not None:

@@ -22,7 +22,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 import benchmarks.stream_vs_batch as svb  # noqa: E402
-from benchmarks.common import broad_trials, trial_number  # noqa: E402
+from benchmarks.common import select_trials, trial_number  # noqa: E402
 from benchmarks.output import write_json  # noqa: E402
 
 _LAST: list = []
@@ -53,10 +53,7 @@ def main(argv: list[str] | None = None) -> int:
     if a.summarise:
         return summarise(a.summarise.split(","), a.config.split(",") if a.config != ap.get_default("config") else None)
     configs = a.config.split(",")
-    paths = broad_trials()
-    if a.trials != "all":
-        want = {int(x) for x in a.trials.split(",")}
-        paths = [p for p in paths if trial_number(p) in want]
+    paths = select_trials(a.trials)
     svb.stream_with_recorder = _recording(svb.stream_with_recorder)
     rows: list[dict] = []
     for p in paths:

@@ -23,7 +23,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from benchmarks.common import broad_trials, load_broad_trial, trial_number  # noqa: E402
+from benchmarks.common import load_broad_trial, select_trials, trial_number  # noqa: E402
 from benchmarks.output import write_json  # noqa: E402
 from benchmarks.stream_vs_batch import calibrations, stream_with_recorder  # noqa: E402
 
@@ -86,8 +86,7 @@ def main(argv=None) -> None:
     ap.add_argument("--out", default="w_windows.json")
     a = ap.parse_args(argv)
     rows = []
-    want = None if a.trials == "all" else {int(x) for x in a.trials.split(",")}
-    for path in [p for p in broad_trials() if want is None or trial_number(p) in want]:
+    for path in select_trials(a.trials):
         rows.append(run(path, a.cache))
         write_json(a.out, rows)
 

@@ -128,11 +128,12 @@ def quat_slerp(q0: np.ndarray, q1: np.ndarray, u: np.ndarray) -> np.ndarray:
 def integrate_gyro(gyr: np.ndarray, dt: np.ndarray, q0: np.ndarray | None = None) -> np.ndarray:
     """Strapdown integration q_{k+1} = q_k ⊗ Exp(ω_k dt_k): (N, 4) with q[0] = q0.
 
-    Sequential (a cumulative product); fast enough for 10⁵ samples in numpy via rotation matrices.
+    Sequential (a cumulative product); fast enough for 10⁵ samples in numpy via rotation matrices. Several
+    sensors at once: gyr (N, S, 3), dt (N, S), q0 (S, 4) → (N, S, 4), each sensor bit for bit its own call.
     """
     n = gyr.shape[0]
-    dq = rotvec_to_quat(gyr * np.asarray(dt)[:, None])
-    out = np.empty((n, 4))
+    dq = rotvec_to_quat(gyr * np.asarray(dt)[..., None])
+    out = np.empty(gyr.shape[:-1] + (4,))
     out[0] = np.array([1.0, 0, 0, 0]) if q0 is None else quat_normalize(q0)
     # Chunked cumulative product keeps it vectorised where possible.
     q = out[0]

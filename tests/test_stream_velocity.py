@@ -202,11 +202,7 @@ def _session(seed: int, rate: float = 50.0, kf_hz: float = 10.0, duration: float
     stride = int(round(rate / kf_hz))
     n, dt = len(t), stride / rate
     K = (n - 1) // stride + 2
-    phi = np.exp(-dt / TAU_V)
-    v = np.zeros((K, 3))
-    v[0] = SIGMA_V * rng.standard_normal(3)
-    for k in range(K - 1):
-        v[k + 1] = phi * v[k] + SIGMA_V * np.sqrt(1 - phi**2) * rng.standard_normal(3)
+    v = gauss_markov_path(rng, K, dt, SIGMA_V, TAU_V)
     n_acc = np.repeat(np.diff(v, axis=0) / dt, stride, axis=0)[:n]
     noise = {"gyr": np.full(3, 0.01), "acc": np.full(3, 0.05), "mag": np.full(3, 0.5)}
     p = SensorParams(gyro_bias=np.deg2rad([0.4, -0.5, 0.3]), gyro_noise=noise["gyr"], acc_noise=noise["acc"],

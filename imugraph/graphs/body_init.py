@@ -20,7 +20,7 @@ import numpy as np
 
 from imugraph.errors import SessionError
 from imugraph.factors import body as bf
-from imugraph.geometry import expmap, quat_normalize, quat_to_rotmat, rotmat_to_quat, rotvec_to_quat
+from imugraph.geometry import expmap, integrate_gyro, quat_to_rotmat, rotmat_to_quat
 from imugraph.graphs.body_model import BodyJoint, SensorSetup
 
 
@@ -69,27 +69,12 @@ def initial_orientations(session, names: list[str], setups: dict[str, SensorSetu
 
 
 def integrate_gyro_sensors(gyr: list, dt: list, q0: list) -> list:
-    """Strapdown integration of S sensors on a common sample count N: per sensor (N, 4) quaternions with
-    q_0 = q0_s and q_{k+1} = q_k ⊗ Exp(ω_k dt_k) (the Hamilton product written out per component, in the order
-    of imugraph.geometry.quat_mul), normalised at the end — bit for bit imugraph.geometry.integrate_gyro of
-    each sensor, with one vectorised step per sample for all sensors (tests/test_diagnose_body_speed.py)."""
-    S = len(gyr)
-    if S == 0:
+    """Strapdown integration of S sensors on a common sample count N: imugraph.geometry.integrate_gyro of each
+    sensor (bit for bit), one broadcast step per sample for all sensors (tests/test_diagnose_body_speed.py)."""
+    if not gyr:
         return []
-    n = gyr[0].shape[0]
-    dq = np.stack([rotvec_to_quat(g * np.asarray(d)[:, None]) for g, d in zip(gyr, dt)], axis=1)   # (N, S, 4)
-    qw, qx, qy, qz = (np.ascontiguousarray(dq[:, :, c]) for c in range(4))                     # (N, S) each
-    W, X, Y, Z = (np.empty((n, S)) for _ in range(4))
-    start = np.stack([quat_normalize(q) for q in q0])
-    W[0], X[0], Y[0], Z[0] = start[:, 0], start[:, 1], start[:, 2], start[:, 3]
-    for k in range(1, n):
-        pw, px, py, pz = W[k - 1], X[k - 1], Y[k - 1], Z[k - 1]
-        bw, bx, by, bz = qw[k - 1], qx[k - 1], qy[k - 1], qz[k - 1]
-        W[k] = pw * bw - px * bx - py * by - pz * bz                         # q_k ⊗ Exp(ω_k dt_k)
-        X[k] = pw * bx + px * bw + py * bz - pz * by
-        Y[k] = pw * by - px * bz + py * bw + pz * bx
-        Z[k] = pw * bz + px * by - py * bx + pz * bw
-    return [quat_normalize(np.stack([W[:, s], X[:, s], Y[:, s], Z[:, s]], -1)) for s in range(S)]
+    q = integrate_gyro(np.stack(gyr, 1), np.stack([np.asarray(d, float) for d in dt], 1), np.stack(q0))
+    return [q[:, s] for s in range(len(gyr))]
 
 
 def nominal_levers(joints: list[BodyJoint], setups: dict[str, SensorSetup]) -> list[tuple[str, int, np.ndarray]]:

@@ -90,9 +90,8 @@ def fit_simulation(sim: BodySession, real: BodyFit, opts=None, warm: bool = True
     t0 = time.perf_counter()
     pb = build_problem(sim, opts)
     same = np.array_equal(pb.kf, real.problem.kf)        # same keyframes: the recording's solution fits pb's keys
-    graph = full_graph(pb)
-    x, info = optimize(pb, graph, warm_values(real, pb) if same else pb.init)
-    return _extract(sim, pb, x, dict(info, warm_start=same), t0, graph)
+    x, info = optimize(pb, full_graph(pb), warm_values(real, pb) if same else pb.init)
+    return _extract(sim, pb, x, dict(info, warm_start=same), t0)
 
 
 def warm_values(real: BodyFit, pb) -> "gtsam.Values":
