@@ -211,11 +211,10 @@ def same_model(s, opts, r, sm, boot, kf: float) -> dict:
 
     calstate = bool(sm._calstate)
     cal = end_graph_calibration(boot, sm, opts) if calstate or not opts.online_calibration else r.calibration
-    if getattr(sm, "_gmap", None) is not None and sm._gmap.info.get("estimated"):    # gyro_map_end: the end graph's Ê
-        cal = replace(cal, gyro_map=sm._gmap.total(sm._final))
-    v, cal_novel = getattr(sm, "velocity_end_result", None), None
-    if v and "skipped" not in v:                   # velocity_end: the end graph's σ̂_v, τ̂_v
-        cal_novel, cal = cal, replace(cal, velocity_sigma=float(v["sigma"]), velocity_tau=float(v["tau"]))
+    learned = sm._learned_changes()                # the end graph's Ê (gyro_map_end) and σ̂_v, τ̂_v (velocity_end)
+    cal_novel = cal if "velocity_sigma" in learned else None
+    if learned:
+        cal = replace(cal, **learned)
     K = sm._k + 1
     cal_end = end_calibration(sm, cal) if opts.windows_end else None
     off_causal = stream_offsets(sm, K)

@@ -296,20 +296,24 @@ class OnlineCalibrationMixin:
             if cal is not None:
                 self.cal = cal
                 return
-        rows = []
-        for k in sorted(self._mag_okey):            # runs of consecutive keyframes with the same Δo_w key
-            okey = self._mag_okey[k]
-            if rows and rows[-1][0] == okey and rows[-1][2] == k - 1:
-                rows[-1][2] = k
-            else:
-                rows.append([okey, k, k])
         added = []
-        for okey, k0, k1 in rows:
+        for okey, k0, k1 in self._okey_runs():
             t = np.concatenate(self._hist_t[k0:k1 + 1])
             added.append({"t_start": float(t.min()), "t_end": float(t.max()),
                           "offset": np.asarray(self._final.atVector(okey), float).tolist(), "modelled": True,
                           "left_out": [], "window": int(gtsam.Symbol(okey).index()), "source": "stream"})
         self.cal = replace(self._end_cal, disturbances=list(self.cal.disturbances) + added)
+
+    def _okey_runs(self) -> list:
+        """[Δo_w key, first, last keyframe] per run of consecutive keyframes whose factor carried the same Δo_w key."""
+        rows = []
+        for k in sorted(self._mag_okey):
+            okey = self._mag_okey[k]
+            if rows and rows[-1][0] == okey and rows[-1][2] == k - 1:
+                rows[-1][2] = k
+            else:
+                rows.append([okey, k, k])
+        return rows
 
     def _final_graph(self) -> gtsam.NonlinearFactorGraph:
         """iSAM2's factors; with history, the magnetometer factors rebuilt exact: with the final calibration
@@ -390,11 +394,12 @@ class OnlineCalibrationMixin:
         GTSAM_NOTES.md): then the Python-driven loop of imugraph.graphs.solver, keyframes in time order."""
         if not self._field and not (self._calstate and self.opt.keep_history and self._mag_index):   # no CustomFactor
             return gtsam.LevenbergMarquardtOptimizer(graph, values, gtsam.LevenbergMarquardtParams()).optimize()
+        from imugraph.graphs.gyro_map_block import beta_key
         from imugraph.graphs.solver import chain_ordering, optimize
 
         present = set(values.keys())
-        order = [key for k in range(self._k + 1) for key in (pose_key(k), keys.vel(k), field_key(k), gtsam.symbol("q", k))
-                 if key in present]        # q: stream_gmap's β_k (gyro_map_end), eliminated in the chain
+        order = [key for k in range(self._k + 1) for key in (pose_key(k), keys.vel(k), field_key(k), beta_key(k))
+                 if key in present]        # stream_gmap's β_k (gyro_map_end), eliminated in the chain
         in_order = set(order)
         rest = [key for key in values.keys() if key not in in_order]
         return optimize(graph, [], values, chain_ordering(order, rest))[0]

@@ -45,18 +45,23 @@ class StreamOutputMixin:
             self._learned_content()
         self._finished = True
 
-    def _learned_content(self) -> None:
-        """calibration.json carries what the end graph estimated besides θ: the gyro map Ê (gyro_map_end, stream_gmap)
-        and the velocity process σ̂_v, τ̂_v (velocity_end, stream_velocity), as the batch's calibration does, so that
-        `smooth --calibration` applies them."""
-        from dataclasses import replace
-
+    def _learned_changes(self) -> dict:
+        """What the end graph estimated besides θ, as Calibration fields: the gyro map Ê (gyro_map_end, stream_gmap)
+        and the velocity process σ̂_v, τ̂_v (velocity_end, stream_velocity); {} when neither."""
         changes = {}
         if self._gmap is not None and self._gmap.info.get("estimated"):
             changes["gyro_map"] = self._gmap.total(self._final)
         v = getattr(self, "velocity_end_result", None)
         if v is not None and "skipped" not in v:
             changes.update(velocity_sigma=float(v["sigma"]), velocity_tau=float(v["tau"]))
+        return changes
+
+    def _learned_content(self) -> None:
+        """calibration.json carries `_learned_changes`, as the batch's calibration does, so that
+        `smooth --calibration` applies them."""
+        from dataclasses import replace
+
+        changes = self._learned_changes()
         if changes:
             self.cal = replace(self.cal, **changes)
 

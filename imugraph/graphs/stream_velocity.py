@@ -241,8 +241,7 @@ def m_step(mode: str, m: np.ndarray, Z: np.ndarray, dt_k: np.ndarray, bounds: tu
         return proc
     if mode in ("ar2_batch_em", "ar2_batch_id"):   # the AR(2) at the batch's spacing as the next E-step's prior (4)
         return proc + (spacing,)
-    gamma0, rho1 = ar2_stationary(*proc[1:])
-    return ("gm", float(np.sqrt(gamma0)), float(np.clip(-dt / np.log(np.clip(rho1, 1e-9, 1 - 1e-9)), *tau_b)))
+    return ("gm",) + first_order(proc + (spacing,), dt_k, tau_b)
 
 
 def _spaced_terms(m: np.ndarray, Z: np.ndarray, s: int) -> tuple[float, np.ndarray, np.ndarray]:
@@ -315,7 +314,7 @@ class VelocityEnd:
         proc = ("gm", sm._sig_v, sm._tau_v)                # the start calibration's, in the graph now
         x = values
         spacing = max(1, int(round(self.batch_dt / float(np.median(dt_k))))) if self.mode.startswith("ar2_batch") else 1
-        bands = 2 * spacing + 1 if spacing > 1 else 3
+        bands = 2 * spacing + 1
         res["spacing"] = spacing
         for outer in range(OUTER_MAX):
             x = sm._final_lm(_with(base, process_factors(proc, dt_k)), x)

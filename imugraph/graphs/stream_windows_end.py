@@ -46,7 +46,9 @@ from imugraph.calibration.disturbance import (Window, detect_windows, field_resi
                                               robust_scale)
 from imugraph.factors.field import field_key
 from imugraph.factors.theta import pack_theta, unpack_theta
+from imugraph.geometry import quat_to_rotmat
 from imugraph.graphs.cpp_velocity import pose_key
+from imugraph.graphs.stream_calstate import CAL_KEY, cal_mag_jacobians, pinned_mag_factor
 from imugraph.graphs.stream_offsets import OFFSET_PRIOR_REL
 
 __all__ = ["END_KEY0", "EndWindows", "attach", "end_calibration"]
@@ -60,8 +62,6 @@ def theta_mag_factor(pose_k: int, field_k: int | None, cal_key: int, offset_key:
     """Eq. (1) exact with θ a variable (windows_end="theta"): a CustomFactor on (pose_k, d_k — None: none —, θ, a
     window's Δo_w — None: none), e = D M_k R_kᵀ(n(δ) + d_k) + o + Δo_w − ȳ_k, Σ = diag(σ_y²)/n_k, Huber; error and
     Jacobians those of stream_calstate.cal_mag_jacobians (eq. 2), ∂e/∂Δo_w = I. None without a valid sample."""
-    from imugraph.graphs.stream_calstate import cal_mag_jacobians
-
     ok = np.all(np.isfinite(y), axis=1)
     n = int(ok.sum())
     if n == 0:
@@ -136,8 +136,6 @@ class EndWindows:
 
     def _samples(self, values, theta: np.ndarray) -> tuple:
         """Per sample of the closed intervals: nRb_j = R_k kRb_j (N, 3, 3) and n(δ) + d_k (N, 3) at `values`, θ."""
-        from imugraph.geometry import quat_to_rotmat
-
         sm, (_, _, dip) = self.sm, unpack_theta(theta)
         n_vec = np.array([math.cos(dip), 0.0, -math.sin(dip)])
         R, n = [], []
@@ -152,8 +150,6 @@ class EndWindows:
         """`graph` without the end magnetometer factors of `_final_graph` (CustomFactors on one pose, at most its
         d_k and a causal Δo_w); None when their count is not the one the stream issued (an earlier extension changed
         them: the end graph is then left as it is). drop_pin: also without θ's pin (θ free)."""
-        from imugraph.graphs.stream_calstate import CAL_KEY
-
         sm = self.sm
         w = ord("w")
         out, dropped = gtsam.NonlinearFactorGraph(), 0
@@ -188,17 +184,12 @@ class EndWindows:
     def _graph(self, base, values) -> gtsam.NonlinearFactorGraph:
         """base + every interval's magnetometer factors split by label (eq. 1); Δo_w keys inserted into `values`.
         With θ free (`_theta_free`): the factors on θ, the pin replaced by the weak prior Λ_w about θ_n."""
-        from imugraph.geometry import quat_to_rotmat
-        from imugraph.graphs.stream_calstate import pinned_mag_factor
-
         sm = self.sm
         graph = gtsam.NonlinearFactorGraph()
         graph.push_back(base)
         lab = self._labels()
         prior = gtsam.noiseModel.Isotropic.Sigma(3, OFFSET_PRIOR_REL * sm._online_scale)
         if self._theta_free:
-            from imugraph.graphs.stream_calstate import CAL_KEY
-
             if not values.exists(CAL_KEY):
                 values.insert(CAL_KEY, self._theta)
             weak = gtsam.noiseModel.Diagonal.Sigmas(sm._weak_sig)     # Λ_w (stream_calstate eq. 4), about θ_n
@@ -218,8 +209,6 @@ class EndWindows:
                 okey = None if v == NORMAL else gtsam.symbol("w", END_KEY0 + int(v))
                 fk = field_key(k) if sm._field else None
                 if self._theta_free:
-                    from imugraph.graphs.stream_calstate import CAL_KEY
-
                     f = theta_mag_factor(pose_key(k), fk, CAL_KEY, okey, kRb, y_v, sm._sig_y, sm.opt.huber_k)
                 else:
                     f = pinned_mag_factor(pose_key(k), fk, okey, self._theta, kRb, y_v, sm._sig_y, sm.opt.huber_k)
@@ -267,8 +256,6 @@ class EndWindows:
         """The base graph for the current `_theta_free`: without θ's pin and θ at θ_n when free (else `base`)."""
         if not self._theta_free:
             return base
-        from imugraph.graphs.stream_calstate import CAL_KEY
-
         if not self._freed:                # θ starts at θ_n (values: the pinned graph's θ̂ ≈ θ₀)
             values.update(CAL_KEY, self._theta)
             self._freed = True
@@ -278,8 +265,6 @@ class EndWindows:
         """θ of a solve: the variable with θ free, else θ_n."""
         if not self._theta_free:
             return self._theta
-        from imugraph.graphs.stream_calstate import CAL_KEY
-
         return np.asarray(values.atVector(CAL_KEY), float)
 
     def calibration(self, values, base):
@@ -307,14 +292,9 @@ class EndWindows:
     def _summary(self, rounds: int) -> dict:
         """The end windows (the batch's calibration.json format) and, to compare, the causal ones the stream used:
         the start calibration's (fixed offsets or left out) and the detector's (runs of keyframes with one Δo_w)."""
-        sm, runs = self.sm, []
-        for k in sorted(sm._mag_okey):
-            if runs and runs[-1][0] == sm._mag_okey[k] and runs[-1][2] == k - 1:
-                runs[-1][2] = k
-            else:
-                runs.append([sm._mag_okey[k], k, k])
+        sm = self.sm
         detector = [{"t_start": float(sm._hist_t[a][0]), "t_end": float(sm._hist_t[b][-1]),
-                     "window": int(gtsam.Symbol(key).index())} for key, a, b in runs]
+                     "window": int(gtsam.Symbol(key).index())} for key, a, b in sm._okey_runs()]
         return {"rounds": rounds, "windows": [w.as_dict(self.t) for w in self.windows],
                 "start": [{key: d.get(key) for key in ("t_start", "t_end", "modelled")} for d in sm._cal0.disturbances],
                 "detector": detector}
