@@ -12,7 +12,6 @@ the largest loss against base. Writes bench_out/h11_position.json.
 
 from __future__ import annotations
 
-import json
 import sys
 import time
 from pathlib import Path
@@ -24,7 +23,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from benchmarks.b1_try import vqf_cached  # noqa: E402
 from benchmarks.common import error_parts, iter_broad, parse_options, parse_variants  # noqa: E402
 from benchmarks.h4_decompose import CACHE  # noqa: E402
-from benchmarks.output import OUT_DIR  # noqa: E402
+from benchmarks.output import write_json  # noqa: E402
 from imugraph.calibration.ml import calibrate  # noqa: E402
 
 
@@ -69,8 +68,7 @@ def main(argv: list[str]) -> int:
         print(f"[{n}] mean {tot.mean():.3f} (offline VQF {vqf.mean():.3f}); behind offline VQF {len(behind)}: "
               f"{','.join(behind)}; largest loss vs base {tot[j] - base[j]:+.3f} ({rows[j]['trial']}); "
               f"CPU {min(r[n + '_cpu'] for r in rows):.2f}–{max(r[n + '_cpu'] for r in rows):.2f} s")
-    OUT_DIR.mkdir(exist_ok=True)
-    (OUT_DIR / "h11_position.json").write_text(json.dumps({"variants": variants, "rows": rows}, indent=1))
+    write_json("h11_position.json", {"variants": variants, "rows": rows})
     return 0
 
 

@@ -13,7 +13,6 @@ Writes bench_out/j2_gait.json.
 
 from __future__ import annotations
 
-import json
 import sys
 import time
 from pathlib import Path
@@ -23,7 +22,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks.common import error_parts, parse_options, parse_variants  # noqa: E402
-from benchmarks.output import OUT_DIR  # noqa: E402
+from benchmarks.output import write_json  # noqa: E402
 from imugraph.calibration.ml import calibrate  # noqa: E402
 from imugraph.config import data_dir  # noqa: E402
 from imugraph.io.gaittoolbox import read_gaittoolbox  # noqa: E402
@@ -65,8 +64,7 @@ def main(argv: list[str]) -> int:
     for n in variants:
         print(f"[{n}] inclination vs MTw mean {np.mean([r[n][1] for r in rows]):.3f}°; largest change vs base "
               f"{max(r[n + '_vs_base'] for r in rows):.3f}°; σ_p chosen {[r[n + '_sigma_p'] for r in rows]}")
-    OUT_DIR.mkdir(exist_ok=True)
-    (OUT_DIR / "j2_gait.json").write_text(json.dumps({"variants": variants, "rows": rows}, indent=1))
+    write_json("j2_gait.json", {"variants": variants, "rows": rows})
     return 0
 
 
