@@ -19,7 +19,6 @@ removed as for BROAD), the estimated σ_p where it is estimated, and the spread 
 
 from __future__ import annotations
 
-import json
 import sys
 import time
 from pathlib import Path
@@ -29,7 +28,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks.common import error_parts, parse_options, parse_variants  # noqa: E402
-from benchmarks.output import OUT_DIR  # noqa: E402
+from benchmarks.output import write_json  # noqa: E402
 from imugraph.calibration.ml import calibrate  # noqa: E402
 from imugraph.sim.distortion import random_distortion  # noqa: E402
 from imugraph.sim.motion import random_rotation_motion, _rest_envelope, _rest_intervals  # noqa: E402
@@ -119,8 +118,7 @@ def main(argv: list[str]) -> int:
         print(f"[{kind}] " + "; ".join(
             f"{n}: mean {np.mean([r[n][0] for r in sub]):.3f}°, worst vs base "
             f"{max(r[n][0] - r['base'][0] for r in sub):+.3f}°" for n in variants))
-    OUT_DIR.mkdir(exist_ok=True)
-    (OUT_DIR / "j2_travel.json").write_text(json.dumps({"variants": variants, "rows": rows}, indent=1))
+    write_json("j2_travel.json", {"variants": variants, "rows": rows})
     return 0
 
 

@@ -34,8 +34,8 @@ from __future__ import annotations
 import numpy as np
 from scipy.linalg import solveh_banded
 
+from imugraph.calibration.velocity_em import increment_rhs
 from imugraph.calibration.velocity_process import banded_inverse_bands, chain_bands
-from imugraph.factors.velocity import velocity_model
 from imugraph.graphs.velocity_block import POSITION_KIN_SIGMA
 
 POSITION_SIGMA_BOUNDS = (0.05, 1.0e4)     # m: a hand's tremor … effectively no bound
@@ -73,13 +73,8 @@ def vp_bands(block, nRk: np.ndarray, s: np.ndarray, sigma_p: float, tau_p: float
 def posterior_vp(block, nRk: np.ndarray, s: np.ndarray, sigma_p: float, tau_p: float):
     """(K, 3) velocity and position means of the (v, p) chain at orientations nRk (robust weights at s): the
     minimiser of the increments' cost, the velocity process and (P1), as velocity_em.posterior_mean."""
-    K = block.n_keyframes
-    c = -velocity_model(nRk, np.zeros((K, 3)), block.dv, block.dt_k, block.g, None, None)[0]
-    _, _, w, *_ = block.terms(nRk, s)
-    a = (w / block.sigma_dv**2)[:, None]
-    eta = np.zeros((2 * K, 3))
-    eta[0:-2:2] -= a * c
-    eta[2::2] += a * c
+    eta = np.zeros((2 * block.n_keyframes, 3))
+    eta[0::2] = increment_rhs(block, nRk, s)               # the v_k rows; the p_k rows' right-hand side is 0
     x = solveh_banded(vp_bands(block, nRk, s, sigma_p, tau_p), eta, lower=True)
     return x[0::2], x[1::2]
 

@@ -116,12 +116,11 @@ def field_half_logdet(dt_k: np.ndarray, sigma_d, tau_d: float) -> float:
 def _snapshot(vel_state: dict, gyro):
     """A function restoring vel_state and the GyroMapState's (Ê, step) to what they are now (candidates' start)."""
     saved = dict(vel_state)
-    g0 = None if gyro is None else (gyro.E.copy(), gyro.step)
+    g0 = (gyro.E.copy(), gyro.step)
 
     def restore():
         vel_state.clear(); vel_state.update(saved)
-        if g0 is not None:
-            gyro.E, gyro.step = g0[0].copy(), g0[1]
+        gyro.E, gyro.step = g0[0].copy(), g0[1]
     return restore
 
 
@@ -139,7 +138,7 @@ def _score(prob, values, sigma_p, opt, K, field_sigma):
 
 
 def select_and_solve(solve_round, vel_state: dict, opt, state: tuple, K: int, history: list,
-                     field_state: dict | None = None, gyro=None):
+                     field_state: dict, gyro):
     """The ML loop's final solve with σ_p chosen among opt.position_select by (J2), then (with
     opt.position_select_field) the field's cross-axis σ_d,y among those candidates at that σ_p. solve_round:
     ml.calibrate's closure; state: (bias, noise, nRk, θ, values) of the converged rounds; field_state: the
@@ -150,7 +149,6 @@ def select_and_solve(solve_round, vel_state: dict, opt, state: tuple, K: int, hi
     the chosen one's. Notes the scores in history[-1]["position_select"]."""
     bias, noise, nRk, theta, values0 = state
     restore = _snapshot(vel_state, gyro)
-    field_state = {"sigma": opt.field_sigma} if field_state is None else field_state
     scores, solved = [], []
 
     def run(sigma, field_sigma):
@@ -166,7 +164,7 @@ def select_and_solve(solve_round, vel_state: dict, opt, state: tuple, K: int, hi
             return
         sc["lm_iterations"] = int(out[3].iterations)
         scores.append(sc)
-        solved.append((sc, out, dict(vel_state), field_sigma, None if gyro is None else (gyro.E.copy(), gyro.step)))
+        solved.append((sc, out, dict(vel_state), field_sigma, (gyro.E.copy(), gyro.step)))
 
     for sigma in opt.position_select:
         run(None if float(sigma) >= OFF_SIGMA else float(sigma), opt.field_sigma)
@@ -190,13 +188,12 @@ def select_and_solve(solve_round, vel_state: dict, opt, state: tuple, K: int, hi
     sc, out, st, field_sigma, g = next(x for x in solved if x[0] is pick)
     vel_state.clear(); vel_state.update(st)
     field_state["sigma"] = field_sigma
-    if g is not None:
-        gyro.E, gyro.step = g
+    gyro.E, gyro.step = g
     return out
 
 
 def final_with_selection(solve_round, ml_rounds, vel_state: dict, opt, state: tuple, K: int, every: int,
-                         history: list, field_state: dict, gyro=None, round_solver=None):
+                         history: list, field_state: dict, gyro, round_solver):
     """ml.calibrate's final step with opt.position_select: returns (pre, prob, values, info) of the final solve and
     (bias, noise, nRk, θ, converged). Without opt.position_select_rounds the candidates are full final solves and
     the chosen one is returned. With it the candidates are solved as an ML round is (thinned magnetometer, the
@@ -236,7 +233,7 @@ def final_with_selection(solve_round, ml_rounds, vel_state: dict, opt, state: tu
 
 
 def field_after_rounds(candidate_solve, ml_rounds, vel_state: dict, opt, state: tuple, K: int, history: list,
-                       field_state: dict, gyro=None):
+                       field_state: dict, gyro):
     """Options.position_select_field_rounds: the cross-field σ_d,y chosen under a chosen bound, at the noise levels
     the ML rounds reached UNDER that bound (one alternation of a coordinate ascent: σ_d,y by (J2) at fixed noise,
     so the measurement normalisers cancel between candidates; then the noise re-estimated at the chosen σ_d,y,

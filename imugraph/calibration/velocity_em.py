@@ -29,8 +29,9 @@ from imugraph.calibration.velocity_process import chain_bands
 from imugraph.factors.velocity import velocity_model
 
 
-def posterior_mean(block, nRk: np.ndarray, s: np.ndarray) -> np.ndarray:
-    """(K, 3) velocities minimising the chain's cost at orientations nRk, eq. (1), robust weights at states s."""
+def increment_rhs(block, nRk: np.ndarray, s: np.ndarray) -> np.ndarray:
+    """(K, 3) right-hand side of the velocity chain's normal equations: the robust-weighted accelerometer
+    increments at orientations nRk (weights at states s)."""
     K = block.n_keyframes
     c = -velocity_model(nRk, np.zeros((K, 3)), block.dv, block.dt_k, block.g, None, None)[0]
     _, _, w, *_ = block.terms(nRk, s)
@@ -38,6 +39,12 @@ def posterior_mean(block, nRk: np.ndarray, s: np.ndarray) -> np.ndarray:
     eta = np.zeros((K, 3))
     eta[:-1] -= a * c
     eta[1:] += a * c
+    return eta
+
+
+def posterior_mean(block, nRk: np.ndarray, s: np.ndarray) -> np.ndarray:
+    """(K, 3) velocities minimising the chain's cost at orientations nRk, eq. (1), robust weights at states s."""
+    eta = increment_rhs(block, nRk, s)
     ab = chain_bands(block, nRk, s)
     return np.stack([solveh_banded(ab[:, :, i], eta[:, i], lower=True) for i in range(3)], axis=1)
 
