@@ -10,8 +10,6 @@ from __future__ import annotations
 import argparse
 import sys
 
-import numpy as np
-
 
 def _f(x, f="{:+.3f}"):
     try:
@@ -21,9 +19,7 @@ def _f(x, f="{:+.3f}"):
 
 
 def main(argv=None) -> int:
-    from imugraph.diagnose.bench import add_arguments, diagnose_options, harness_sessions
-    from imugraph.diagnose.effects import EFFECTS
-    from imugraph.diagnose.harness import run_harness
+    from imugraph.diagnose.bench import add_arguments, diagnose_options, harness_run, harness_sessions
     from imugraph.diagnose.run import diagnose
 
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -38,10 +34,7 @@ def main(argv=None) -> int:
         kept.append(d.to_json())
         return d
 
-    names = [n.strip() for n in a.effects.split(",")] if a.effects else list(EFFECTS)
-    rep = run_harness(sessions, names, a.n, np.random.default_rng(a.seed), clean=not a.no_clean,
-                      diagnose_fn=fn, only=[c.strip() for c in (a.cases or "").split(",") if c.strip()] or None,
-                      hosts=a.hosts)
+    rep = harness_run(a, sessions, fn)
     for case, d in zip(rep["cases"], kept):
         print(f"case {case['case']} {case['session']}: truth {case['truth']} {case['truth_params']} → {case['verdict']}")
         for e in d["effects"]:

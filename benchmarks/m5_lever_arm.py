@@ -21,16 +21,10 @@ import sys
 import numpy as np
 
 
-def skew(v: np.ndarray) -> np.ndarray:
-    """(N, 3, 3) cross-product matrices of (N, 3) v."""
-    z = np.zeros(len(v))
-    return np.stack([np.stack([z, -v[:, 2], v[:, 1]], 1), np.stack([v[:, 2], z, -v[:, 0]], 1),
-                     np.stack([-v[:, 1], v[:, 0], z], 1)], 1)
-
-
 def lever_columns(fit, smooth_s: float = 0.1) -> np.ndarray:
     """(N, 3, 3): K_j = [ω̂_j]×² + [α̂_j]× so that K_j r is the rotation's acceleration at lever arm r (LA1)."""
     from imugraph.diagnose.effects.base import smooth
+    from imugraph.geometry import skew
 
     n = max(1, int(round(smooth_s * fit.session.rate)))
     w = smooth(np.asarray(fit.b_omega, float), n)

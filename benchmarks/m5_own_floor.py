@@ -25,10 +25,9 @@ def cost_per_row(fit_sig, r: np.ndarray) -> float:
 
 
 def main(argv=None) -> int:
-    from imugraph.diagnose.bench import add_arguments, harness_sessions
-    from imugraph.diagnose.effects import EFFECTS, joint
+    from imugraph.diagnose.bench import add_arguments, harness_run, harness_sessions
+    from imugraph.diagnose.effects import joint
     from imugraph.diagnose.fit import base_options, fit_base, fit_simulation, simulate_from_fit
-    from imugraph.diagnose.harness import run_harness
 
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     add_arguments(p)
@@ -51,9 +50,7 @@ def main(argv=None) -> int:
                   flush=True)
         return {"verdict": "none", "effects": []}
 
-    names = [n.strip() for n in a.effects.split(",")] if a.effects else list(EFFECTS)
-    run_harness(sessions, names, a.n, np.random.default_rng(a.seed), clean=not a.no_clean, diagnose_fn=fn,
-                only=[c.strip() for c in (a.cases or "").split(",") if c.strip()] or None, hosts=a.hosts)
+    harness_run(a, sessions, fn)
     return 0
 
 

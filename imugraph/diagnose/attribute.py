@@ -61,6 +61,8 @@ import numpy as np
 from imugraph.diagnose.gap import CHANNELS, GapOptions, gap
 from imugraph.diagnose.result import EffectResult  # noqa: F401  (re-exported: its home before)
 from imugraph.diagnose.score import GainAccumulator, OwnCostAccumulator, clearly_better
+from imugraph.diagnose.support import (MIN_SUPPORT_S, SUPPORT_PAD_S, effect_support,  # noqa: F401  (re-exported:
+                                       scored_apart)                                    # their home before)
 from imugraph.folds import held_out_masks
 
 NONE = "none"
@@ -120,25 +122,14 @@ def fold_gaps(real, sim, folds: list, gap_opt: GapOptions = GapOptions()) -> lis
 # of its all-sample fit held (`Effect.fit_fold`), so that every fold scores the model the verdict would name.
 FOLD_FIXED_STRUCTURE = True
 
-SUPPORT_PAD_S = 1.0        # a claimed window is scored with this margin (ramps, edge error)
-MIN_SUPPORT_S = 4.0        # a support shorter than this (summed over the folds) is not scored apart
 
+def fit_on_fold(effect, fitted, train: np.ndarray, window, full):
+    """One fold's fit of `effect` on `train`: with the structure of its all-sample fit `full` held
+    (`Effect.fit_fold`) under FOLD_FIXED_STRUCTURE, else a free `Effect.fit`."""
+    if FOLD_FIXED_STRUCTURE and hasattr(effect, "fit_fold"):
+        return effect.fit_fold(fitted, train, window, full)
+    return effect.fit(fitted, train, window=window)
 
-def effect_support(corr, t: np.ndarray) -> np.ndarray | None:
-    """(N,) bool: the samples a fitted effect claims (module doc, (A3)), or None for a global effect.
-
-    `Correction.deltas["support"]` when the effect sets it (saturation: its clipped runs), else the
-    union of its `params["windows"]` widened by SUPPORT_PAD_S (magnetic_disturbance, vibration)."""
-    sup = corr.deltas.get("support") if getattr(corr, "deltas", None) else None
-    if sup is not None:
-        return np.asarray(sup, bool)
-    wins = (corr.params or {}).get("windows") if isinstance(corr.params, dict) else None
-    if not wins:
-        return None
-    m = np.zeros(len(t), bool)
-    for w in wins:
-        m |= (t >= w["t_start"] - SUPPORT_PAD_S) & (t <= w["t_end"] + SUPPORT_PAD_S)
-    return m
 
 
 def null_gaps(null, sim, sigma: dict, folds: list, gap_opt: GapOptions = GapOptions()) -> dict:
@@ -154,12 +145,6 @@ def null_gaps(null, sim, sigma: dict, folds: list, gap_opt: GapOptions = GapOpti
         for c in CHANNELS:
             out[c] += g[c] * float(f.sum()) / total
     return out
-
-
-def scored_apart(support: np.ndarray, rate: float) -> bool:
-    """(A3)'s condition: the support and its complement ≥ MIN_SUPPORT_S, the complement also ≥ 0.2·n."""
-    min_n = MIN_SUPPORT_S * rate
-    return bool(support.sum() >= min_n and (~support).sum() >= max(min_n, 0.2 * len(support)))
 
 
 def evaluate_effect(effect, real, sim, null_gap: dict, folds: list, opt: AttributionOptions,
@@ -197,10 +182,7 @@ def evaluate_effect(effect, real, sim, null_gap: dict, folds: list, opt: Attribu
     for fold, test, b in zip(folds, scored, base):
         if b is None:
             continue
-        if FOLD_FIXED_STRUCTURE and hasattr(effect, "fit_fold"):       # S17-H (T11): the named model's structure
-            corr = effect.fit_fold(fitted, ~fold, window, full)
-        else:
-            corr = effect.fit(fitted, ~fold, window=window)
+        corr = fit_on_fold(effect, fitted, ~fold, window, full)           # S17-H (T11): the named model's structure
         if hasattr(effect, "size"):                                  # the size on this fold's training samples
             try:
                 fold_sizes.append(float(effect.size(corr, fitted).get("value", np.nan)))

@@ -189,36 +189,44 @@ def harness_sessions(args: argparse.Namespace) -> list:
     return sessions
 
 
-def run_bench_diagnose(args: argparse.Namespace) -> int:
-    """Run the harness with the options of `add_arguments`; returns 0 (errors raise ImugraphError)."""
-    import json
-    import sys
-
+def harness_run(args: argparse.Namespace, sessions: list, diagnose_fn, progress=None) -> dict:
+    """`harness.run_harness` over `sessions` with `add_arguments`' --effects, --n, --seed, --no-clean, --cases
+    and --hosts, diagnosing with diagnose_fn; progress: optional callable(str) (a header line, then one per case)."""
     from imugraph.diagnose.effects import EFFECTS
-    from imugraph.diagnose.harness import format_report, run_harness
+    from imugraph.diagnose.harness import run_harness
     from imugraph.errors import SessionError
-    from imugraph.io.writers import atomic_write_text, json_ready
 
-    sessions = harness_sessions(args)
-    seed = int(getattr(args, "seed", 0) or 0)
-    if not sessions:
-        raise SessionError("--trials/--sims", "sessions", "no BROAD trial found and --sims 0",
-                           "at least one session")
     names = getattr(args, "effects", None)
     names = [n.strip() for n in names.split(",") if n.strip()] if names else list(EFFECTS)
     bad = [n for n in names if n not in EFFECTS]
     if bad:
         raise SessionError("--effects", "effects", ", ".join(bad), f"names among {sorted(EFFECTS)}")
+    if progress is not None:
+        progress(f"harness: {len(sessions)} sessions ({', '.join(s.name for s in sessions)}), "
+                 f"{len(names)} effects × {args.n}")
+    return run_harness(sessions, names, int(args.n), np.random.default_rng(int(getattr(args, "seed", 0) or 0)),
+                       clean=not getattr(args, "no_clean", False), progress=progress, diagnose_fn=diagnose_fn,
+                       only=[c.strip() for c in args.cases.split(",") if c.strip()]
+                       if getattr(args, "cases", None) else None,
+                       hosts=getattr(args, "hosts", "random") or "random")
+
+
+def run_bench_diagnose(args: argparse.Namespace) -> int:
+    """Run the harness with the options of `add_arguments`; returns 0 (errors raise ImugraphError)."""
+    import json
+    import sys
+
+    from imugraph.diagnose.harness import format_report
+    from imugraph.errors import SessionError
+    from imugraph.io.writers import atomic_write_text, json_ready
+
+    sessions = harness_sessions(args)
+    if not sessions:
+        raise SessionError("--trials/--sims", "sessions", "no BROAD trial found and --sims 0",
+                           "at least one session")
     quiet = bool(getattr(args, "quiet", False))
     say = (lambda m: None) if quiet else (lambda m: print(m, file=sys.stderr, flush=True))
-    say(f"harness: {len(sessions)} sessions ({', '.join(s.name for s in sessions)}), "
-        f"{len(names)} effects × {args.n}")
-    report = run_harness(sessions, names, int(args.n), np.random.default_rng(seed),
-                         clean=not getattr(args, "no_clean", False), progress=say,
-                         diagnose_fn=diagnose_function(args),
-                         only=[c.strip() for c in args.cases.split(",") if c.strip()]
-                         if getattr(args, "cases", None) else None,
-                         hosts=getattr(args, "hosts", "random") or "random")
+    report = harness_run(args, sessions, diagnose_function(args), say)
     text = format_report(report)
     print(text)
     out = Path(getattr(args, "out", "bench_out/diagnose"))

@@ -234,14 +234,13 @@ def run_harness(sessions: Iterable, effects: Optional[Iterable[str]] = None, n_p
     keep = None if only is None else {str(c).zfill(3) for c in only}
     cases = []
     t0 = time.perf_counter()
-    k = 0
     for cid, _host, injected, name, truth in draw_cases(sessions, names, n_per_effect, rng, hosts):
-        k += 1
         if keep is not None and cid not in keep:
             continue
         case = run_case(injected, name, truth, cid, fn)
         cases.append(case)
         say(_case_line(case))
+    k = len(names) * n_per_effect                        # the clean cases' ids follow the injected ones
     if clean:
         for base in sessions:
             k += 1

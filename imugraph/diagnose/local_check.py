@@ -22,6 +22,7 @@ from types import SimpleNamespace
 import numpy as np
 
 from imugraph.diagnose.score import GainAccumulator
+from imugraph.diagnose.support import effect_support, scored_apart
 
 LOCAL_CHECK = False
 
@@ -32,25 +33,23 @@ def global_gain_on_support(real, folds: list, local_res, global_res, effect) -> 
     support and its complement ≥ MIN_SUPPORT_S, the complement also ≥ 0.2·n; otherwise L's own gain was not
     scored on S and the two gains would not be on the same samples)."""
     from imugraph.diagnose import attribute
-    from imugraph.diagnose.attribute import effect_support
 
     sup = effect_support(SimpleNamespace(deltas={}, params=local_res.params or {}), real.session.t)
     c = local_res.channel
     if sup is None or not local_res.loglik_per_channel or c not in local_res.loglik_per_channel:
         return None
-    if not attribute.scored_apart(sup, real.session.rate):                         # (A3)'s condition
+    if not scored_apart(sup, real.session.rate):                         # (A3)'s condition
         return None
     # S17-N1: under T11 (attribute.FOLD_FIXED_STRUCTURE) the folds fit the model the verdict names — the
     # all-sample fit's channel held (`fit_fold`) —, so E is scored here as in its own evaluation
     full = SimpleNamespace(channel=global_res.channel)
-    fixed = attribute.FOLD_FIXED_STRUCTURE and hasattr(effect, "fit_fold")
     fitted = real if global_res.refit is None else global_res.refit[0]
     ll = GainAccumulator()
     for fold in folds:
         test = fold & sup
         if test.sum() < 10:
             continue
-        corr = effect.fit_fold(fitted, ~fold, None, full) if fixed else effect.fit(fitted, ~fold, window=None)
+        corr = attribute.fit_on_fold(effect, fitted, ~fold, None, full)
         ll.add(real.residuals, corr.raw_residuals(fitted), ~fold & sup, test)
     if not ll.folds:
         return None
