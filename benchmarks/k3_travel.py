@@ -27,7 +27,6 @@ bench_out/k3_travel_<kind>.json.
 from __future__ import annotations
 
 import argparse
-import json
 import pickle
 import sys
 import time
@@ -39,7 +38,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks.common import error_parts  # noqa: E402
 from benchmarks.k3_recovery import parse_variant  # noqa: E402
-from benchmarks.output import OUT_DIR  # noqa: E402
+from benchmarks.output import write_json  # noqa: E402
 from imugraph.graphs.stream import StreamOptions  # noqa: E402
 from imugraph.graphs.stream_run import bootstrap_calibration, select_position, stream_session  # noqa: E402
 
@@ -156,8 +155,7 @@ def main(argv=None) -> int:
               f"{np.mean([r['filtered'][1] for r in sub]):.3f}°) smoothed {np.mean([r['smoothed'][0] for r in sub]):.3f}° "
               f"(incl {np.mean([r['smoothed'][1] for r in sub]):.3f}°); min RT {min(r['cpu_rt'] for r in sub):.0f}×, "
               f"worst p99 {max(r['p99_cpu_ms'] for r in sub):.2f} ms; σp {[r['sigma_p'] for r in sub]}")
-    OUT_DIR.mkdir(exist_ok=True)
-    (OUT_DIR / f"k3_travel_{a.kind}.json").write_text(json.dumps({"variants": variants, "rows": rows}, indent=1))
+    write_json(f"k3_travel_{a.kind}.json", {"variants": variants, "rows": rows})
     return 0
 
 

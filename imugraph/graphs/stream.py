@@ -53,7 +53,6 @@ from imugraph.graphs.cpp_velocity import G_KEY, imu_bias_key, pose_key, super_sa
 from imugraph.graphs.stream_interval import (NAN3 as _NAN3, Q_ID, ArrivalMixin,
                                              interval_preintegration, lead_interval, qmul,
                                              row3 as _row3)
-from imugraph.graphs.orientation_init import triad
 from imugraph.graphs.stream_bridge import bridged_preintegration
 from imugraph.graphs.stream_calib import OnlineMagCalibration
 from imugraph.graphs.stream_calstate import CAL_KEY
@@ -151,20 +150,7 @@ class StreamSmoother(OnlineCalibrationMixin, KeyframeStartMixin, ArrivalMixin, S
         self._field = options.field_sigma is not None          # nav-field perturbation d_k (stream_field)
         self._d = np.zeros(3)                # latest estimate of keyframe k's d_k
         self._finished = False
-        # end-of-stream model extensions, each (graph, values) -> (graph, values), applied in order to the end graph
-        # before its Levenberg–Marquardt (stream_output.finish); empty by default
-        self._end_extensions: list = []
-        if options.windows_end and options.lag_s is None:     # the end graph's windows from the whole stream
-            from imugraph.graphs.stream_windows_end import attach
-            attach(self)
-        if options.velocity_end != "off" and options.lag_s is None:   # σ_v, τ_v by EM on the end graph (stream_velocity)
-            from imugraph.graphs.stream_velocity import VelocityEnd
-            self._end_extensions.append(VelocityEnd(self, options.velocity_end))
-        self._gmap = None                    # gyro_map_end: E estimated by the end graph (stream_gmap)
-        if options.gyro_map_end and options.lag_s is None and options.keep_history:
-            from imugraph.graphs.stream_gmap import EndGyroMap
-            self._gmap = EndGyroMap(self)
-            self._end_extensions.append(self._gmap.extend)
+        self._init_end_extensions()          # windows_end, velocity_end, gyro_map_end (stream_output)
 
     # ------------------------------------------------------------------ arrival
     def push(self, t: float, gyr, acc, mag=None) -> np.ndarray:
@@ -252,19 +238,6 @@ class StreamSmoother(OnlineCalibrationMixin, KeyframeStartMixin, ArrivalMixin, S
         self.stats.between_s.append(time.perf_counter() - start)
         self.stats.between_cpu_s.append(time.thread_time() - start_cpu)
 
-    def _filtered(self) -> np.ndarray:
-        return np.array(self._filtered_q())
-
-    def _filtered_q(self) -> tuple:
-        if self._q_nk is None:
-            if not self._buf:
-                return _NAN3 + (math.nan,)
-            a, m = np.array(self._buf[0][4:7]), np.array(self._buf[0][7:10])
-            m = self.cal.apply(m[None])[0] if np.all(np.isfinite(m)) else np.cross(a, [0.0, 1.0, 0.0])
-            return tuple(_quat(gtsam.Rot3(triad(a[None], m[None])[0]).compose(gtsam.Rot3.Quaternion(*self._q_open))).tolist())
-        q = qmul(self._q_nk, self._q_open)
-        return q if q[0] >= 0 else (-q[0], -q[1], -q[2], -q[3])
-
     # ------------------------------------------------------------------ keyframes
     def _isam(self):
         """The iSAM2 instance holding the graph (the chain lag's inner one, or the solver itself)."""
@@ -291,7 +264,8 @@ class StreamSmoother(OnlineCalibrationMixin, KeyframeStartMixin, ArrivalMixin, S
         # of this one interval, equal to it (stream_interval)
         noise = (self._b_hat, self._sig_g, self.opt.gyro_rate_error, self._sig_acc, self.opt.acc_rate_error,
                  (self.rate, self.opt.gap_rate_walk, self.opt.gap_acc_walk))
-        if self.opt.gap_bridge and gap.any():          # stream_bridge (B1)–(B2)
+        bridged = bool(self.opt.gap_bridge and gap.any())
+        if bridged:                                     # stream_bridge (B1)–(B2)
             pre = bridged_preintegration(t, w, a, row_next[1:4], row_next[4:7], *noise)
         else:
             pre = interval_preintegration(t, w, a, *noise)
@@ -358,7 +332,7 @@ class StreamSmoother(OnlineCalibrationMixin, KeyframeStartMixin, ArrivalMixin, S
                 if self.opt.windows_end:             # raw rows, no start windows (stream_windows_end)
                     self._hist_raw.append(m_raw.copy())
         if self._gmap is not None:           # J_k and E's coverage sums (stream_gmap)
-            self._gmap.interval(k, t, w, rows[:, 4:7], kRb, delta_R, bool(self.opt.gap_bridge and gap.any()))
+            self._gmap.interval(k, t, w, rows[:, 4:7], kRb, delta_R, bridged)
         self._k = k + 1
         self._maintained = not self._chain
         if self._online is not None:

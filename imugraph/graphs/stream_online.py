@@ -39,7 +39,6 @@ from dataclasses import replace
 import gtsam
 import numpy as np
 
-from imugraph import keys
 from imugraph.calibration.result import Calibration
 from imugraph.graphs.cpp_velocity import pose_key, robust
 from imugraph.graphs.stream_calstate import (CAL_KEY, PIN_REL, WhitenessSums, cal_mag_factor, calibration_of,
@@ -170,6 +169,12 @@ class OnlineCalibrationMixin:
             return None
         return self._isam().calculateEstimateVector(key)
 
+    def _end_theta(self) -> np.ndarray:
+        """θ of the end graph's exact magnetometer factors: the streamed θ (stream_calstate eq. 4, the flush's row)
+        with calib_final_theta, as the batch smooths with the θ it estimated (docs/stream.md "Session 17, helper L");
+        else (or before any record) the pin θ₀."""
+        return self._theta_end if (self.opt.calib_final_theta and self._theta_end is not None) else self._theta0
+
     def _record_state(self, elapsed: float) -> None:
         """A history row: the streamed θ and its std (stream_calstate eq. 4) from iSAM2's θ̂ and marginal covariance;
         with disturb_offsets, when a window is the majority, its hard iron (stream_offsets eq. 2)."""
@@ -277,65 +282,6 @@ class OnlineCalibrationMixin:
         return not s0 or not self.opt.calib_beat_start or (np.all(np.asarray(std["D"]) <= np.asarray(s0.get("D", np.inf)))
                           and np.all(np.asarray(std["o"]) <= np.asarray(s0.get("o", np.inf))))
 
-    def _end_calibration(self) -> None:
-        """After the end-of-stream smoothing: `self.cal` (calibration.json) becomes what the end graph used — the normal
-        state's streamed θ (calib_final_theta) as D, o, dip and each detector window's final Δo_w as a modelled
-        `disturbances` entry (the batch's format, calibration.result), one per run of consecutive keyframes whose
-        factor carried it: y_j − Δo_w for j in the run (stream_offsets eq. 1; Calibration.corrected), so that
-        `smooth --calibration` sees the field the end graph saw (options.calib_json_end_graph). Without windows and a
-        majority swap: unchanged.
-        The majority swap's hard iron stays in calibration_history.json's last row (normal_window).
-        With windows_end (when it rebuilt the end graph): the end θ and the END windows instead (std: the streamed θ's)."""
-        opt = self.opt
-        if not (self._calstate and opt.calib_json_end_graph and opt.calib_final_theta and self._theta_end is not None
-                and self._final is not None and self._mag_index and self._end_cal is not None):
-            return
-        if opt.windows_end:                         # the end windows and end θ (stream_windows_end.end_calibration)
-            from imugraph.graphs.stream_windows_end import end_calibration
-            cal = end_calibration(self, self._end_cal)
-            if cal is not None:
-                self.cal = cal
-                return
-        added = []
-        for okey, k0, k1 in self._okey_runs():
-            t = np.concatenate(self._hist_t[k0:k1 + 1])
-            added.append({"t_start": float(t.min()), "t_end": float(t.max()),
-                          "offset": np.asarray(self._final.atVector(okey), float).tolist(), "modelled": True,
-                          "left_out": [], "window": int(gtsam.Symbol(okey).index()), "source": "stream"})
-        self.cal = replace(self._end_cal, disturbances=list(self.cal.disturbances) + added)
-
-    def _okey_runs(self) -> list:
-        """[Δo_w key, first, last keyframe] per run of consecutive keyframes whose factor carried the same Δo_w key."""
-        rows = []
-        for k in sorted(self._mag_okey):
-            okey = self._mag_okey[k]
-            if rows and rows[-1][0] == okey and rows[-1][2] == k - 1:
-                rows[-1][2] = k
-            else:
-                rows.append([okey, k, k])
-        return rows
-
-    def _final_graph(self) -> gtsam.NonlinearFactorGraph:
-        """iSAM2's factors; with history, the magnetometer factors rebuilt exact: with the final calibration
-        (online refit), or on (pose_k, d_k, Δo_w) when θ is a graph state (calib_states): at the streamed θ (the normal
-        state's last estimate, calib_final_theta, the default since session 17) or at the pinned θ₀."""
-        factors = self._solver.getFactorsUnsafe()
-        # θ pinned (calib_states): the factors were linearised once when their interval closed (at the filtered
-        # pose, d_k and θ_lin); re-issued exact at θ₀ (stream_calstate.pinned_mag_factor) — BROAD, 17 trials:
-        # smoothed vs smooth_fixed of the same model 0.148° → 0.035° mean (BROAD 17, docs/stream.md "One model, two solvers")
-        if (self._online is None and not self._calstate) or not self.opt.keep_history or not self._mag_index:
-            return factors
-        from imugraph.geometry import quat_to_rotmat
-
-        old = set(self._mag_index.values())
-        graph = gtsam.NonlinearFactorGraph()
-        for i in range(factors.size()):
-            if i not in old and factors.exists(i):
-                graph.add(factors.at(i))
-        for k in self._mag_index:
-            graph.add(self._mag_factor(k, quat_to_rotmat(self._hist_kRb[k]), self._hist_y[k], exact=True))
-        return graph
-
     def _mag_factor(self, k: int, kRb: np.ndarray, y: np.ndarray, exact: bool = False, no_theta: bool = False,
                     into: tuple | None = None):
         """Huber MagPoseFactorPose3 on keyframe k: the interval's calibrated field D⁻¹(y − o) rotated into
@@ -348,11 +294,8 @@ class OnlineCalibrationMixin:
         if self._calstate and exact:     # the end-of-stream graph: exact at the pin θ₀, d_k and Δo_w free
             from imugraph.graphs.stream_calstate import pinned_mag_factor
 
-            # calib_final_theta: at the streamed θ (stream_calstate eq. 4, the flush's row) instead of θ₀, as the batch
-            # smooths with the θ it estimated (docs/stream.md "Session 17, helper L")
-            theta = self._theta_end if (self.opt.calib_final_theta and self._theta_end is not None) else self._theta0
             return pinned_mag_factor(pose_key(k), field_key(k) if self._field else None, self._mag_okey.get(k),
-                                     theta, kRb, y, self._sig_y, self.opt.huber_k)
+                                     self._end_theta(), kRb, y, self._sig_y, self.opt.huber_k)
         if self._calstate:       # on (pose_k, d_k, θ), linearised once (stream_calstate eq. 1–2)
             offs = self._offsets
             win = self._win_now if (no_theta and offs is not None) else None
@@ -387,19 +330,3 @@ class OnlineCalibrationMixin:
             f = field_mag_factor(pose_key(k), field_key(k), m_avg, self.cal.n_mag, mdl)
             return f if exact else linearized_once(f, pose_key(k), gtsam.Pose3(self._nRk, self._p), field_key(k), self._d)
         return gtsam.MagPoseFactorPose3(pose_key(k), m_avg, 1.0, self.cal.n_mag, np.zeros(3), mdl)
-
-    def _final_lm(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values) -> gtsam.Values:
-        """The end-of-stream Levenberg–Marquardt (iSAM2). With the field perturbation the graph holds Python
-        CustomFactors, which gtsam's C++ optimizer would call with a copy of every Values (O(K²),
-        GTSAM_NOTES.md): then the Python-driven loop of imugraph.graphs.solver, keyframes in time order."""
-        if not self._field and not (self._calstate and self.opt.keep_history and self._mag_index):   # no CustomFactor
-            return gtsam.LevenbergMarquardtOptimizer(graph, values, gtsam.LevenbergMarquardtParams()).optimize()
-        from imugraph.graphs.gyro_map_block import beta_key
-        from imugraph.graphs.solver import chain_ordering, optimize
-
-        present = set(values.keys())
-        order = [key for k in range(self._k + 1) for key in (pose_key(k), keys.vel(k), field_key(k), beta_key(k))
-                 if key in present]        # stream_gmap's β_k (gyro_map_end), eliminated in the chain
-        in_order = set(order)
-        rest = [key for key in values.keys() if key not in in_order]
-        return optimize(graph, [], values, chain_ordering(order, rest))[0]

@@ -1,20 +1,46 @@
 """The outputs of `StreamSmoother` (imugraph.graphs.stream): the end of the stream (`finish`: the last interval, the
-window's keyframes, the end-of-stream smoothing), the smoothed keyframes and samples, and the constant-memory
-pruning of the fixed lag's smoothed keyframes."""
+window's keyframes, the end-of-stream smoothing: its graph, extensions, Levenberg–Marquardt and calibration.json),
+the filtered orientation, the smoothed keyframes and samples, and the constant-memory pruning of the fixed lag's
+smoothed keyframes."""
 
 from __future__ import annotations
+
+import math
+from dataclasses import replace
 
 import gtsam
 import numpy as np
 
+from imugraph import keys
 from imugraph.errors import SessionError
 from imugraph.factors.gyro import Preintegration
-from imugraph.graphs.orientation_init import sample_orientations
+from imugraph.graphs.cpp_velocity import pose_key
+from imugraph.graphs.orientation_init import sample_orientations, triad
+from imugraph.graphs.stream_field import field_key
+from imugraph.graphs.stream_interval import NAN3 as _NAN3, qmul
 from imugraph.graphs.stream_lag import window_rotations
+from imugraph.graphs.stream_start import _quat
 
 
 class StreamOutputMixin:
     """Methods of StreamSmoother (state in StreamSmoother.__init__)."""
+
+    def _init_end_extensions(self) -> None:
+        """The end-of-stream model extensions, each (graph, values) -> (graph, values), applied in order to the end
+        graph before its Levenberg–Marquardt (`finish`); empty by default."""
+        options = self.opt
+        self._end_extensions: list = []
+        if options.windows_end and options.lag_s is None:     # the end graph's windows from the whole stream
+            from imugraph.graphs.stream_windows_end import attach
+            attach(self)
+        if options.velocity_end != "off" and options.lag_s is None:   # σ_v, τ_v by EM on the end graph (stream_velocity)
+            from imugraph.graphs.stream_velocity import VelocityEnd
+            self._end_extensions.append(VelocityEnd(self, options.velocity_end))
+        self._gmap = None                    # gyro_map_end: E estimated by the end graph (stream_gmap)
+        if options.gyro_map_end and options.lag_s is None and options.keep_history:
+            from imugraph.graphs.stream_gmap import EndGyroMap
+            self._gmap = EndGyroMap(self)
+            self._end_extensions.append(self._gmap.extend)
 
     def finish(self) -> None:
         """Close the last interval (its newest sample becomes the last keyframe, as `keyframe_layout`)."""
@@ -37,10 +63,10 @@ class StreamOutputMixin:
             # (iSAM2 relinearises only past a threshold and can stop short of the batch optimum), with every
             # magnetometer factor re-issued with the final calibration when it was re-estimated online
             graph, values = self._final_graph(), self._solver.calculateEstimate()
-            for extend in self._end_extensions:      # (graph, values) -> (graph, values), stream.py __init__
+            for extend in self._end_extensions:      # (graph, values) -> (graph, values), _init_end_extensions
                 graph, values = extend(graph, values)
             self._final = self._final_lm(graph, values)
-            if self._calstate:           # calibration.json: what the end graph used (stream_online._end_calibration)
+            if self._calstate:           # calibration.json: what the end graph used (_end_calibration)
                 self._end_calibration()
             self._learned_content()
         self._finished = True
@@ -59,11 +85,97 @@ class StreamOutputMixin:
     def _learned_content(self) -> None:
         """calibration.json carries `_learned_changes`, as the batch's calibration does, so that
         `smooth --calibration` applies them."""
-        from dataclasses import replace
-
         changes = self._learned_changes()
         if changes:
             self.cal = replace(self.cal, **changes)
+
+    def _end_calibration(self) -> None:
+        """After the end-of-stream smoothing: `self.cal` (calibration.json) becomes what the end graph used — the normal
+        state's streamed θ (calib_final_theta) as D, o, dip and each detector window's final Δo_w as a modelled
+        `disturbances` entry (the batch's format, calibration.result), one per run of consecutive keyframes whose
+        factor carried it: y_j − Δo_w for j in the run (stream_offsets eq. 1; Calibration.corrected), so that
+        `smooth --calibration` sees the field the end graph saw (options.calib_json_end_graph). Without windows and a
+        majority swap: unchanged.
+        The majority swap's hard iron stays in calibration_history.json's last row (normal_window).
+        With windows_end (when it rebuilt the end graph): the end θ and the END windows instead (std: the streamed θ's)."""
+        opt = self.opt
+        if not (self._calstate and opt.calib_json_end_graph and opt.calib_final_theta and self._theta_end is not None
+                and self._final is not None and self._mag_index and self._end_cal is not None):
+            return
+        if opt.windows_end:                         # the end windows and end θ (stream_windows_end.end_calibration)
+            from imugraph.graphs.stream_windows_end import end_calibration
+            cal = end_calibration(self, self._end_cal)
+            if cal is not None:
+                self.cal = cal
+                return
+        added = []
+        for okey, k0, k1 in self._okey_runs():
+            t = np.concatenate(self._hist_t[k0:k1 + 1])
+            added.append({"t_start": float(t.min()), "t_end": float(t.max()),
+                          "offset": np.asarray(self._final.atVector(okey), float).tolist(), "modelled": True,
+                          "left_out": [], "window": int(gtsam.Symbol(okey).index()), "source": "stream"})
+        self.cal = replace(self._end_cal, disturbances=list(self.cal.disturbances) + added)
+
+    def _okey_runs(self) -> list:
+        """[Δo_w key, first, last keyframe] per run of consecutive keyframes whose factor carried the same Δo_w key."""
+        rows = []
+        for k in sorted(self._mag_okey):
+            okey = self._mag_okey[k]
+            if rows and rows[-1][0] == okey and rows[-1][2] == k - 1:
+                rows[-1][2] = k
+            else:
+                rows.append([okey, k, k])
+        return rows
+
+    def _final_graph(self) -> gtsam.NonlinearFactorGraph:
+        """iSAM2's factors; with history, the magnetometer factors rebuilt exact: with the final calibration
+        (online refit), or on (pose_k, d_k, Δo_w) when θ is a graph state (calib_states): at the streamed θ (the normal
+        state's last estimate, calib_final_theta, the default since session 17) or at the pinned θ₀."""
+        factors = self._solver.getFactorsUnsafe()
+        # θ pinned (calib_states): the factors were linearised once when their interval closed (at the filtered
+        # pose, d_k and θ_lin); re-issued exact at θ₀ (stream_calstate.pinned_mag_factor) — BROAD, 17 trials:
+        # smoothed vs smooth_fixed of the same model 0.148° → 0.035° mean (BROAD 17, docs/stream.md "One model, two solvers")
+        if (self._online is None and not self._calstate) or not self.opt.keep_history or not self._mag_index:
+            return factors
+        from imugraph.geometry import quat_to_rotmat
+
+        old = set(self._mag_index.values())
+        graph = gtsam.NonlinearFactorGraph()
+        for i in range(factors.size()):
+            if i not in old and factors.exists(i):
+                graph.add(factors.at(i))
+        for k in self._mag_index:
+            graph.add(self._mag_factor(k, quat_to_rotmat(self._hist_kRb[k]), self._hist_y[k], exact=True))
+        return graph
+
+    def _final_lm(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values) -> gtsam.Values:
+        """The end-of-stream Levenberg–Marquardt (iSAM2). With the field perturbation the graph holds Python
+        CustomFactors, which gtsam's C++ optimizer would call with a copy of every Values (O(K²),
+        GTSAM_NOTES.md): then the Python-driven loop of imugraph.graphs.solver, keyframes in time order."""
+        if not self._field and not (self._calstate and self.opt.keep_history and self._mag_index):   # no CustomFactor
+            return gtsam.LevenbergMarquardtOptimizer(graph, values, gtsam.LevenbergMarquardtParams()).optimize()
+        from imugraph.graphs.gyro_map_block import beta_key
+        from imugraph.graphs.solver import chain_ordering, optimize
+
+        present = set(values.keys())
+        order = [key for k in range(self._k + 1) for key in (pose_key(k), keys.vel(k), field_key(k), beta_key(k))
+                 if key in present]        # stream_gmap's β_k (gyro_map_end), eliminated in the chain
+        in_order = set(order)
+        rest = [key for key in values.keys() if key not in in_order]
+        return optimize(graph, [], values, chain_ordering(order, rest))[0]
+
+    def _filtered(self) -> np.ndarray:
+        return np.array(self._filtered_q())
+
+    def _filtered_q(self) -> tuple:
+        if self._q_nk is None:
+            if not self._buf:
+                return _NAN3 + (math.nan,)
+            a, m = np.array(self._buf[0][4:7]), np.array(self._buf[0][7:10])
+            m = self.cal.apply(m[None])[0] if np.all(np.isfinite(m)) else np.cross(a, [0.0, 1.0, 0.0])
+            return tuple(_quat(gtsam.Rot3(triad(a[None], m[None])[0]).compose(gtsam.Rot3.Quaternion(*self._q_open))).tolist())
+        q = qmul(self._q_nk, self._q_open)
+        return q if q[0] >= 0 else (-q[0], -q[1], -q[2], -q[3])
 
     def _forget_smoothed(self, keep_from: int) -> None:
         """Without keep_history (constant memory): drop the smoothed keyframes before `keep_from` that the

@@ -128,8 +128,7 @@ class EndWindows:
     def _theta_normal(self) -> np.ndarray:
         """θ of the end factors with the normal state's hard iron o_n (module docstring)."""
         sm = self.sm
-        theta = sm._theta_end if (sm.opt.calib_final_theta and sm._theta_end is not None) else sm._theta0
-        D, o, dip = unpack_theta(theta)
+        D, o, dip = unpack_theta(sm._end_theta())
         if sm._streamed_cal is not None and sm._theta_end is not None:   # o + Δo_w of the majority (or o itself)
             o = np.asarray(sm._streamed_cal.o, float)
         return pack_theta(D, o, dip)
