@@ -25,6 +25,7 @@ from benchmarks.common import error_parts, parse_options, parse_variants  # noqa
 from benchmarks.output import write_json  # noqa: E402
 from imugraph.calibration.ml import calibrate  # noqa: E402
 from imugraph.config import data_dir  # noqa: E402
+from imugraph.geometry import quat_angle  # noqa: E402
 from imugraph.io.gaittoolbox import read_gaittoolbox  # noqa: E402
 
 SEGMENTS = ("Pelvis", "LeftFoot", "RightFoot", "LeftLowerLeg", "RightLowerLeg")
@@ -32,11 +33,13 @@ SEGMENTS = ("Pelvis", "LeftFoot", "RightFoot", "LeftLowerLeg", "RightLowerLeg")
 
 def _angle_deg(q1: np.ndarray, q2: np.ndarray) -> float:
     """RMS rotation angle (°) between two (N, 4) w, x, y, z quaternion sequences."""
-    d = np.abs(np.sum(q1 * q2, axis=1)).clip(0.0, 1.0)
-    return float(np.rad2deg(np.sqrt(np.mean((2.0 * np.arccos(d)) ** 2))))
+    return float(np.rad2deg(np.sqrt(np.mean(quat_angle(q1, q2) ** 2))))
 
 
 def main(argv: list[str]) -> int:
+    if {"-h", "--help"} & set(argv):
+        print(__doc__)
+        return 0
     variants, rest = parse_variants(argv)
     segs = rest[0].split(",") if rest else list(SEGMENTS)
     root = data_dir() / "gaittoolbox" / "rawimu"
@@ -44,6 +47,10 @@ def main(argv: list[str]) -> int:
         print(f"{root} absent")
         return 2
     body = read_gaittoolbox(root, "S02-Trial-Walk-1")
+    unknown = [seg for seg in segs if seg not in body.sensors]
+    if unknown:
+        print(f"j2_gait: error: SEGMENTS: found {', '.join(unknown)}; expected some of {', '.join(body.sensors)}")
+        return 2
     rows = []
     for seg in segs:
         s = body.sensors[seg]

@@ -98,6 +98,11 @@ def quat_conj(q: np.ndarray) -> np.ndarray:
     return q * np.array([1.0, -1.0, -1.0, -1.0])
 
 
+def quat_angle(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Rotation angle (rad) between unit quaternions (…, 4): 2 arccos |⟨a, b⟩| (either sign of a quaternion)."""
+    return 2.0 * np.arccos(np.clip(np.abs(np.sum(a * b, axis=-1)), 0.0, 1.0))
+
+
 def quat_to_rotvec(q: np.ndarray) -> np.ndarray:
     q = quat_normalize(q)
     v = q[..., 1:]

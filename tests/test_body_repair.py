@@ -176,3 +176,14 @@ def test_estimator_on_21_segment_skeleton():
     i5 = skel.index("L5")
     half = quat_slerp(res.n_quat[:, 0], res.n_quat[:, skel.index("T8")], np.full(t.size, 0.5))
     assert _angle_deg(res.n_quat[:, i5], half).max() < 1e-6
+
+
+def test_quat_angle_is_the_rotation_angle_for_either_sign():
+    from imugraph.geometry import quat_angle, rotvec_to_quat
+    rng = np.random.default_rng(3)
+    a = rotvec_to_quat(rng.normal(size=3))
+    w = np.array([0.0, 0.7, -0.2])                       # a known relative rotation of |w| = 0.728 rad
+    b = quat_mul(a, rotvec_to_quat(w))
+    assert quat_angle(a, b) == pytest.approx(np.linalg.norm(w), abs=1e-9)
+    assert quat_angle(a, -b) == pytest.approx(np.linalg.norm(w), abs=1e-9)
+    assert quat_angle(np.stack([a, a]), np.stack([a, b])) == pytest.approx([0.0, np.linalg.norm(w)], abs=1e-6)

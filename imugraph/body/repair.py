@@ -33,15 +33,10 @@ from __future__ import annotations
 import numpy as np
 
 from imugraph.errors import SessionError
-from imugraph.geometry import quat_conj, quat_mul, quat_normalize, quat_slerp
+from imugraph.geometry import quat_angle, quat_conj, quat_mul, quat_normalize, quat_slerp
 
 MAX_JOINT_RATE = 25.0          # rad/s, module docstring
 _SRC = "<imugraph.body.repair>"
-
-
-def _angle(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Rotation angle between unit quaternions (…, 4), rad: 2 arccos |⟨a, b⟩| (G1)."""
-    return 2.0 * np.arccos(np.clip(np.abs(np.sum(a * b, axis=-1)), 0.0, 1.0))
 
 
 def joint_rotations(parents, n_quat: np.ndarray) -> np.ndarray:
@@ -64,7 +59,7 @@ def compose(parents, r: np.ndarray) -> np.ndarray:
 
 def joint_rates(t: np.ndarray, r: np.ndarray) -> np.ndarray:
     """(F−1, S) frame-to-frame joint rates ω_k, rad/s (G1)."""
-    return _angle(r[:-1], r[1:]) / np.diff(t)[:, None]
+    return quat_angle(r[:-1], r[1:]) / np.diff(t)[:, None]
 
 
 def _repair_one(t: np.ndarray, r: np.ndarray, max_rate: float, max_gap_s: float) -> tuple[np.ndarray, int, int]:
@@ -74,7 +69,7 @@ def _repair_one(t: np.ndarray, r: np.ndarray, max_rate: float, max_gap_s: float)
     replaced = np.zeros(F, bool)
     skipped = set()
     while True:
-        w = _angle(r[:-1], r[1:]) / np.diff(t)
+        w = quat_angle(r[:-1], r[1:]) / np.diff(t)
         bad = np.flatnonzero(w > max_rate * (1 + 1e-9))
         bad = [k for k in bad if k not in skipped]
         if not bad:
@@ -84,10 +79,10 @@ def _repair_one(t: np.ndarray, r: np.ndarray, max_rate: float, max_gap_s: float)
             k1 += 1
         a, b = k0, k1 + 1
         while True:
-            if _angle(r[a], r[b]) / (t[b] - t[a]) <= max_rate or t[b] - t[a] > max_gap_s or (a == 0 and b == F - 1):
+            if quat_angle(r[a], r[b]) / (t[b] - t[a]) <= max_rate or t[b] - t[a] > max_gap_s or (a == 0 and b == F - 1):
                 break
             a, b = max(a - 1, 0), min(b + 1, F - 1)
-        if _angle(r[a], r[b]) / (t[b] - t[a]) > max_rate or b - a < 2:
+        if quat_angle(r[a], r[b]) / (t[b] - t[a]) > max_rate or b - a < 2:
             skipped.update(range(k0, k1 + 1))                                  # cannot repair: leave, report
             continue
         i = np.arange(a + 1, b)
