@@ -256,6 +256,17 @@ def orientation_error(quat_est: np.ndarray, quat_ref: np.ndarray, mask: Optional
     return _score(_angles(al.q_err), al, rate_hz)
 
 
+def orientation_error_series(quat_est: np.ndarray, quat_ref: np.ndarray, mask: Optional[np.ndarray],
+                             *, max_shift: float = 3.0, shift_step: float = 0.25,
+                             heading: bool = True) -> tuple[np.ndarray, np.ndarray]:
+    """The per-sample total angle of eq. (1) at the alignment `orientation_error` chooses (for plots over time):
+    (idx, angle_deg), the scored sample indices (K,) and their error angles in degrees (K,)."""
+    al = _align(quat_est, quat_ref, mask, max_shift, shift_step, heading)
+    idx = _scored_index(_check_quats("quat_est", quat_est, None), _check_quats("quat_ref", quat_ref, None), mask,
+                        int(np.ceil(max_shift)) + 1)
+    return idx, np.rad2deg(np.abs(_angles(al.q_err)))
+
+
 def heading_error(quat_est: np.ndarray, quat_ref: np.ndarray, mask: Optional[np.ndarray],
                   rate_hz: float, *, max_shift: float = 3.0, shift_step: float = 0.25,
                   heading: bool = True) -> OrientationScore:

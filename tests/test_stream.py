@@ -179,6 +179,8 @@ def test_cli_writes_the_four_files(tmp_path, capsys):
     assert timing["bootstrap_samples"] == int(np.sum(session.t <= session.t[0] + 20.0))
     cal = json.loads((out / "calibration.json").read_text())
     assert np.asarray(cal["D"]).shape == (3, 3)
+    for name in ("stream_calibration.png", "stream_orientation.png", "stream_timing.png"):
+        assert (out / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n", name
 
 
 def _err_rate(q, ref, rate):

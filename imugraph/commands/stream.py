@@ -13,7 +13,8 @@ dip estimated with the orientations, imugraph.graphs.stream_calstate; with the e
 it used: the normal state's streamed θ and each detector window's final Δo_w as a modelled `disturbances` entry, so
 `smooth --calibration` reproduces orientation.npz, with StreamOptions.calib_json_end_graph; the majority swap's
 hard iron is the last history row's), calibration_history.json (the start calibration and one row per online
-refit: t, D, o, dip_deg, std, ...), timing.json (updates, seconds, p50_ms, p99_ms, plus max_ms, realtime_factor,
+refit: t, D, o, dip_deg, std, ...), the figures stream_calibration.png, stream_orientation.png and stream_timing.png
+(`write_stream_figures`), timing.json (updates, seconds, p50_ms, p99_ms, plus max_ms, realtime_factor,
 the CPU-time figures, the between-keyframe steps' p50/p99/max, bootstrap_seconds, bootstrap_samples and the arrival counters; docs/stream.md).
 """
 
@@ -30,6 +31,34 @@ def _flag(args: argparse.Namespace, name: str, default: bool) -> bool:
     """A --flag/--no-flag value when the parser offers it and it was given, else the StreamOptions default."""
     value = getattr(args, name, None)
     return default if value is None else bool(value)
+
+
+def write_stream_figures(out: Path, session, result) -> list[str]:
+    """stream_calibration.png (the calibration as it evolved, when calibrated online), stream_orientation.png
+    (filtered and smoothed against the session's reference orientation when it has one, else against each other)
+    and stream_timing.png (time per update): imugraph.io.stream_figures. Returns the file names written."""
+    from imugraph.io.stream_figures import plot_stream_calibration, plot_stream_orientation, plot_stream_timing
+
+    names = []
+    if result.calibration_history:
+        plot_stream_calibration(out / "stream_calibration.png", result.calibration_history, result.calibration,
+                                title=f"Calibration as it was streamed: {session.name}")
+        names.append("stream_calibration.png")
+    from imugraph.errors import ImugraphError
+
+    title = f"Filtered and smoothed orientation: {session.name}"
+    try:
+        plot_stream_orientation(out / "stream_orientation.png", result.t, result.filtered, result.smoothed,
+                                session.quat, session.movement if session.quat is not None else None, title=title)
+    except ImugraphError:            # a reference that cannot be scored (all NaN, too short): the two estimates
+        plot_stream_orientation(out / "stream_orientation.png", result.t, result.filtered, result.smoothed,
+                                title=title)
+    names.append("stream_orientation.png")
+    if result.update_ms is not None and result.update_ms.size:
+        plot_stream_timing(out / "stream_timing.png", result.update_t, result.update_ms, result.update_cpu_ms,
+                           title=f"Time per keyframe update: {session.name}")
+        names.append("stream_timing.png")
+    return names
 
 
 def run_stream(args: argparse.Namespace) -> int:
@@ -67,6 +96,7 @@ def run_stream(args: argparse.Namespace) -> int:
     atomic_write_text(out / "timing.json", json.dumps(timing, indent=2))
     progress.say(f"wrote {out}/orientation.npz, orientation_filtered.npz, calibration.json, "
                  "calibration_history.json, timing.json")
+    progress.say(f"drawing figures: {', '.join(write_stream_figures(out, session, result))}")
     tm = result.timing
     print(f"streamed {session.name}: {session.n} samples, {tm['updates']} updates, "
           f"{tm['realtime_factor']:.1f}× real time, update p50 {tm['p50_ms']:.2f} ms, p99 {tm['p99_ms']:.2f} ms → {out}")

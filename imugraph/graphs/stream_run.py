@@ -33,6 +33,8 @@ class StreamResult:
         bootstrap_samples: rows inside the bootstrap window (0 with a given calibration).
         calibration_history: one row per online refit {t, D, o, dip_deg, std, samples, rejected} ([] without).
         start_calibration: the bootstrap's (or the given) calibration.
+        update_t, update_ms, update_cpu_ms: (U,) the stream time of each keyframe update (its new keyframe's
+        time, s) and the update's wall and thread-CPU time, ms (for the timing figure; timing holds the summary).
     """
 
     t: np.ndarray
@@ -44,6 +46,9 @@ class StreamResult:
     bootstrap_samples: int
     calibration_history: list
     start_calibration: Calibration
+    update_t: np.ndarray | None = None
+    update_ms: np.ndarray | None = None
+    update_cpu_ms: np.ndarray | None = None
 
 
 def bootstrap_calibration(session: Session, bootstrap_s: float, keyframe_hz: float = 10.0,
@@ -230,5 +235,9 @@ def stream_session(session: Session, cal: Optional[Calibration] = None, options:
     timing = timing_summary(st.update_s, seconds, session.n, session.rate, st.update_cpu_s, cpu_seconds,
                             st.between_s, st.between_cpu_s)
     timing["bootstrap_seconds"] = boot_s
+    update_ms = np.asarray(st.update_s, float) * 1e3
+    kf_t = smoother.times()          # every update adds keyframe k+1 (StreamSmoother._close)
+    update_t = kf_t[1:1 + update_ms.size] if kf_t.size > update_ms.size else np.arange(update_ms.size, dtype=float)
     return StreamResult(session.t, filtered, smoothed, smoother.cal, timing, smoother.stats.counts(), n_boot,
-                        smoother.calibration_history, cal)
+                        smoother.calibration_history, cal, update_t, update_ms,
+                        np.asarray(st.update_cpu_s, float) * 1e3)
