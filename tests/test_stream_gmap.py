@@ -179,3 +179,84 @@ def test_coverage_gate_is_the_batch_gate():
     clean = clean_intervals(acc, g, skf, int(skf.max()) + 1, Options().gyro_map_acc_tol)
     assert 0 < clean.sum() < len(clean)
     assert gm.turns == pytest.approx(clean_turns(gyr, np.full(n, 0.01), skf, clean), rel=1e-12)
+
+
+# ---------------------------------------------------------------- gyro_map_end="exact" (session 19, helper Z)
+def test_exact_repreintegration_is_the_streams():
+    """"exact" keeps the samples: re-preintegrated with the batch's code (factors.gyro.preintegrate,
+    gyro_map.map_jacobian) at Ê = Ê₀ (a start calibration WITH a gyro map, undone and re-applied, eq. 3) and the
+    stream's b̂, every interval's ΔR_k and J_k equal the stream's own (stream_interval, map_jacobian_interval); at
+    Ê₀ + δe, ΔR_k moves as ΔR_k Exp(J_k δe) to second order."""
+    from dataclasses import replace
+
+    _, scaled, cal = _scaled(20.0)
+    cal = replace(cal, gyro_map=np.array([[0.003, 0.001, 0.0], [-0.002, 0.004, 0.001], [0.0, 0.002, -0.003]]))
+    sm = StreamSmoother(cal, RATE, StreamOptions(gyro_map_end="exact", **OPT), g0=9.81)
+    for i in range(scaled.n):
+        sm.push(scaled.t[i], scaled.gyr[i], scaled.acc[i], scaled.mag[i])
+    sm.finish()
+    gm = sm._gmap
+    K1 = len(sm._hist_dR)
+    assert len(gm.rows) == K1 and len(gm.J) == K1
+    b = np.tile(sm._b_hat, (K1, 1))
+    dR, J, dv = gm.repreintegrate(np.zeros(9), b)
+    assert np.abs(dR - np.array(sm._hist_dR)).max() < 1e-10
+    assert np.abs(J - np.array([gm.J[k] for k in range(K1)])).max() < 1e-9
+    assert dv.shape == (K1, 3) and np.all(np.isfinite(dv))
+    de = np.random.default_rng(5).normal(0.0, 1e-3, 9)
+    dR2, _, _ = gm.repreintegrate(de, b)
+    first = max(np.linalg.norm(_log(dR[k].T @ dR2[k])) for k in range(K1))
+    err = max(np.linalg.norm(_log((dR[k] @ _rotvec(J[k] @ de)).T @ dR2[k])) for k in range(K1))
+    assert first > 1e-4 and err < 0.02 * first, (err, first)
+
+
+def _rotvec(v):
+    from scipy.spatial.transform import Rotation
+    return Rotation.from_rotvec(v).as_matrix()
+
+
+def test_exact_recovers_known_gyro_map(long_case):
+    """"exact" on the 100 s simulation: Ê within 0.1 % of every entry, settled, smoothed error vs truth at most
+    half of the option off's (the exact rounds on a near-linear problem: as the first-order ones)."""
+    s, scaled, cal, (_, q_off), _ = long_case
+    sm, q = _run(scaled, cal, "exact")
+    info = sm._gmap.info
+    assert info["estimated"] and info["exact"]
+    E_hat = np.array(info["E"])
+    assert np.abs(E_hat - E_TRUE).max() < 1e-3, (E_hat, E_TRUE)
+    err_off = orientation_error(q_off, s.quat, None, RATE).rms_deg
+    err_on = orientation_error(q, s.quat, None, RATE).rms_deg
+    print(f"\nexact: smoothed vs truth off {err_off:.3f}°, exact {err_on:.3f}°; steps {info['steps']}; "
+          f"{info['bytes_per_keyframe']:.0f} bytes per keyframe kept")
+    assert err_on < 0.5 * err_off, (err_on, err_off)
+
+
+@pytest.fixture(scope="module")
+def theta_cases(long_case):
+    """The 100 s simulation with the stream's default θ state (calib_states, windows_end): gyro_map_end True,
+    "theta" (θ free in the E rounds) and "theta_gate" (those rounds as the settling gate only)."""
+    s, scaled, cal, _, _ = long_case
+    out = {}
+    for mode in (True, "theta", "theta_gate"):
+        sm = StreamSmoother(cal, RATE, StreamOptions(gyro_map_end=mode), g0=9.81)
+        for i in range(scaled.n):
+            sm.push(scaled.t[i], scaled.gyr[i], scaled.acc[i], scaled.mag[i])
+        sm.finish()
+        out[mode] = (sm, sm.smoothed())
+    return s, out
+
+
+def test_theta_free_rounds(theta_cases):
+    """"theta": θ a variable of the E rounds (the stream_windows_end factors on θ): E still recovered within 0.1 %
+    (θ = the truth's here, so freeing it costs nothing); "theta_gate" settled there, then the θ-held rounds: the
+    output of gyro_map_end=True to 1e-9."""
+    s, out = theta_cases
+    info = out["theta"][0]._gmap.info
+    assert info["estimated"] and info["theta_free"]
+    assert np.abs(np.array(info["E"]) - E_TRUE).max() < 1e-3, info["E"]
+    gate = out["theta_gate"][0]._gmap.info
+    assert gate["estimated"] and gate["theta_check"]["steps"] and gate["theta_check"]["contraction"] <= 0.5
+    assert np.allclose(out["theta_gate"][1], out[True][1], atol=1e-9)
+    errs = {m: orientation_error(q, s.quat, None, RATE).rms_deg for m, (_, q) in out.items()}
+    print(f"\ntheta modes, smoothed vs truth: {errs}")
+    assert errs["theta"] < 1.5 * errs[True] + 0.05

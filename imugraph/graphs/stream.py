@@ -332,7 +332,7 @@ class StreamSmoother(OnlineCalibrationMixin, KeyframeStartMixin, ArrivalMixin, S
                 if self.opt.windows_end:             # raw rows, no start windows (stream_windows_end)
                     self._hist_raw.append(m_raw.copy())
         if self._gmap is not None:           # J_k and E's coverage sums (stream_gmap)
-            self._gmap.interval(k, t, w, rows[:, 4:7], kRb, delta_R, bridged)
+            self._gmap.interval(k, t, w, rows[:, 4:7], kRb, delta_R, bridged, a)   # a: re-timed ("exact" keeps it)
         self._k = k + 1
         self._maintained = not self._chain
         if self._online is not None:

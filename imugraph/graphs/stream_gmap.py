@@ -31,6 +31,22 @@ In the stream the rounds change only the first-order re-preintegration of the in
 the noise levels, θ and the velocity process), so this rule rarely bites: BROAD 24, where the batch's E did not settle
 (contraction 0.51), settles here at 0.15. gyro_map_end="split" adds `split_check`: one more solve with one e per half
 of the clean intervals, E kept only where the halves agree (docs/stream.md "Session 18, helper E").
+
+gyro_map_end="exact" (session 19, helper Z): the rounds the batch's way. The stream keeps every interval's gyro rows
+as pushed (at Ê₀) and re-timed accelerometer rows (`interval`, 6 floats per sample), and each round re-preintegrates
+ALL samples with the batch's code (factors.gyro.preintegrate, calibration.gyro_map.map_jacobian,
+factors.velocity.velocity_increments) at the current Ê = Ê₀ + e_base and the current bias estimate b̂_s(k) of each
+interval's segment (calibration.ml's solve_round: ω_j = (I + Ê)(I + Ê₀)⁻¹ w_j, eq. 3): ΔR_k, J_k, C_k (eq. 2, at
+the new ΔR_k and b̂), Δv_k (the intra-interval rotations R_j under the accelerometer rows) all new; the super-sample
+factor is rebuilt at that bias (biasHat = b̂_s(k)); the noise models and the magnetometer factors (their averaged
+rows under R_j) are kept. "exact_batch_clean": the same with E informed by the batch's clean 0.2 s intervals
+(`clean_as_batch`). Measured (docs/stream.md "Session 19, helper Z"): the exact rounds give the first-order ones'
+steps and Ê (BROAD 01/02/04/24 within 0.01 %, 24 still settles at 0.15): the difference from the batch is its MODEL,
+not the re-preintegration — the batch's rounds with θ's D held settle on 24 (0.22), and with θ held at 10 Hz
+keyframes come within 0.06 / 0.10 % per entry of the stream's Ê on 04 / 24 (the default batch: 0.39 % on 04;
+benchmarks/z19_batch_theta_hold.py). "theta" (diagnostic): θ free in the E rounds (`_free_theta`), as the batch's
+(BROAD 24 then creeps, 0.54, and falls back like the batch); "theta_gate": those rounds only as the settling gate
+(E then from the θ-held rounds, as gyro_map_end=True).
 """
 
 from __future__ import annotations
@@ -40,7 +56,10 @@ import time
 import gtsam
 import numpy as np
 
-from imugraph.factors.gyro import exp_and_right_jacobian
+from imugraph.calibration.gyro_map import corrected_rate, map_jacobian
+from imugraph.factors.gyro import exp_and_right_jacobian, preintegrate
+from imugraph.factors.velocity import velocity_increments
+from imugraph.graphs.cpp_velocity import super_sample_pim
 from imugraph.graphs.gyro_map_block import _ANTI, E_KEY, beta_key, without_map_keys
 
 MAX_ROUNDS = 4          # the batch settles in 3–4 rounds on 01/02/04 (step ratio 0.12–0.39)
@@ -92,13 +111,20 @@ class EndGyroMap:
         self.span: dict = {}                             # clean stream interval → (first, last) batch interval
         self.i_sample, self.b_open, self.b_worst, self.b_turns = 0, 0, 0.0, 0.0
         self.info: dict = {"estimated": False}
-        self.split = owner.opt.gyro_map_end == "split"
-        self.batch_clean = owner.opt.gyro_map_end == "batch_clean"
+        mode = owner.opt.gyro_map_end
+        self.split = mode == "split"
+        self.batch_clean = mode in ("batch_clean", "exact_batch_clean")
+        self.exact = mode in ("exact", "exact_batch_clean")
+        self.theta = {"theta": "free", "theta_gate": "gate"}.get(mode) if isinstance(mode, str) else None
+        self.rows: list = []                             # "exact": per interval (w (n, 3) as pushed, acc (n, 3) used)
 
     def interval(self, k: int, t: np.ndarray, w: np.ndarray, acc: np.ndarray, kRb: np.ndarray, delta_R: np.ndarray,
-                 bridged: bool) -> None:
-        """Interval k closed (t (n+1,), w, acc (n, 3) as pushed; kRb, delta_R of its preintegration)."""
+                 bridged: bool, acc_used: np.ndarray | None = None) -> None:
+        """Interval k closed (t (n+1,), w, acc (n, 3) as pushed; kRb, delta_R of its preintegration; acc_used: the
+        accelerometer rows its Δv integrated, re-timed by δ — kept for "exact")."""
         self.n += 1
+        if self.exact:          # the samples of the end's exact re-preintegration (every interval: the layout)
+            self.rows.append((np.array(w, float), np.array(acc if acc_used is None else acc_used, float)))
         dev = np.abs(np.linalg.norm(acc, axis=1) - self.owner._g)
         dev = np.where(np.isfinite(dev), dev, np.inf)
         turn = np.linalg.norm(w, axis=1) * (t[1:] - t[:-1]) / (2 * np.pi)     # gyro_map.clean_turns, per sample
@@ -143,9 +169,46 @@ class EndGyroMap:
         thread's CPU time of the rounds (the final LM on the returned graph is not counted)."""
         start = time.thread_time()
         try:
-            return self._extend(graph, values)
+            if not self.theta:
+                return self._extend(graph, values)
+            freed = self._free_theta(graph, values)       # "theta": θ a variable of the E rounds (stream_windows_end)
+            if freed is None:
+                self.info = {"estimated": False, "E": self.e0.reshape(3, 3).tolist(), "steps": [],
+                             "reason": "theta: the end magnetometer factors were not found"}
+                return graph, values
+            g_free, v_free, ext, was_free = freed
+            out = self._extend(g_free, v_free)
+            self.info["theta_free"] = True
+            if not self.info.get("estimated") or self.theta == "gate":     # θ as before
+                ext._theta_free = was_free
+            if not self.info.get("estimated"):            # the fallback: the plain end graph
+                return graph, values
+            if self.theta == "gate":          # settled with θ free: E from the θ-held rounds (as gyro_map_end=True)
+                check = {key: self.info.get(key) for key in ("steps", "contraction", "E")}
+                out = self._extend(graph, values)
+                self.info["theta_check"] = check
+            return out
         finally:
             self.info["cpu_s"] = time.thread_time() - start
+
+    def _free_theta(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values):
+        """gyro_map_end="theta" (diagnostic, session 19): the end graph with θ = (D, o, dip) FREE as in the batch's ML
+        rounds — stream_windows_end's θ-free magnetometer factors and weak prior Λ_w about θ_n (windows_end's
+        machinery, reused) — so that E is estimated jointly with D, as calibration.ml does. (graph, values, ext, θ was
+        free already) or None (no EndWindows extension, or its factors not found)."""
+        from imugraph.graphs.stream_windows_end import EndWindows
+
+        ext = next((e for e in self.owner._end_extensions if isinstance(e, EndWindows)), None)
+        if ext is None or ext._theta is None or "skipped" in ext.report:
+            return None
+        if ext._theta_free:                  # a modelled window freed θ already
+            return graph, values, ext, True
+        base = ext._base(graph)
+        if base is None:
+            return None
+        values = gtsam.Values(values)
+        ext._theta_free = True
+        return ext._graph(ext._free_base(graph, base, values), values), values, ext, False
 
     def _extend(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values):
         self._gate_close()                     # the last batch interval
@@ -153,12 +216,14 @@ class EndGyroMap:
             self.clean = self.clean_as_batch()
         info = self.info = {"clean_turns": self.turns, "clean_intervals": len(self.clean), "intervals": self.n,
                             "estimated": False, "E": self.e0.reshape(3, 3).tolist(), "steps": []}
+        if self.exact:          # memory of the kept rows (w, acc: 6 floats per sample)
+            info.update(exact=True, bytes_per_keyframe=sum(w.nbytes + a.nbytes for w, a in self.rows) / max(self.n, 1))
         if self.turns < self.min_turns or not self.clean:
             info["reason"] = f"coverage: {self.turns:.1f} clean turns < {self.min_turns}"
             return graph, values
         e_base, cur, steps = np.zeros(9), values, []
         for _ in range(MAX_ROUNDS):
-            g2, v2 = self.build(graph, cur, e_base)
+            g2, v2 = self.build(graph, cur, e_base, exact=self.exact)
             try:
                 sol = self.owner._final_lm(g2, v2)
             except RuntimeError as err:                    # an indeterminate system: the plain graph
@@ -186,7 +251,7 @@ class EndGyroMap:
             return graph, values
         info.update(estimated=True, E=(self.e0 + e_base).reshape(3, 3).tolist())
         self.e_base = e_base
-        return self.build(graph, cur, e_base)
+        return self.build(graph, cur, e_base, exact=self.exact)
 
     def total(self, values: gtsam.Values) -> np.ndarray:
         """Ê (3, 3) of a solution of the extended graph: Ê₀ + e_base + e."""
@@ -216,11 +281,45 @@ class EndGyroMap:
             return False
         return True
 
+    def repreintegrate(self, e_base: np.ndarray, b_k: np.ndarray) -> tuple:
+        """"exact": every interval's samples integrated again at Ê = Ê₀ + e_base and bias b_k (K−1, 3) per interval
+        with the batch's code, as calibration.ml's solve_round: (ΔR (K−1, 3, 3), J (K−1, 3, 9), Δv (K−1, 3)).
+        ω_j = (I + Ê) b_gyr,j with b_gyr,j = (I + Ê₀)⁻¹ w_j the recorded rate (eq. 3)."""
+        o = self.owner
+        n_int = len(self.rows)
+        lengths = np.array([len(r[0]) for r in self.rows] + [1])       # + the last keyframe's own (dummy) sample
+        w = np.concatenate([r[0] for r in self.rows] + [np.zeros((1, 3))])
+        acc = np.concatenate([r[1] for r in self.rows] + [np.zeros((1, 3))])
+        raw = w if o._IE_inv is None else w @ o._IE_inv
+        g_c = corrected_rate(raw, (self.e0 + e_base).reshape(3, 3))
+        t = np.concatenate(o._hist_t[:n_int] + [np.array([o._kf_t[n_int]])])
+        dt = np.r_[np.diff(t), 0.0]
+        kf = np.r_[0, np.cumsum(lengths[:-1])]
+        skf = np.repeat(np.arange(n_int + 1), lengths)
+        b_rows = np.r_[b_k, b_k[-1:]][skf]
+        pre = preintegrate(g_c, dt, kf, skf, b_rows, o._sig_g, o.opt.gyro_rate_error, keep_steps=True, gap_walk=None)
+        J = map_jacobian(g_c, dt, pre, b_rows)
+        dv, _ = velocity_increments(pre.kRb, skf, acc, dt, n_int + 1, o._sig_acc, o.opt.acc_rate_error, gap_walk=None)
+        return pre.delta_R, J, dv
+
+    def _exact_inputs(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, e_base: np.ndarray) -> tuple:
+        """repreintegrate at the bias estimate of each interval's segment in `values` (the ImuFactors' bias keys)."""
+        b_k = np.tile(np.asarray(self.owner._b_hat, float), (len(self.rows), 1))
+        for i in range(graph.size()):
+            f = graph.at(i) if graph.exists(i) else None
+            if isinstance(f, (gtsam.ImuFactor, gtsam.ImuFactorWithGravityVector)):
+                k = int(gtsam.Symbol(f.keys()[0]).index())
+                if k < len(b_k):
+                    b_k[k] = values.atConstantBias(f.keys()[4]).gyroscope()
+        return (*self.repreintegrate(e_base, b_k), b_k)
+
     def build(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, e_base: np.ndarray,
-              groups: dict | None = None):
+              groups: dict | None = None, exact: bool = False):
         """The end graph with every interval's super-sample rotation at Ê₀ + e_base (eq. 1) and the clean intervals'
         factors on β_k = b_s + C_k e (eq. 2), the ties and E's priors; values with β_k = b_s and e = 0. groups: clean
-        interval → the key of its e (split_check), else E_KEY for all."""
+        interval → the key of its e (split_check), else E_KEY for all. exact: each interval's factor from the samples
+        re-preintegrated at Ê₀ + e_base and the current bias (`repreintegrate`), J_k and C_k there."""
+        ex = self._exact_inputs(graph, values, e_base) if exact else None
         out, vals = gtsam.NonlinearFactorGraph(), gtsam.Values(values)
         lin = gtsam.Values()
         unit6 = gtsam.noiseModel.Unit.Create(6)
@@ -243,7 +342,11 @@ class EndGyroMap:
             dt_k = float(pim0.deltaTij())
             b_hat = pim0.biasHat()
             dR = pim0.deltaRij().matrix()
-            if np.any(e_base):       # ΔR_k Exp(J_k e_base): the super sample integrated again (stream.py _close)
+            if ex is not None:       # the samples at Ê₀ + e_base and b̂_s(k) (eq. 3): the super sample of stream.py _close
+                dR, J = ex[0][k], ex[1][k]
+                omega = gtsam.Rot3.Logmap(gtsam.Rot3(dR)) / dt_k + ex[3][k]
+                pim = super_sample_pim(self.owner._pim_params, omega, ex[2][k] / dt_k, dt_k, ex[3][k])
+            elif np.any(e_base):     # ΔR_k Exp(J_k e_base): the super sample integrated again (stream.py _close)
                 dR = dR @ gtsam.Rot3.Expmap(J @ e_base).matrix()
                 pim = gtsam.PreintegratedImuMeasurements(self.owner._pim_params, b_hat)
                 omega = gtsam.Rot3.Logmap(gtsam.Rot3(dR)) / dt_k + b_hat.gyroscope()
