@@ -81,7 +81,14 @@ CONFIGS = {"default": {}, "states": {"calib_states": True, "disturb_detect": Tru
            "velocity_end_id": {"velocity_end": "ar2_batch_id"},   # the same, kept unless both variance bounds decide it
            "gyro_map_end": {"gyro_map_end": True}, "gyro_map_split": {"gyro_map_end": "split"},
            "gyro_map_batch_clean": {"gyro_map_end": "batch_clean"},
+           "gyro_map_exact": {"gyro_map_end": "exact"},   # session 19 (helper Z): the rounds re-preintegrate the samples
+           "gyro_map_exact_bc": {"gyro_map_end": "exact_batch_clean"},
+           "gyro_map_theta": {"gyro_map_end": "theta"},   # diagnostic: θ free in the E rounds, as the batch's
+           "gyro_map_theta_gate": {"gyro_map_end": "theta_gate"},   # those rounds as the settling gate only
            "gyro_map_velocity_end": {"gyro_map_end": True, "velocity_end": "ar2"},   # session 18 (helper E, stream_gmap)
+           "mag_delay_end": {"mag_delay_end": True},   # session 19 (helper D): the lag re-estimated at the end (stream_delay_end)
+           "mag_delay_end_clean": {"mag_delay_end": "clean"},   # the same on the normal state's rows only
+           "noise_end": {"noise_end": True},   # session 19 (helper Y): σ_m re-estimated by the end graph (stream_noise)
            # session 18 (lead): the three end-graph extensions together, with and without the gyro map
            "end_wv": {"windows_end": "theta", "velocity_end": "ar2_batch_id", "gyro_map_end": False},
            "end_all": {"windows_end": "theta", "velocity_end": "ar2_batch_id", "gyro_map_end": True},
@@ -296,6 +303,8 @@ def run_trial(path: Path, configs: list[str], cache: str | None, bootstrap_s: fl
             "same_h_deg": rms_between(r.smoothed, same["q"]["same"], s.movement, s.rate, heading=True),
             "same_truth_deg": truth_err(same["q"]["same"], s), "same_cpu_s": same["cpu_s"],
             "window_keyframes": same["window_keyframes"],
+            "mag_delay_ms": {"start": 1e3 * boot.mag_delay_s, "batch": 1e3 * full.mag_delay_s,   # stream_delay_end
+                             **({k: v for k, v in sm._delay_end.info.items()} if getattr(sm, "_delay_end", None) else {})},
             "gyro_map_end": getattr(sm, "_gmap", None) and sm._gmap.info, "batch_gyro_map": np.asarray(full.gyro_map).tolist(),
             "failed_updates": r.counts.get("failed_updates"), "stream_s": stream_s, "smooth_s": smooth_s,
             "calibration_s": cal_s, "cached_calibrations": cached, "samples": s.n, "bootstrap_samples": n_boot,

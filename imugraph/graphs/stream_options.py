@@ -204,8 +204,26 @@ class StreamOptions:
     # session 18 (helper E): the end graph (full iSAM2, keep_history) estimates the gyro map E jointly with the
     # orientations, with the batch's gates (clean turns ≥ 15) and settling fallback (stream_gmap); "split": also kept
     # only when the two halves' clean intervals give the same E (stream_gmap.split_check); "batch_clean": E informed by
-    # the batch's 0.2 s clean intervals only (stream_gmap.clean_as_batch). False: the start's E.
+    # the batch's 0.2 s clean intervals only (stream_gmap.clean_as_batch). "exact" (session 19, helper Z): each round
+    # re-preintegrates every interval's kept samples at the current Ê and bias with the batch's code (stream_gmap
+    # eq. 3; 6 floats per sample kept); "exact_batch_clean": both; "theta" (diagnostic): θ free in the E rounds, as
+    # the batch's (stream_windows_end's θ-free factors); "theta_gate": those rounds as the settling gate only. False:
+    # the start's E.
     gyro_map_end: bool | str = True
+    # session 19 (helper Y): the end graph (full iSAM2, keep_history) re-estimates the magnetometer noise σ_m with the
+    # batch's estimator (calibration.noise.reestimate on the stream's per-sample rows at the end solution, its dof
+    # corrections, the batch's round thinning), rebuilds the magnetometer factors and re-solves until σ_m moves <
+    # Options().noise_tol (stream_noise; after windows_end, before velocity_end); calibration.json carries σ̂_m.
+    # Σω, Σa stay the start's (the batch takes them from its rest detector). False: the start's σ_m, as before.
+    noise_end: bool = False
+    # session 19 (helper D): the end graph (full iSAM2, keep_history) re-estimates the magnetometer's lag behind the gyro
+    # on the whole stream with the batch's estimator (alignment.estimate_mag_delay on the start-calibrated field and the
+    # per-sample gyro rates recovered from the kept rotations); when round(τ̂·rate) differs from the bootstrap's shift,
+    # every interval's magnetometer rows are re-paired and the end graph's exact magnetometer factors rebuilt (stream_
+    # delay_end; the first end extension: windows_end and noise_end see the re-paired rows); calibration.json carries
+    # τ̂ as mag_delay_s. "clean": τ̂ from the normal state's rows only (the start windows and the causal detector's window
+    # keyframes left out). False: the bootstrap's lag, as before.
+    mag_delay_end: bool | str = False
 
 
 @dataclass

@@ -33,6 +33,10 @@ class StreamOutputMixin:
         if options.windows_end and options.lag_s is None:     # the end graph's windows from the whole stream
             from imugraph.graphs.stream_windows_end import attach
             attach(self)
+        if options.noise_end and options.lag_s is None and options.keep_history:   # σ_m re-estimated (stream_noise)
+            from imugraph.graphs.stream_noise import NoiseEnd
+            self._noise_end = NoiseEnd(self)
+            self._end_extensions.append(self._noise_end)
         if options.velocity_end != "off" and options.lag_s is None:   # σ_v, τ_v by EM on the end graph (stream_velocity)
             from imugraph.graphs.stream_velocity import VelocityEnd
             self._end_extensions.append(VelocityEnd(self, options.velocity_end))
@@ -41,6 +45,9 @@ class StreamOutputMixin:
             from imugraph.graphs.stream_gmap import EndGyroMap
             self._gmap = EndGyroMap(self)
             self._end_extensions.append(self._gmap.extend)
+        if options.mag_delay_end and options.lag_s is None and options.keep_history:
+            from imugraph.graphs.stream_delay_end import attach as attach_delay   # the lag re-estimated: FIRST
+            attach_delay(self)
 
     def finish(self) -> None:
         """Close the last interval (its newest sample becomes the last keyframe, as `keyframe_layout`)."""
@@ -72,14 +79,21 @@ class StreamOutputMixin:
         self._finished = True
 
     def _learned_changes(self) -> dict:
-        """What the end graph estimated besides θ, as Calibration fields: the gyro map Ê (gyro_map_end, stream_gmap)
-        and the velocity process σ̂_v, τ̂_v (velocity_end, stream_velocity); {} when neither."""
+        """What the end graph estimated besides θ, as Calibration fields: the gyro map Ê (gyro_map_end, stream_gmap),
+        the velocity process σ̂_v, τ̂_v (velocity_end, stream_velocity), σ̂_m (noise_end, stream_noise) and the lag τ̂
+        when the end graph re-paired the rows with it (mag_delay_end, stream_delay_end); {} when none."""
         changes = {}
         if self._gmap is not None and self._gmap.info.get("estimated"):
             changes["gyro_map"] = self._gmap.total(self._final)
         v = getattr(self, "velocity_end_result", None)
         if v is not None and "skipped" not in v:
             changes.update(velocity_sigma=float(v["sigma"]), velocity_tau=float(v["tau"]))
+        noise = self._noise_end.noise() if getattr(self, "_noise_end", None) is not None else None
+        if noise is not None:                # noise_end: the end graph's σ_m (stream_noise)
+            changes["noise"] = noise
+        delay = getattr(self, "_delay_end", None)
+        if delay is not None and delay.tau_s is not None:   # mag_delay_end: the lag the end graph paired rows with
+            changes["mag_delay_s"] = float(delay.tau_s)
         return changes
 
     def _learned_content(self) -> None:

@@ -1,0 +1,138 @@
+"""Session 19, helper Y: the stream's end graph re-estimates the magnetometer noise σ_m (StreamOptions.noise_end).
+
+benchmarks/stream_vs_batch.py's comparison (its `run_trial`, every column unchanged: `vs_batch_field_h_deg` the
+target, `same_deg`, `stream_truth_deg`, ...) plus, per row, the σ_m the stream's end graph used
+(`StreamSmoother.noise_end_result`: start / end per axis, solves, path, thinning, CPU of the extension) next to the
+bootstrap's (the stream's start) and the whole-trial batch calibration's (`full`: compared, never fed), and the
+calibration.json noise the stream wrote (`end_noise_mag`).
+
+    OPENBLAS_NUM_THREADS=1 .venv/bin/python benchmarks/y19_noise_end.py TRIALS
+        [--config default,noise_end] [--cache /tmp/A_cache] [--out s19_Y.json] [--feed gyr,acc,mag]
+    .venv/bin/python benchmarks/y19_noise_end.py --summarise s19_Y.json[,more.json] [--config default,noise_end]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+import benchmarks.stream_vs_batch as svb  # noqa: E402
+from benchmarks.common import select_trials, trial_number  # noqa: E402
+from benchmarks.output import write_json  # noqa: E402
+
+_LAST: list = []
+
+
+_FEED: dict = {}        # --feed: attribution only, the batch's σ of these channels given to the stream's start
+
+
+def _recording(real):
+    """stream_with_recorder that also keeps the smoother's noise_end_result, the written noise and the stream's CPU;
+    with --feed the start calibration's noise of the named channels replaced by the whole-trial batch's (an
+    attribution: how much of the gap the noise levels explain — never an estimator)."""
+    def wrapped(s, opts, bootstrap_s, boot, n_boot):
+        if _FEED:
+            from dataclasses import replace
+            boot = replace(boot, noise={**boot.noise, **_FEED})
+        t0 = time.process_time()
+        r, sm = real(s, opts, bootstrap_s, boot, n_boot)
+        _LAST.append({"noise_end": getattr(sm, "noise_end_result", None),
+                      "end_noise_mag": np.asarray(r.calibration.noise.get("mag"), float).tolist(),
+                      "stream_cpu_s": time.process_time() - t0})
+        return r, sm
+    return wrapped
+
+
+def _fmt(v) -> str:
+    return "/".join(f"{x:.3f}" for x in v) if v is not None else "-"
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("trials", nargs="?", default="36,4,7,32")
+    ap.add_argument("--config", default="default,noise_end")
+    ap.add_argument("--cache", default="/tmp/A_cache")
+    ap.add_argument("--bootstrap-s", type=float, default=30.0)
+    ap.add_argument("--out", default="s19_Y.json")
+    ap.add_argument("--feed", default="", help="attribution: comma-separated channels (gyr,acc,mag) whose whole-trial "
+                    "batch σ replaces the bootstrap's in the stream's start calibration (rows get config NAME+feed_CH)")
+    ap.add_argument("--summarise", default=None, help="comma-separated bench_out JSONs of earlier runs: per-trial table "
+                    "(the last row per trial and config) and per-config means over the trials every config has; no run")
+    a = ap.parse_args(argv)
+    if a.summarise:
+        return summarise(a.summarise.split(","), a.config.split(","))
+    configs = a.config.split(",")
+    paths = select_trials(a.trials)
+    svb.stream_with_recorder = _recording(svb.stream_with_recorder)
+    rows: list[dict] = []
+    feed = [c for c in a.feed.split(",") if c]
+    for p in paths:
+        _LAST.clear()
+        boot, _, full, _, _ = svb.calibrations(None, f"{trial_number(p):02d}", a.cache, a.bootstrap_s)
+        _FEED.clear()
+        _FEED.update({c: np.asarray(full.noise[c], float) for c in feed})
+        new = svb.run_trial(p, configs, a.cache, a.bootstrap_s)
+        for r in new if feed else ():
+            r["config"] += "+feed_" + "_".join(feed)
+        for r, extra in zip(new, _LAST):
+            ne = extra["noise_end"] or {}
+            r.update(extra, **{f"{c}_boot": np.asarray(boot.noise[c], float).tolist() for c in ("gyr", "acc", "mag")},
+                     **{f"{c}_full": np.asarray(full.noise[c], float).tolist() for c in ("gyr", "acc", "mag")})
+            print(f"{r['trial']} {r['config']:10s} vs_batch_field_h {r['vs_batch_field_h_deg']:.3f}° same "
+                  f"{r['same_deg']:.3f}° truth {r['stream_truth_deg']:.3f}° (batch {r['batch_field_truth_deg']:.3f}°) | "
+                  f"σ_m boot {_fmt(r['mag_boot'])} end {_fmt(ne.get('sigma'))} batch {_fmt(r['mag_full'])} | "
+                  f"solves {ne.get('outer')} step {ne.get('step', float('nan')):.4f} ext cpu {ne.get('cpu_s', 0.0):.1f} s "
+                  f"stream cpu {r['stream_cpu_s']:.1f} s | load {os.getloadavg()[0]:.1f}", flush=True)
+        rows += new
+        write_json(a.out, {"rows": rows, "configs": {c: svb.CONFIGS[c] for c in configs}})
+    for c in sorted({r["config"] for r in rows}):
+        sub = [r for r in rows if r["config"] == c]
+        v = np.array([r["vs_batch_field_h_deg"] for r in sub])
+        tr = np.array([r["stream_truth_deg"] for r in sub])
+        if v.size:
+            print(f"{c}: vs_batch_field_h mean {v.mean():.3f}°, ≤ 0.1°: {int((v <= 0.1).sum())}/{v.size}; "
+                  f"truth mean {tr.mean():.3f}°")
+    return 0
+
+
+def summarise(names: list[str], configs: list[str]) -> int:
+    """Per trial: each config's vs_batch_field_h / truth, σ_m boot / end / batch; per-config means over the trials
+    every config has."""
+    import json
+
+    from benchmarks.output import OUT_DIR
+
+    best: dict = {}
+    for n in names:
+        for r in json.loads((OUT_DIR / n).read_text())["rows"]:
+            if r["config"] in configs:
+                best[(r["trial"], r["config"])] = r
+    trials = sorted({t for t, _ in best})
+    for t in trials:
+        cells, r0 = [], None
+        for c in configs:
+            r = best.get((t, c))
+            if r:
+                r0 = r0 or r
+                ne = r.get("noise_end") or {}
+                cells.append(f"{c} {r['vs_batch_field_h_deg']:.3f}/{r['stream_truth_deg']:.3f}"
+                             + (f" (σ_m {_fmt(ne.get('sigma'))}, {ne.get('outer')} solves)" if ne else ""))
+        print(f"{t} σ_m boot {_fmt(r0['mag_boot'])} batch {_fmt(r0['mag_full'])} | " + " | ".join(cells))
+    common = [t for t in trials if all((t, c) in best for c in configs)]
+    for c in configs:
+        v = np.array([best[(t, c)]["vs_batch_field_h_deg"] for t in common])
+        tr = np.array([best[(t, c)]["stream_truth_deg"] for t in common])
+        print(f"{c} over {len(common)} trials: vs_batch_field_h mean {v.mean():.3f}°, ≤ 0.1°: {int((v <= 0.1).sum())}/"
+              f"{len(common)}; truth mean {tr.mean():.3f}°")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
