@@ -92,8 +92,10 @@ CONFIGS = {"default": {}, "states": {"calib_states": True, "disturb_detect": Tru
            # session 18 (lead): the three end-graph extensions together, with and without the gyro map
            "end_wv": {"windows_end": "theta", "velocity_end": "ar2_batch_id", "gyro_map_end": False},
            "end_all": {"windows_end": "theta", "velocity_end": "ar2_batch_id", "gyro_map_end": True},
+           # the default of session 18 (before the θ-gated gyro map and the end lag, the defaults since session 19)
+           "session18": {"gyro_map_end": True, "mag_delay_end": False},
            # the default before session 18 (the three end-graph extensions off; end_all is the default since)
-           "session17": {"windows_end": False, "velocity_end": "off", "gyro_map_end": False},
+           "session17": {"windows_end": False, "velocity_end": "off", "gyro_map_end": False, "mag_delay_end": False},
            # session 18 (helper W2): end_all with calibration.json = the end graph's (end θ, end windows; same_endcal)
            "end_all_json": {"windows_end": "theta", "velocity_end": "ar2_batch_id", "gyro_map_end": True,
                             "calib_json_end_graph": True}}

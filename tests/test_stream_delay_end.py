@@ -62,7 +62,7 @@ def test_wrong_start_lag_is_corrected(lagged, mode):
     calibration.json carries the new lag; the filtered output is untouched."""
     s, cal = lagged
     start = replace(cal, mag_delay_s=1.0 / RATE)
-    off, q_off = _stream(s, start)
+    off, q_off = _stream(s, start, mag_delay_end=False)
     on, q_on = _stream(s, start, mag_delay_end=mode)
     info = on._delay_end.info
     err_off, err_on = _truth_rms(off.smoothed(), s), _truth_rms(on.smoothed(), s)
@@ -84,7 +84,7 @@ def test_same_shift_leaves_the_output_identical(lagged):
     option-off one."""
     s, cal = lagged
     start = replace(cal, mag_delay_s=LAG / RATE)
-    off, _ = _stream(s, start)
+    off, _ = _stream(s, start, mag_delay_end=False)
     on, _ = _stream(s, start, mag_delay_end=True)
     assert on._delay_end.info["shift_end"] == LAG and not on._delay_end.info["applied"]
     assert np.array_equal(off.smoothed(), on.smoothed())

@@ -208,8 +208,9 @@ class StreamOptions:
     # re-preintegrates every interval's kept samples at the current Ê and bias with the batch's code (stream_gmap
     # eq. 3; 6 floats per sample kept); "exact_batch_clean": both; "theta" (diagnostic): θ free in the E rounds, as
     # the batch's (stream_windows_end's θ-free factors); "theta_gate": those rounds as the settling gate only. False:
-    # the start's E.
-    gyro_map_end: bool | str = True
+    # the start's E. Default "theta_gate" since session 19 (the lead, on helper Z's numbers: BROAD 24 falls back like
+    # the batch, 0.303 → 0.035° from it; 01/02/04 identical; True before).
+    gyro_map_end: bool | str = "theta_gate"
     # session 19 (helper Y): the end graph (full iSAM2, keep_history) re-estimates the magnetometer noise σ_m with the
     # batch's estimator (calibration.noise.reestimate on the stream's per-sample rows at the end solution, its dof
     # corrections, the batch's round thinning), rebuilds the magnetometer factors and re-solves until σ_m moves <
@@ -222,7 +223,11 @@ class StreamOptions:
     # every interval's magnetometer rows are re-paired and the end graph's exact magnetometer factors rebuilt (stream_
     # delay_end; the first end extension: windows_end and noise_end see the re-paired rows); calibration.json carries
     # τ̂ as mag_delay_s. "clean": τ̂ from the normal state's rows only (the start windows and the causal detector's window
-    # keyframes left out). False: the bootstrap's lag, as before.
+    # keyframes left out). False: the bootstrap's lag (default). Not the default (the lead, session 19): on BROAD 26
+    # 0.151 → 0.048°, 04 0.504 → 0.435° from the batch, 15 of 17 bit for bit unchanged — but on a simulated magnet that
+    # comes off (tests/test_stream_same_model.py's session) τ̂ is −12.7 ms (lag 0), the rows are re-paired by −1 and
+    # the smoothed error goes 0.170 → 1.088° (benchmarks/d19_magnet_off.py);
+    # "clean" gets that case right but takes BROAD 34 to the wrong shift (vs truth 0.736 → 0.910°).
     mag_delay_end: bool | str = False
 
 
