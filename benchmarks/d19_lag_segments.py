@@ -27,7 +27,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from benchmarks.common import broad_trials, load_broad_trial, trial_number  # noqa: E402
+from benchmarks.common import load_broad_trial, select_trials, trial_number  # noqa: E402
 from benchmarks.output import write_json  # noqa: E402
 
 
@@ -44,26 +44,24 @@ def main(argv=None) -> int:
     ap.add_argument("--seg", type=float, default=30.0)
     ap.add_argument("--out", default="d19_lag_segments.json")
     a = ap.parse_args(argv)
-    want = {int(x) for x in a.trials.split(",")}
     rows = []
-    for path in [p for p in broad_trials() if trial_number(p) in want]:
+    for path in select_trials(a.trials):
         s = load_broad_trial(path)
         name = f"{trial_number(path):02d}"
-        full = pickle.loads((Path(a.cache) / f"cal_{name}.pkl").read_bytes())["full"]
-        m = np.linalg.solve(full.D, (np.asarray(s.mag, float) - full.o).T).T
+        cached = pickle.loads((Path(a.cache) / f"cal_{name}.pkl").read_bytes())
+        full, boot = cached["full"], cached["boot"]
+        m = full.apply(s.mag)
         w = np.asarray(s.gyr, float) - np.asarray(full.gyro_bias, float)
         whole = 1e3 * estimate_mag_delay(s.t, m, w)
         # attribution of the stream's τ̂: the same with the rows a stream of shift s0 drops (each 0.1 s interval's last
         # s0 rows on the stream's pairing = arrival rows s0 … 2 s0 − 1 after each keyframe), and with the bootstrap's D, o
-        boot = pickle.loads((Path(a.cache) / f"cal_{name}.pkl").read_bytes())["boot"]
         s0, stride = int(round(boot.mag_delay_s * s.rate)), int(round(s.rate / StreamOptions().keyframe_hz))
         held = np.arange(s.n) - s0
         m_holes = np.where(((held >= 0) & (held % stride >= stride - s0))[:, None], np.nan, m)
         holes = 1e3 * estimate_mag_delay(s.t, m_holes, w)
         from imugraph.graphs.stream_delay_end import fill_short_holes
         filled = 1e3 * estimate_mag_delay(s.t, fill_short_holes(s.t, m_holes, s0), w)
-        m_boot = np.linalg.solve(boot.D, (np.asarray(s.mag, float) - boot.o).T).T
-        startcal = 1e3 * estimate_mag_delay(s.t, m_boot, w)
+        startcal = 1e3 * estimate_mag_delay(s.t, boot.apply(s.mag), w)
         segs = []
         edges = np.arange(s.t[0], s.t[-1], a.seg)
         for t0 in edges:

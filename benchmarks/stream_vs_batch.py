@@ -207,6 +207,20 @@ def end_graph_calibration(start, sm, opts):
     return start
 
 
+def end_model_calibration(boot, sm, r, opts) -> tuple:
+    """(cal0, learned, cal, cal_end): the stream's end model as Calibrations — cal0 the end θ (end_graph_calibration;
+    r.calibration with online refits only), learned the end graph's other fields (_learned_changes), cal = cal0 with
+    them, cal_end = cal with the end windows (stream_windows_end.end_calibration; None without windows_end)."""
+    from dataclasses import replace
+
+    from imugraph.graphs.stream_windows_end import end_calibration
+
+    cal0 = end_graph_calibration(boot, sm, opts) if sm._calstate or not opts.online_calibration else r.calibration
+    learned = sm._learned_changes()
+    cal = replace(cal0, **learned) if learned else cal0
+    return cal0, learned, cal, (end_calibration(sm, cal) if opts.windows_end else None)
+
+
 def same_model(s, opts, r, sm, boot, kf: float) -> dict:
     """Batch smooths of the stream's end model (module docstring, (d)) and its attribution variants:
     {"q": {column: (N, 4)}, "cpu_s": CPU s of the (d) smooth, "window_keyframes": keyframes with a Δo_w}.
@@ -216,16 +230,11 @@ def same_model(s, opts, r, sm, boot, kf: float) -> dict:
     from dataclasses import replace
 
     from imugraph.graphs.cpp_smoother import smooth_fixed
-    from imugraph.graphs.stream_windows_end import end_calibration
 
     calstate = bool(sm._calstate)
-    cal = end_graph_calibration(boot, sm, opts) if calstate or not opts.online_calibration else r.calibration
-    learned = sm._learned_changes()                # the end graph's Ê (gyro_map_end) and σ̂_v, τ̂_v (velocity_end)
-    cal_novel = cal if "velocity_sigma" in learned else None
-    if learned:
-        cal = replace(cal, **learned)
+    cal0, learned, cal, cal_end = end_model_calibration(boot, sm, r, opts)
+    cal_novel = cal0 if "velocity_sigma" in learned else None
     K = sm._k + 1
-    cal_end = end_calibration(sm, cal) if opts.windows_end else None
     off_causal = stream_offsets(sm, K)
     cal_causal, off = cal, off_causal
     if cal_end is not None:     # windows_end: end θ, END windows (Calibration.corrected); a factor per closed interval

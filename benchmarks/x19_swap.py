@@ -57,9 +57,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from benchmarks.common import broad_trials, load_broad_trial, print_table, trial_number  # noqa: E402
+from benchmarks.common import load_broad_trial, print_table, select_trials, trial_number  # noqa: E402
 from benchmarks.output import write_json  # noqa: E402
-from benchmarks.stream_vs_batch import (CONFIGS, calibrations, end_graph_calibration, rms_between,  # noqa: E402
+from benchmarks.stream_vs_batch import (CONFIGS, calibrations, end_model_calibration, rms_between,  # noqa: E402
                                         stream_with_recorder)
 
 # the Calibration fields of each swap group (module docstring)
@@ -89,14 +89,8 @@ PARTS = {"theta": ("D", "o", "dip_deg"), "noise": ("noise.gyr", "noise.acc", "no
 def end_model(s, opts, bootstrap_s, boot, n_boot):
     """(stream result, smoother, end Calibration) — the end calibration as stream_vs_batch.same_model builds it:
     the end θ (end_graph_calibration), Ê and σ̂_v τ̂_v (_learned_changes), the end windows (end_calibration)."""
-    from imugraph.graphs.stream_windows_end import end_calibration
-
     r, sm = stream_with_recorder(s, opts, bootstrap_s, boot, n_boot)
-    cal = end_graph_calibration(boot, sm, opts) if sm._calstate or not opts.online_calibration else r.calibration
-    learned = sm._learned_changes()
-    if learned:
-        cal = replace(cal, **learned)
-    cal_end = end_calibration(sm, cal) if opts.windows_end else None
+    _, _, cal, cal_end = end_model_calibration(boot, sm, r, opts)
     return r, sm, (cal_end if cal_end is not None else cal)
 
 
@@ -189,18 +183,26 @@ def run_trial(path: Path, cache: str | None, floor_cache: str | None, floor: boo
     q_end = smooth_fixed(s, end, **form)
     row["end"] = score(q_end)
     row["end_vs_stream"] = rms_between(q_end, r.smoothed, s.movement, s.rate, heading=True)
+    done: dict = {}
+
+    def end_with(fields) -> float:
+        """score of the end model with these fields from `full`; memoised (refine revisits θ's single parts)."""
+        key = frozenset(fields)
+        if key not in done:
+            done[key] = score(smooth_fixed(s, swap(end, full, fields), **form))
+        return done[key]
+
     for g, fields in GROUPS.items():
-        row[f"end+{g}"] = score(smooth_fixed(s, swap(end, full, fields), **form))
-    row["end+all"] = score(smooth_fixed(s, swap(end, full, ALL_FIELDS), **form))
+        row[f"end+{g}"] = end_with(fields)
+    row["end+all"] = end_with(ALL_FIELDS)
     for g, fields in GROUPS.items():
         row[f"full+{g}"] = score(smooth_fixed(s, swap(full, end, fields), **form))
     # θ's parts alone, both directions
     for part in GROUPS["theta"]:
-        row[f"end+{part}"] = score(smooth_fixed(s, swap(end, full, (part,)), **form))
+        row[f"end+{part}"] = end_with((part,))
         row[f"full+{part}"] = score(smooth_fixed(s, swap(full, end, (part,)), **form))
-    row["greedy"] = greedy(row, lambda gs: score(smooth_fixed(s, swap(end, full, [f for g in gs for f in GROUPS[g]]),
-                                                              **form)))
-    row["refine"] = refine(row["greedy"], lambda fields: score(smooth_fixed(s, swap(end, full, fields), **form)))
+    row["greedy"] = greedy(row, lambda gs: end_with([f for g in gs for f in GROUPS[g]]))
+    row["refine"] = refine(row["greedy"], end_with)
     # the batch path's own solve to convergence (same_model's rotation_tol_deg; the CLI's 0.05° stops earlier)
     row["floor_rtol"] = score(smooth_fixed(s, full, **form, rotation_tol_deg=0.001))
     floor_cpu = {}
@@ -234,12 +236,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", default="x19_swap.json")
     ap.add_argument("--config", default="default", help="the stream's options: a name of stream_vs_batch.CONFIGS")
     a = ap.parse_args(argv)
-    paths = broad_trials()
-    if a.trials != "all":
-        want = {int(x) for x in a.trials.split(",")}
-        paths = [p for p in paths if trial_number(p) in want]
     rows: list[dict] = []
-    for p in paths:
+    for p in select_trials(a.trials):
         rows.append(run_trial(p, a.cache, a.floor_cache, not a.no_floor, a.bootstrap_s, a.config))
         r = rows[-1]
         print(r["trial"], " ".join(f"{k} {r[k]:.3f}" for k in VARIANTS if k in r), "| greedy",

@@ -72,6 +72,7 @@ class _Alignment:
     shift: float
     psi: float
     q_err: np.ndarray  # (4, K) component-major w,x,y,z, nav frame
+    idx: np.ndarray    # (K,) the scored sample indices (_scored_index)
 
 
 def _check_quats(name: str, q: np.ndarray, n: Optional[int]) -> np.ndarray:
@@ -220,7 +221,7 @@ def _align(quat_est: np.ndarray, quat_ref: np.ndarray, mask: Optional[np.ndarray
         cands = sorted(refined, key=lambda c: c[0])
     _, s, psi, q_err = cands[0]
     psi = float(np.angle(np.exp(1j * psi)))
-    return _Alignment(shift=s, psi=psi, q_err=_remove_heading(q_err, psi))  # (4, K)
+    return _Alignment(shift=s, psi=psi, q_err=_remove_heading(q_err, psi), idx=idx)  # (4, K)
 
 
 def _score(angles_rad: np.ndarray, al: _Alignment, rate_hz: float) -> OrientationScore:
@@ -262,9 +263,7 @@ def orientation_error_series(quat_est: np.ndarray, quat_ref: np.ndarray, mask: O
     """The per-sample total angle of eq. (1) at the alignment `orientation_error` chooses (for plots over time):
     (idx, angle_deg), the scored sample indices (K,) and their error angles in degrees (K,)."""
     al = _align(quat_est, quat_ref, mask, max_shift, shift_step, heading)
-    idx = _scored_index(_check_quats("quat_est", quat_est, None), _check_quats("quat_ref", quat_ref, None), mask,
-                        int(np.ceil(max_shift)) + 1)
-    return idx, np.rad2deg(np.abs(_angles(al.q_err)))
+    return al.idx, np.rad2deg(np.abs(_angles(al.q_err)))
 
 
 def heading_error(quat_est: np.ndarray, quat_ref: np.ndarray, mask: Optional[np.ndarray],

@@ -236,8 +236,7 @@ def stream_session(session: Session, cal: Optional[Calibration] = None, options:
                             st.between_s, st.between_cpu_s)
     timing["bootstrap_seconds"] = boot_s
     update_ms = np.asarray(st.update_s, float) * 1e3
-    kf_t = smoother.times()          # every update adds keyframe k+1 (StreamSmoother._close)
-    update_t = kf_t[1:1 + update_ms.size] if kf_t.size > update_ms.size else np.arange(update_ms.size, dtype=float)
+    update_t = smoother.times()[1:]  # keyframe 0 is the first sample; every update adds k+1 (StreamSmoother._close)
     return StreamResult(session.t, filtered, smoothed, smoother.cal, timing, smoother.stats.counts(), n_boot,
                         smoother.calibration_history, cal, update_t, update_ms,
                         np.asarray(st.update_cpu_s, float) * 1e3)
