@@ -119,12 +119,12 @@ class EndGyroMap:
         self.rows: list = []                             # "exact": per interval (w (n, 3) as pushed, acc (n, 3) used)
 
     def interval(self, k: int, t: np.ndarray, w: np.ndarray, acc: np.ndarray, kRb: np.ndarray, delta_R: np.ndarray,
-                 bridged: bool, acc_used: np.ndarray | None = None) -> None:
+                 bridged: bool, acc_used: np.ndarray) -> None:
         """Interval k closed (t (n+1,), w, acc (n, 3) as pushed; kRb, delta_R of its preintegration; acc_used: the
         accelerometer rows its Δv integrated, re-timed by δ — kept for "exact")."""
         self.n += 1
         if self.exact:          # the samples of the end's exact re-preintegration (every interval: the layout)
-            self.rows.append((np.array(w, float), np.array(acc if acc_used is None else acc_used, float)))
+            self.rows.append((np.array(w, float), np.array(acc_used, float)))
         dev = np.abs(np.linalg.norm(acc, axis=1) - self.owner._g)
         dev = np.where(np.isfinite(dev), dev, np.inf)
         turn = np.linalg.norm(w, axis=1) * (t[1:] - t[:-1]) / (2 * np.pi)     # gyro_map.clean_turns, per sample
@@ -177,7 +177,7 @@ class EndGyroMap:
                              "reason": "theta: the end magnetometer factors were not found"}
                 return graph, values
             g_free, v_free, ext, was_free = freed
-            out = self._extend(g_free, v_free)
+            out = self._extend(g_free, v_free, keep=self.theta != "gate")     # "gate": the θ-free graph not kept
             self.info["theta_free"] = True
             if not self.info.get("estimated") or self.theta == "gate":     # θ as before
                 ext._theta_free = was_free
@@ -196,10 +196,10 @@ class EndGyroMap:
         rounds — stream_windows_end's θ-free magnetometer factors and weak prior Λ_w about θ_n (windows_end's
         machinery, reused) — so that E is estimated jointly with D, as calibration.ml does. (graph, values, ext, θ was
         free already) or None (no EndWindows extension, or its factors not found)."""
-        from imugraph.graphs.stream_windows_end import EndWindows
+        from imugraph.graphs.stream_windows_end import end_windows
 
-        ext = next((e for e in self.owner._end_extensions if isinstance(e, EndWindows)), None)
-        if ext is None or ext._theta is None or "skipped" in ext.report:
+        ext = end_windows(self.owner)
+        if ext is None:
             return None
         if ext._theta_free:                  # a modelled window freed θ already
             return graph, values, ext, True
@@ -210,7 +210,7 @@ class EndGyroMap:
         ext._theta_free = True
         return ext._graph(ext._free_base(graph, base, values), values), values, ext, False
 
-    def _extend(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values):
+    def _extend(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, keep: bool = True):
         self._gate_close()                     # the last batch interval
         if self.batch_clean:
             self.clean = self.clean_as_batch()
@@ -251,7 +251,7 @@ class EndGyroMap:
             return graph, values
         info.update(estimated=True, E=(self.e0 + e_base).reshape(3, 3).tolist())
         self.e_base = e_base
-        return self.build(graph, cur, e_base, exact=self.exact)
+        return self.build(graph, cur, e_base, exact=self.exact) if keep else (graph, values)
 
     def total(self, values: gtsam.Values) -> np.ndarray:
         """Ê (3, 3) of a solution of the extended graph: Ê₀ + e_base + e."""

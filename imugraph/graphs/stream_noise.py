@@ -120,12 +120,9 @@ class NoiseEnd:
     # ---------------------------------------------------------------- the rows of eq. (1)
     def _windows(self):
         """stream_windows_end's extension when it rebuilt the end graph's magnetometer factors, else None."""
-        from imugraph.graphs.stream_windows_end import EndWindows
+        from imugraph.graphs.stream_windows_end import end_windows
 
-        ext = next((e for e in self.sm._end_extensions if isinstance(e, EndWindows)), None)
-        if ext is None or ext._theta is None or "skipped" in ext.report:
-            return None
-        return ext
+        return end_windows(self.sm)
 
     def _rows(self, x: gtsam.Values) -> tuple:
         """(kf (M,), ΔR_j (M, 3, 3), y_j − Δo_w (M, 3), weight floor (M,), θ (13,)) of every closed interval's row at
@@ -222,9 +219,9 @@ class NoiseEnd:
         if not (sm._calstate and sm.opt.keep_history and sm._mag_index and sm._hist_kRb):
             res["skipped"] = "no exact θ-state magnetometer factors in the end graph"
             return graph, values
-        idx = mag_factor_indices(graph)
-        if self._rebuilt(graph, idx, values) is None:     # not the factors we can rebuild: leave the graph as it is
-            res["skipped"] = f"{len(idx)} magnetometer factors found, {len(self._mag_factors(values))} rebuilt"
+        idx, n_new = mag_factor_indices(graph), len(self._mag_factors(values))
+        if n_new != len(idx):                 # not the factors we can rebuild: leave the graph as it is
+            res["skipped"] = f"{len(idx)} magnetometer factors found, {n_new} rebuilt"
             return graph, values
         x, sigma = values, np.asarray(sm._sig_y, float)
         for outer in range(OUTER_MAX):

@@ -104,10 +104,17 @@ def end_calibration(sm, base):
     start calibration's windows are not kept (the end graph does not apply them). Calibration.corrected then gives
     the field of eq. (1): y_j − Δo_w in a modelled window, no sample where left out. None when the option did not
     rebuild the end graph (off, no θ state, skipped) or before `finish`."""
-    ext = next((e for e in getattr(sm, "_end_extensions", ()) if isinstance(e, EndWindows)), None)
-    if ext is None or ext._theta is None or "skipped" in ext.report or getattr(sm, "_final", None) is None:
+    ext = end_windows(sm)
+    if ext is None or getattr(sm, "_final", None) is None:
         return None
     return ext.calibration(sm._final, base)
+
+
+def end_windows(sm):
+    """sm's EndWindows extension when it rebuilt the end graph's magnetometer factors (θ state, not skipped), else
+    None."""
+    ext = next((e for e in getattr(sm, "_end_extensions", ()) if isinstance(e, EndWindows)), None)
+    return None if ext is None or ext._theta is None or "skipped" in ext.report else ext
 
 
 class EndWindows:
