@@ -88,6 +88,7 @@ CONFIGS = {"default": {}, "states": {"calib_states": True, "disturb_detect": Tru
            "gyro_map_velocity_end": {"gyro_map_end": True, "velocity_end": "ar2"},   # session 18 (helper E, stream_gmap)
            "mag_delay_end": {"mag_delay_end": True},   # session 19 (helper D): the lag re-estimated at the end (stream_delay_end)
            "mag_delay_end_clean": {"mag_delay_end": "clean"},   # the same on the normal state's rows only
+           "mag_delay_end_guarded": {"mag_delay_end": "guarded"},   # helper G: s₁ kept only if the end graph fits it better
            "noise_end": {"noise_end": True},   # session 19 (helper Y): σ_m re-estimated by the end graph (stream_noise)
            # session 18 (lead): the three end-graph extensions together, with and without the gyro map
            "end_wv": {"windows_end": "theta", "velocity_end": "ar2_batch_id", "gyro_map_end": False},

@@ -89,3 +89,41 @@ def test_same_shift_leaves_the_output_identical(lagged):
     assert on._delay_end.info["shift_end"] == LAG and not on._delay_end.info["applied"]
     assert np.array_equal(off.smoothed(), on.smoothed())
     assert on.cal.mag_delay_s == start.mag_delay_s
+
+
+def test_guarded_keeps_the_corrected_shift(lagged):
+    """mag_delay_end="guarded" (helper G): start lag 2 samples short, the end graph's total cost (eq. 3) is lower with
+    the re-paired rows, so they are kept as with True (same shift, same re-paired rows)."""
+    s, cal = lagged
+    start = replace(cal, mag_delay_s=1.0 / RATE)
+    off, _ = _stream(s, start, mag_delay_end=False)
+    on, _ = _stream(s, start, mag_delay_end="guarded")
+    info = on._delay_end.info
+    print(info)
+    assert info["applied"] and info["shift_start"] == 1 and info["shift_end"] == LAG
+    assert info["guard_cost_s1"] < info["guard_cost_s0"]
+    assert _truth_rms(on.smoothed(), s) < 0.8 * _truth_rms(off.smoothed(), s)
+    assert abs(on.cal.mag_delay_s - info["tau_s"]) < 1e-12
+
+
+def test_guarded_keeps_shift_zero_when_a_magnet_comes_off():
+    """A magnet attached at the start comes off at 14 s (true lag 0, 50 Hz): τ̂ reads −12.7 ms and True re-pairs the
+    rows by −1 (smoothed error 0.17 → 1.09°, benchmarks/d19_magnet_off.py); "guarded" solves both end graphs, keeps
+    the stream's pairing, and its smoothed error stays within 0.05° of the option off (the final LM starts at s₀'s
+    optimum instead of iSAM2's estimate)."""
+    from benchmarks.stream_vs_batch import stream_with_recorder
+    from imugraph.graphs.stream import StreamOptions
+    from imugraph.sim.scenario import magnet_comes_off_session
+
+    s, start, _ = magnet_comes_off_session()
+    errs, infos = {}, {}
+    for mode in (False, "guarded"):                 # as benchmarks/d19_magnet_off.py: every default, 10 s bootstrap
+        r, sm = stream_with_recorder(s, StreamOptions(lag_s=None, mag_delay_end=mode), 10.0, start, 0)
+        errs[mode] = _truth_rms(r.smoothed, s)
+        infos[mode] = getattr(sm, "_delay_end", None)
+    info = infos["guarded"].info
+    print(info, errs)
+    assert info["shift_start"] == 0 and info["shift_end"] != 0            # the biased estimate (the case guarded)
+    assert not info["applied"] and info["guard_cost_s0"] < info["guard_cost_s1"]
+    assert infos["guarded"].tau_s is None
+    assert abs(errs["guarded"] - errs[False]) < 0.05

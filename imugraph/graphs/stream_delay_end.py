@@ -35,6 +35,11 @@ extensions: windows_end, noise_end, ... then see the re-paired rows):
    split back into the intervals (`_hist_raw`; `_hist_y` recomputed from it with the start windows as `_close` does,
    else moved by (2) itself), and every exact magnetometer factor of the end graph rebuilt from them (as
    `_final_graph` does; stream_windows_end rebuilds its own from the re-paired `_hist_raw`).
+5. mag_delay_end="guarded" (session 19, helper G): τ̂ as with True, but the shift is a discrete model parameter the END
+   GRAPH decides: the end graph with s₀'s rows and with s₁'s rows (both rebuilt exact, before the later extensions)
+   solved by the end LM from the same start, s₁ kept only if its total cost at its optimum is lower (eq. 3, `_guard`);
+   else the stream's rows stay (the final LM then starts at s₀'s optimum). A magnet that comes off biases τ̂ (the
+   field's change is read as rotation); the wrong pairing should misfit the gyro-propagated rotations.
 
 calibration.json carries τ̂ as `mag_delay_s` when the end graph used it (`_learned_changes`), so `smooth
 --calibration` pairs the rows the same way (undelay_magnetometer: round(τ̂/Δt) rows).
@@ -188,6 +193,34 @@ class DelayEnd:
             out.add(sm._mag_factor(k, quat_to_rotmat(sm._hist_kRb[k]), sm._hist_y[k], exact=True))
         return out
 
+    def _mag_cost(self, rows: list, x: gtsam.Values) -> float:
+        """Σ_k of the exact magnetometer factors' cost ½‖r_k‖²_Σk (Huber) at x, built from the per-interval `rows`."""
+        sm = self.sm
+        total = 0.0
+        for k in sm._mag_index:
+            f = sm._mag_factor(k, quat_to_rotmat(sm._hist_kRb[k]), rows[k], exact=True)
+            total += 0.0 if f is None else float(f.error(x))
+        return total
+
+    def _guard(self, graph0, graph1, values, rows0: list, rows1: list) -> tuple[bool, gtsam.Values, gtsam.Values]:
+        """mag_delay_end="guarded" (step 5): the shift as a discrete model parameter chosen by the end graph. Both end
+        graphs (s₀'s and s₁'s rows, the same factors on the same keys: one averaged magnetometer factor per indexed
+        keyframe, whose χ² has 3 degrees of freedom whatever its row count) are solved by the end LM from the same
+        start; s₁ is kept only if its total cost at its own optimum is lower,
+
+            F(s) = min_x Σ_f ½‖r_f(x; s)‖²_Σf,     keep s₁  ⇔  F(s₁) < F(s₀)                                  (3)
+
+        (the profile likelihood of s, the log-determinants of the averaged factors' covariances left out: n_k differs by
+        at most |Δ| rows of ≈ 29). The magnetometer part of F at each optimum is recorded too. Returns (keep s₁, s₀'s
+        optimum, s₁'s optimum). Cost: two end solves here; the final LM then starts at the kept optimum."""
+        sm = self.sm
+        x0 = sm._final_lm(graph0, values)
+        x1 = sm._final_lm(graph1, values)
+        f0, f1 = float(graph0.error(x0)), float(graph1.error(x1))
+        self.info.update(guard_cost_s0=f0, guard_cost_s1=f1, guard_mag_s0=self._mag_cost(rows0, x0),
+                         guard_mag_s1=self._mag_cost(rows1, x1), guard_factors=len(sm._mag_index))
+        return f1 < f0, x0, x1
+
     def __call__(self, graph, values):
         sm = self.sm
         start = time.thread_time()
@@ -208,12 +241,25 @@ class DelayEnd:
             if empty:                       # a factor would lose every row: the end graph is left as it is
                 self.info["reason"] = f"keyframes {empty[:5]} would have no magnetometer row"
                 return graph, values
+            old_raw = None if new_raw is None else list(sm._hist_raw)
+            old_y = list(sm._hist_y)
+            graph0 = self._replace_factors(graph) if sm.opt.mag_delay_end == "guarded" else None
             if new_raw is not None:
                 sm._hist_raw[:] = new_raw
             sm._hist_y[:] = new_y
+            graph1 = self._replace_factors(graph)
+            if graph0 is not None:              # step 5: the end graph decides between s₀ and s₁
+                keep1, x0, x1 = self._guard(graph0, graph1, values, old_y, new_y)
+                if not keep1:                   # back to the stream's pairing: the end graph as it came
+                    if old_raw is not None:
+                        sm._hist_raw[:] = old_raw
+                    sm._hist_y[:] = old_y
+                    self.info["reason"] = "guard: s₀ fits the end graph better"
+                    return graph, x0            # the final LM starts at s₀'s optimum (≈ one iteration)
+                values = x1                     # the final LM starts at s₁'s optimum
             self.tau_s = tau
             self.info["applied"] = True
-            return self._replace_factors(graph), values
+            return graph1, values
         finally:
             self.info["cpu_s"] = time.thread_time() - start
 

@@ -228,6 +228,8 @@ class StreamOptions:
     # comes off (tests/test_stream_same_model.py's session) τ̂ is −12.7 ms (lag 0), the rows are re-paired by −1 and
     # the smoothed error goes 0.170 → 1.088° (benchmarks/d19_magnet_off.py);
     # "clean" gets that case right but takes BROAD 34 to the wrong shift (vs truth 0.736 → 0.910°).
+    # "guarded" (helper G): τ̂ as True, but s₁ kept only if the end graph solved with s₁'s rows has a lower total cost
+    # than with s₀'s (stream_delay_end eq. 3): the magnet case keeps 0 (F 365 vs 1180); BROAD 26 kept, 04 not.
     mag_delay_end: bool | str = False
 
 
