@@ -242,11 +242,16 @@ def undelay_magnetometer(t: np.ndarray, b_mag: np.ndarray, delay_s: float) -> np
     """
     b_mag = np.asarray(b_mag, float)
     n = int(np.round(delay_s / float(np.median(np.diff(t))))) if len(t) > 1 else 0
-    out = np.full_like(b_mag, np.nan)
+    return shift_rows(b_mag, n)
+
+
+def shift_rows(rows: np.ndarray, n: int) -> np.ndarray:
+    """out_i = rows_{i+n} (NaN where i + n is outside), (N, 3) → (N, 3); n of either sign."""
+    out = np.full_like(rows, np.nan)
     if n == 0:
-        out[:] = b_mag
+        out[:] = rows
     elif n > 0:
-        out[:-n] = b_mag[n:]
+        out[:-n] = rows[n:]
     else:
-        out[-n:] = b_mag[:n]
+        out[-n:] = rows[:n]
     return out

@@ -243,6 +243,12 @@ class StreamSmoother(OnlineCalibrationMixin, KeyframeStartMixin, ArrivalMixin, S
         """The iSAM2 instance holding the graph (the chain lag's inner one, or the solver itself)."""
         return self._solver.isam if self._chain else self._solver
 
+    def _start_windowed(self, t: np.ndarray, m: np.ndarray) -> tuple:
+        """(m at the sample times t with the start disturbance windows applied, whether one overlaps t): Calibration.
+        corrected (delay 0: a copy) only where one overlaps, else m itself."""
+        hit = any(ts <= t[-1] and te >= t[0] for ts, te in self._windows)
+        return (self._cal0.corrected(t, m) if hit else m), hit
+
     def _close(self, row_next) -> None:
         """Interval k (the buffer) → keyframe k+1 (its first row row_next, at t_next): its factors, then one solver
         update (row_next's rates end a gap's bridge: gap_bridge, stream_bridge)."""
@@ -270,9 +276,7 @@ class StreamSmoother(OnlineCalibrationMixin, KeyframeStartMixin, ArrivalMixin, S
         else:
             pre = interval_preintegration(t, w, a, *noise)
         kRb, delta_R, cov, dt_k, dv, sig_dv, q_kRb = pre
-        # disturbance windows (Calibration.corrected; delay 0: a copy) only where one overlaps this interval
-        hit = any(ts <= t[-2] and te >= t[0] for ts, te in self._windows)
-        y = self._cal0.corrected(t[:-1], m_raw) if hit else m_raw
+        y, hit = self._start_windowed(t[:-1], m_raw)
         ok = ~np.isnan(y[:, 0])
         flagged = self._detector is not None and self._disturb_step(k, t[0], t_next, y, ok, hit)   # stream_disturb
         graph, values, stamps = gtsam.NonlinearFactorGraph(), gtsam.Values(), {}

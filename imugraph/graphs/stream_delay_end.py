@@ -60,22 +60,10 @@ import gtsam
 import numpy as np
 
 from imugraph.calibration.alignment import estimate_mag_delay
+from imugraph.calibration.alignment import shift_rows as move_rows   # eq. (2)
 from imugraph.geometry import quat_conj, quat_mul, quat_to_rotmat, quat_to_rotvec, rotmat_to_quat
 
 __all__ = ["DelayEnd", "fill_short_holes", "gyro_rates", "move_rows"]
-
-
-def move_rows(rows: np.ndarray, d: int) -> np.ndarray:
-    """Eq. (2): out_i = rows_{i+d} (NaN where i + d is outside), (N, 3) → (N, 3); d of either sign."""
-    out = np.full_like(rows, np.nan)
-    n = len(rows)
-    if d == 0:
-        out[:] = rows
-    elif 0 < d < n:
-        out[:-d] = rows[d:]
-    elif -n < d < 0:
-        out[-d:] = rows[:d]
-    return out
 
 
 def fill_short_holes(t: np.ndarray, m: np.ndarray, max_rows: int) -> np.ndarray:
@@ -169,8 +157,8 @@ class DelayEnd:
             new_raw = np.split(move_rows(np.concatenate(raw), d), lengths)
             new_y = []
             for t, m in zip(sm._hist_t, new_raw):                  # the start windows as `_close` applies them
-                hit = any(ts <= t[-1] and te >= t[0] for ts, te in sm._windows)
-                new_y.append(sm._cal0.corrected(t, m) if hit else m.copy())
+                y, hit = sm._start_windowed(t, m)
+                new_y.append(y if hit else m.copy())
             return new_raw, new_y
         return None, np.split(move_rows(np.concatenate(sm._hist_y), d), lengths)
 
