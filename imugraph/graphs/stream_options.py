@@ -223,14 +223,16 @@ class StreamOptions:
     # every interval's magnetometer rows are re-paired and the end graph's exact magnetometer factors rebuilt (stream_
     # delay_end; the first end extension: windows_end and noise_end see the re-paired rows); calibration.json carries
     # τ̂ as mag_delay_s. "clean": τ̂ from the normal state's rows only (the start windows and the causal detector's window
-    # keyframes left out). False: the bootstrap's lag (default). Not the default (the lead, session 19): on BROAD 26
-    # 0.151 → 0.048°, 04 0.504 → 0.435° from the batch, 15 of 17 bit for bit unchanged — but on a simulated magnet that
-    # comes off (tests/test_stream_same_model.py's session) τ̂ is −12.7 ms (lag 0), the rows are re-paired by −1 and
-    # the smoothed error goes 0.170 → 1.088° (benchmarks/d19_magnet_off.py);
-    # "clean" gets that case right but takes BROAD 34 to the wrong shift (vs truth 0.736 → 0.910°).
+    # keyframes left out). False: the bootstrap's lag. True: on BROAD 26 0.151 → 0.048°, 04 0.504 → 0.435° from the
+    # batch, 15 of 17 bit for bit unchanged — but on a simulated magnet that comes off (tests/test_stream_same_model.py's
+    # session) τ̂ is −12.7 ms (lag 0), the rows are re-paired by −1 and the smoothed error goes 0.170 → 1.088°
+    # (benchmarks/d19_magnet_off.py); "clean" gets that case right but takes BROAD 34 to the wrong shift (vs truth
+    # 0.736 → 0.910°).
     # "guarded" (helper G): τ̂ as True, but s₁ kept only if the end graph solved with s₁'s rows has a lower total cost
     # than with s₀'s (stream_delay_end eq. 3): the magnet case keeps 0 (F 365 vs 1180); BROAD 26 kept, 04 not.
-    mag_delay_end: bool | str = False
+    # Default "guarded" since session 19 (the lead): 26 0.151 → 0.048° from the batch; the other 16 BROAD trials
+    # unchanged (the shift is the start's on 13, 04's guard keeps s₀, 32's re-pairing is skipped); True as before.
+    mag_delay_end: bool | str = "guarded"
 
 
 @dataclass
