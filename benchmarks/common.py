@@ -265,3 +265,28 @@ def print_variant_summary(rows: Sequence[dict], script: str, arg: str, opts: Any
     print(f"mean: base {m0:.3f}°, variant {m1:.3f}°; largest increase {worst['diff']:+.3f}° ({worst['trial']}); "
           f"variant options: {opts}{note}")
     return m0, m1
+
+
+def rows_by_trial_config(names: Sequence[str], only: Sequence[str] | None = None) -> dict:
+    """{(trial, config): row} from bench_out JSON files written by stream_vs_batch-style runs (`rows` with `trial`
+    and `config`); a later file's row wins; `only`: keep these configs."""
+    from benchmarks.output import OUT_DIR
+
+    best: dict = {}
+    for n in names:
+        for r in json.loads((OUT_DIR / n).read_text())["rows"]:
+            if only is None or r["config"] in only:
+                best[(r["trial"], r["config"])] = r
+    return best
+
+
+def print_config_means(best: dict, configs: Sequence[str]) -> None:
+    """Per config, over the trials every config has: the mean of vs_batch_field_h_deg, how many ≤ 0.1°, and the mean
+    of stream_truth_deg."""
+    trials = sorted({t for t, _ in best})
+    common = [t for t in trials if all((t, c) in best for c in configs)]
+    for c in configs:
+        v = np.array([best[(t, c)]["vs_batch_field_h_deg"] for t in common])
+        tr = np.array([best[(t, c)]["stream_truth_deg"] for t in common])
+        print(f"{c} over {len(common)} trials: vs_batch_field_h mean {v.mean():.3f}°, ≤ 0.1°: {int((v <= 0.1).sum())}/"
+              f"{len(common)}; truth mean {tr.mean():.3f}°")

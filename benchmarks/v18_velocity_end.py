@@ -86,15 +86,9 @@ def main(argv: list[str] | None = None) -> int:
 def summarise(names: list[str], only: list[str] | None = None) -> int:
     """Per trial and config (the last row wins): vs_batch_field_h, truth, σ̂_v/τ̂_v vs the batch's; per-config means
     over the trials every config has."""
-    import json
+    from benchmarks.common import print_config_means, rows_by_trial_config
 
-    from benchmarks.output import OUT_DIR
-
-    best: dict = {}
-    for n in names:
-        for r in json.loads((OUT_DIR / n).read_text())["rows"]:
-            if only is None or r["config"] in only:
-                best[(r["trial"], r["config"])] = r
+    best = rows_by_trial_config(names, only)
     configs = sorted({c for _, c in best})
     trials = sorted({t for t, _ in best})
     for t in trials:
@@ -107,12 +101,7 @@ def summarise(names: list[str], only: list[str] | None = None) -> int:
                              + (f" (σ {ve['sigma']:.3f} τ {ve['tau']:.3f} id {ve.get('identified')})" if ve else ""))
         r0 = next(best[(t, c)] for c in configs if (t, c) in best)
         print(f"{t} batch σ {r0['sigma_full']:.3f} τ {r0['tau_full']:.3f} | " + " | ".join(cells))
-    common = [t for t in trials if all((t, c) in best for c in configs)]
-    for c in configs:
-        v = np.array([best[(t, c)]["vs_batch_field_h_deg"] for t in common])
-        tr = np.array([best[(t, c)]["stream_truth_deg"] for t in common])
-        print(f"{c} over {len(common)} trials: vs_batch_field_h mean {v.mean():.3f}°, ≤ 0.1°: {int((v <= 0.1).sum())}/"
-              f"{len(common)}; truth mean {tr.mean():.3f}°")
+    print_config_means(best, configs)
     return 0
 
 

@@ -105,15 +105,9 @@ def main(argv: list[str] | None = None) -> int:
 def summarise(names: list[str], configs: list[str]) -> int:
     """Per trial: each config's vs_batch_field_h / truth, σ_m boot / end / batch; per-config means over the trials
     every config has."""
-    import json
+    from benchmarks.common import print_config_means, rows_by_trial_config
 
-    from benchmarks.output import OUT_DIR
-
-    best: dict = {}
-    for n in names:
-        for r in json.loads((OUT_DIR / n).read_text())["rows"]:
-            if r["config"] in configs:
-                best[(r["trial"], r["config"])] = r
+    best = rows_by_trial_config(names, configs)
     trials = sorted({t for t, _ in best})
     for t in trials:
         cells, r0 = [], None
@@ -125,12 +119,7 @@ def summarise(names: list[str], configs: list[str]) -> int:
                 cells.append(f"{c} {r['vs_batch_field_h_deg']:.3f}/{r['stream_truth_deg']:.3f}"
                              + (f" (σ_m {_fmt(ne.get('sigma'))}, {ne.get('outer')} solves)" if ne else ""))
         print(f"{t} σ_m boot {_fmt(r0['mag_boot'])} batch {_fmt(r0['mag_full'])} | " + " | ".join(cells))
-    common = [t for t in trials if all((t, c) in best for c in configs)]
-    for c in configs:
-        v = np.array([best[(t, c)]["vs_batch_field_h_deg"] for t in common])
-        tr = np.array([best[(t, c)]["stream_truth_deg"] for t in common])
-        print(f"{c} over {len(common)} trials: vs_batch_field_h mean {v.mean():.3f}°, ≤ 0.1°: {int((v <= 0.1).sum())}/"
-              f"{len(common)}; truth mean {tr.mean():.3f}°")
+    print_config_means(best, configs)
     return 0
 
 
