@@ -163,23 +163,10 @@ class DelayEnd:
         return None, np.split(move_rows(np.concatenate(sm._hist_y), d), lengths)
 
     def _replace_factors(self, graph: gtsam.NonlinearFactorGraph) -> gtsam.NonlinearFactorGraph:
-        """`graph` with every indexed keyframe's magnetometer factor rebuilt exact from the re-paired rows: after
-        `_final_graph`'s rebuild its last len(_mag_index) factors (in `_mag_index` order), else the solver's
-        indices."""
-        sm = self.sm
-        rebuilt = (sm._online is not None or sm._calstate) and sm.opt.keep_history and sm._mag_index
-        out = gtsam.NonlinearFactorGraph()
-        if rebuilt:
-            for i in range(graph.size() - len(sm._mag_index)):
-                out.add(graph.at(i))
-        else:
-            old = set(sm._mag_index.values())
-            for i in range(graph.size()):
-                if i not in old and graph.exists(i):
-                    out.add(graph.at(i))
-        for k in sm._mag_index:
-            out.add(sm._mag_factor(k, quat_to_rotmat(sm._hist_kRb[k]), sm._hist_y[k], exact=True))
-        return out
+        """The end graph with every indexed keyframe's magnetometer factor rebuilt exact from the re-paired rows. This
+        extension runs FIRST (attach), so `graph` is `_final_graph()`'s: iSAM2's factors with those factors replaced
+        (or, without θ states / refits, iSAM2's own) — both are `_exact_mag_graph` of iSAM2's factors."""
+        return self.sm._exact_mag_graph(self.sm._solver.getFactorsUnsafe())
 
     def _mag_cost(self, rows: list, x: gtsam.Values) -> float:
         """Σ_k of the exact magnetometer factors' cost ½‖r_k‖²_Σk (Huber) at x, built from the per-interval `rows`."""

@@ -151,6 +151,11 @@ class StreamOutputMixin:
         # smoothed vs smooth_fixed of the same model 0.148° → 0.035° mean (BROAD 17, docs/stream.md "One model, two solvers")
         if (self._online is None and not self._calstate) or not self.opt.keep_history or not self._mag_index:
             return factors
+        return self._exact_mag_graph(factors)
+
+    def _exact_mag_graph(self, factors: gtsam.NonlinearFactorGraph) -> gtsam.NonlinearFactorGraph:
+        """`factors` (iSAM2's) with every indexed keyframe's magnetometer factor replaced by one built exact from the
+        history's rows (`_hist_y`, as they are paired now: stream_delay_end re-pairs them)."""
         from imugraph.geometry import quat_to_rotmat
 
         old = set(self._mag_index.values())
