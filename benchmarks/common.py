@@ -290,3 +290,31 @@ def print_config_means(best: dict, configs: Sequence[str]) -> None:
         tr = np.array([best[(t, c)]["stream_truth_deg"] for t in common])
         print(f"{c} over {len(common)} trials: vs_batch_field_h mean {v.mean():.3f}°, ≤ 0.1°: {int((v <= 0.1).sum())}/"
               f"{len(common)}; truth mean {tr.mean():.3f}°")
+
+
+def stream_variant_parser(doc: str, trials: str, config: str, out: str):
+    """The argparse parser shared by the stream_vs_batch wrappers (v18_velocity_end, y19_noise_end): TRIALS, --config,
+    --cache, --bootstrap-s, --out, --summarise (callers add their own flags)."""
+    import argparse
+
+    ap = argparse.ArgumentParser(description=doc.splitlines()[0])
+    ap.add_argument("trials", nargs="?", default=trials)
+    ap.add_argument("--config", default=config)
+    ap.add_argument("--cache", default="/tmp/A_cache")
+    ap.add_argument("--bootstrap-s", type=float, default=30.0)
+    ap.add_argument("--out", default=out)
+    ap.add_argument("--summarise", default=None, help="comma-separated bench_out JSONs of earlier runs: per-trial table "
+                    "(the last row per trial and config) and per-config means over the trials every config has; no run")
+    return ap
+
+
+def print_run_means(rows: Sequence[dict], configs: Sequence[str]) -> None:
+    """Per config, over this run's rows: the mean of vs_batch_field_h_deg, how many ≤ 0.1°, the mean of
+    stream_truth_deg."""
+    for c in configs:
+        sub = [r for r in rows if r["config"] == c]
+        v = np.array([r["vs_batch_field_h_deg"] for r in sub])
+        tr = np.array([r["stream_truth_deg"] for r in sub])
+        if v.size:
+            print(f"{c}: vs_batch_field_h mean {v.mean():.3f}°, ≤ 0.1°: {int((v <= 0.1).sum())}/{v.size}; "
+                  f"truth mean {tr.mean():.3f}°")

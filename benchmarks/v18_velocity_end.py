@@ -11,7 +11,6 @@ bootstrap's (the stream's start) and the whole-trial batch calibration's (`full`
 
 from __future__ import annotations
 
-import argparse
 import os
 import sys
 import time
@@ -22,7 +21,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 import benchmarks.stream_vs_batch as svb  # noqa: E402
-from benchmarks.common import select_trials, trial_number  # noqa: E402
+from benchmarks.common import print_run_means, select_trials, stream_variant_parser, trial_number  # noqa: E402
 from benchmarks.output import write_json  # noqa: E402
 
 _LAST: list = []
@@ -40,15 +39,7 @@ def _recording(real):
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("trials", nargs="?", default="7,30,34,36")
-    ap.add_argument("--config", default="default,velocity_end")
-    ap.add_argument("--cache", default="/tmp/A_cache")
-    ap.add_argument("--bootstrap-s", type=float, default=30.0)
-    ap.add_argument("--out", default="v18_velocity_end.json")
-    ap.add_argument("--summarise", default=None, help="comma-separated bench_out JSONs of earlier runs: print the "
-                    "per-trial table (the last row per trial and config; --config given: only those) and the "
-                    "per-config means over the trials every config has; no run")
+    ap = stream_variant_parser(__doc__, "7,30,34,36", "default,velocity_end", "v18_velocity_end.json")
     a = ap.parse_args(argv)
     if a.summarise:
         return summarise(a.summarise.split(","), a.config.split(",") if a.config != ap.get_default("config") else None)
@@ -73,13 +64,7 @@ def main(argv: list[str] | None = None) -> int:
                   f"stream cpu {r['stream_cpu_s']:.1f} s | load {os.getloadavg()[0]:.1f}", flush=True)
         rows += new
         write_json(a.out, {"rows": rows, "configs": {c: svb.CONFIGS[c] for c in configs}})
-    for c in configs:
-        sub = [r for r in rows if r["config"] == c]
-        v = np.array([r["vs_batch_field_h_deg"] for r in sub])
-        tr = np.array([r["stream_truth_deg"] for r in sub])
-        if v.size:
-            print(f"{c}: vs_batch_field_h mean {v.mean():.3f}°, ≤ 0.1°: {int((v <= 0.1).sum())}/{v.size}; "
-                  f"truth mean {tr.mean():.3f}°")
+    print_run_means(rows, configs)
     return 0
 
 

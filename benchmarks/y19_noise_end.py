@@ -13,7 +13,6 @@ calibration.json noise the stream wrote (`end_noise_mag`).
 
 from __future__ import annotations
 
-import argparse
 import os
 import sys
 import time
@@ -24,7 +23,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 import benchmarks.stream_vs_batch as svb  # noqa: E402
-from benchmarks.common import select_trials, trial_number  # noqa: E402
+from benchmarks.common import print_run_means, select_trials, stream_variant_parser, trial_number  # noqa: E402
 from benchmarks.output import write_json  # noqa: E402
 
 _LAST: list = []
@@ -55,16 +54,9 @@ def _fmt(v) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("trials", nargs="?", default="36,4,7,32")
-    ap.add_argument("--config", default="default,noise_end")
-    ap.add_argument("--cache", default="/tmp/A_cache")
-    ap.add_argument("--bootstrap-s", type=float, default=30.0)
-    ap.add_argument("--out", default="s19_Y.json")
+    ap = stream_variant_parser(__doc__, "36,4,7,32", "default,noise_end", "s19_Y.json")
     ap.add_argument("--feed", default="", help="attribution: comma-separated channels (gyr,acc,mag) whose whole-trial "
                     "batch σ replaces the bootstrap's in the stream's start calibration (rows get config NAME+feed_CH)")
-    ap.add_argument("--summarise", default=None, help="comma-separated bench_out JSONs of earlier runs: per-trial table "
-                    "(the last row per trial and config) and per-config means over the trials every config has; no run")
     a = ap.parse_args(argv)
     if a.summarise:
         return summarise(a.summarise.split(","), a.config.split(","))
@@ -92,13 +84,7 @@ def main(argv: list[str] | None = None) -> int:
                   f"stream cpu {r['stream_cpu_s']:.1f} s | load {os.getloadavg()[0]:.1f}", flush=True)
         rows += new
         write_json(a.out, {"rows": rows, "configs": {c: svb.CONFIGS[c] for c in configs}})
-    for c in sorted({r["config"] for r in rows}):
-        sub = [r for r in rows if r["config"] == c]
-        v = np.array([r["vs_batch_field_h_deg"] for r in sub])
-        tr = np.array([r["stream_truth_deg"] for r in sub])
-        if v.size:
-            print(f"{c}: vs_batch_field_h mean {v.mean():.3f}°, ≤ 0.1°: {int((v <= 0.1).sum())}/{v.size}; "
-                  f"truth mean {tr.mean():.3f}°")
+    print_run_means(rows, sorted({r["config"] for r in rows}))
     return 0
 
 
