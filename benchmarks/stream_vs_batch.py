@@ -85,6 +85,7 @@ CONFIGS = {"default": {}, "states": {"calib_states": True, "disturb_detect": Tru
            "gyro_map_exact_bc": {"gyro_map_end": "exact_batch_clean"},
            "gyro_map_theta": {"gyro_map_end": "theta"},   # diagnostic: θ free in the E rounds, as the batch's
            "gyro_map_theta_gate": {"gyro_map_end": "theta_gate"},   # those rounds as the settling gate only
+           "gyro_map_theta_e": {"gyro_map_end": "theta_e"},   # Z2: the θ-free rounds' Ê, fixed in the θ-held end graph
            "gyro_map_velocity_end": {"gyro_map_end": True, "velocity_end": "ar2"},   # session 18 (helper E, stream_gmap)
            "mag_delay_end": {"mag_delay_end": True},   # session 19 (helper D): the lag re-estimated at the end (stream_delay_end)
            "mag_delay_end_clean": {"mag_delay_end": "clean"},   # the same on the normal state's rows only

@@ -234,10 +234,11 @@ def test_exact_recovers_known_gyro_map(long_case):
 @pytest.fixture(scope="module")
 def theta_cases(long_case):
     """The 100 s simulation with the stream's default θ state (calib_states, windows_end): gyro_map_end True,
-    "theta" (θ free in the E rounds) and "theta_gate" (those rounds as the settling gate only)."""
+    "theta" (θ free in the E rounds), "theta_gate" (those rounds as the settling gate only) and "theta_e" (their Ê
+    fixed in the θ-held end graph)."""
     s, scaled, cal, _, _ = long_case
     out = {}
-    for mode in (True, "theta", "theta_gate"):
+    for mode in (True, "theta", "theta_gate", "theta_e"):
         sm = StreamSmoother(cal, RATE, StreamOptions(gyro_map_end=mode), g0=9.81)
         for i in range(scaled.n):
             sm.push(scaled.t[i], scaled.gyr[i], scaled.acc[i], scaled.mag[i])
@@ -260,3 +261,24 @@ def test_theta_free_rounds(theta_cases):
     errs = {m: orientation_error(q, s.quat, None, RATE).rms_deg for m, (_, q) in out.items()}
     print(f"\ntheta modes, smoothed vs truth: {errs}")
     assert errs["theta"] < 1.5 * errs[True] + 0.05
+
+
+def test_theta_e_fixes_the_theta_free_E(long_case, theta_cases):
+    """"theta_e": the θ-free rounds' Ê (the same rounds as "theta": equal to 1e-12) recovers the simulated E within
+    0.1 %, is held fixed — no e in the final graph, the calibration carries exactly it — and the smoothed output is
+    at most half as far from the truth as with the option off."""
+    s, _, _, (_, q_off), _ = long_case
+    _, out = theta_cases
+    sm, q = out["theta_e"]
+    info = sm._gmap.info
+    assert info["estimated"] and info["theta_e"] and info["theta_free"]
+    E_hat = np.array(info["E"])
+    assert np.allclose(E_hat, out["theta"][0]._gmap.info["E"], atol=1e-12)
+    assert np.abs(E_hat - E_TRUE).max() < 1e-3, (E_hat, E_TRUE)
+    from imugraph.graphs.gyro_map_block import E_KEY
+    assert not sm._final.exists(E_KEY)
+    assert np.allclose(sm.cal.gyro_map, E_hat, atol=1e-15)
+    err_off = orientation_error(q_off, s.quat, None, RATE).rms_deg
+    err_e = orientation_error(q, s.quat, None, RATE).rms_deg
+    print(f"\ntheta_e: smoothed vs truth off {err_off:.3f}°, theta_e {err_e:.3f}°")
+    assert err_e < 0.5 * err_off, (err_e, err_off)

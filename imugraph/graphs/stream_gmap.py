@@ -46,7 +46,9 @@ not the re-preintegration — the batch's rounds with θ's D held settle on 24 (
 keyframes come within 0.06 / 0.10 % per entry of the stream's Ê on 04 / 24 (the default batch: 0.39 % on 04;
 benchmarks/z19_batch_theta_hold.py). "theta" (diagnostic): θ free in the E rounds (`_free_theta`), as the batch's
 (BROAD 24 then creeps, 0.54, and falls back like the batch); "theta_gate": those rounds only as the settling gate
-(E then from the θ-held rounds, as gyro_map_end=True).
+(E then from the θ-held rounds, as gyro_map_end=True). "theta_e" (session 19, helper Z2): the same gate, but E is
+the θ-FREE rounds' Ê, held fixed: the final graph is the θ-held end graph with every interval's rotation moved to it by
+(1) and no e variable (build(free_e=False)) — separates the θ-free rounds' E from θ staying free in the final graph.
 """
 
 from __future__ import annotations
@@ -115,7 +117,7 @@ class EndGyroMap:
         self.split = mode == "split"
         self.batch_clean = mode in ("batch_clean", "exact_batch_clean")
         self.exact = mode in ("exact", "exact_batch_clean")
-        self.theta = {"theta": "free", "theta_gate": "gate"}.get(mode) if isinstance(mode, str) else None
+        self.theta = {"theta": "free", "theta_gate": "gate", "theta_e": "e"}.get(mode) if isinstance(mode, str) else None
         self.rows: list = []                             # "exact": per interval (w (n, 3) as pushed, acc (n, 3) used)
 
     def interval(self, k: int, t: np.ndarray, w: np.ndarray, acc: np.ndarray, kRb: np.ndarray, delta_R: np.ndarray,
@@ -177,9 +179,9 @@ class EndGyroMap:
                              "reason": "theta: the end magnetometer factors were not found"}
                 return graph, values
             g_free, v_free, ext, was_free = freed
-            out = self._extend(g_free, v_free, keep=self.theta != "gate")     # "gate": the θ-free graph not kept
+            out = self._extend(g_free, v_free, keep=self.theta == "free")     # the θ-free graph kept by "theta" only
             self.info["theta_free"] = True
-            if not self.info.get("estimated") or self.theta == "gate":     # θ as before
+            if not self.info.get("estimated") or self.theta != "free":     # θ as before
                 ext._theta_free = was_free
             if not self.info.get("estimated"):            # the fallback: the plain end graph
                 return graph, values
@@ -187,6 +189,9 @@ class EndGyroMap:
                 check = {key: self.info.get(key) for key in ("steps", "contraction", "E")}
                 out = self._extend(graph, values)
                 self.info["theta_check"] = check
+            if self.theta == "e":             # settled with θ free: that Ê fixed in the θ-held end graph (eq. 1)
+                self.info["theta_e"] = True
+                return self.build(graph, values, self.e_base, free_e=False)
             return out
         finally:
             self.info["cpu_s"] = time.thread_time() - start
@@ -255,7 +260,8 @@ class EndGyroMap:
 
     def total(self, values: gtsam.Values) -> np.ndarray:
         """Ê (3, 3) of a solution of the extended graph: Ê₀ + e_base + e."""
-        return (self.e0 + self.e_base + np.asarray(values.atVector(E_KEY), float)).reshape(3, 3)
+        e = np.asarray(values.atVector(E_KEY), float) if values.exists(E_KEY) else 0.0     # "theta_e": e fixed
+        return (self.e0 + self.e_base + e).reshape(3, 3)
 
     def split_check(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, e_base: np.ndarray) -> bool:
         """gyro_map_end="split": the settled graph solved once more with one e for the clean intervals of each half
@@ -314,11 +320,12 @@ class EndGyroMap:
         return (*self.repreintegrate(e_base, b_k), b_k)
 
     def build(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, e_base: np.ndarray,
-              groups: dict | None = None, exact: bool = False):
+              groups: dict | None = None, exact: bool = False, free_e: bool = True):
         """The end graph with every interval's super-sample rotation at Ê₀ + e_base (eq. 1) and the clean intervals'
         factors on β_k = b_s + C_k e (eq. 2), the ties and E's priors; values with β_k = b_s and e = 0. groups: clean
         interval → the key of its e (split_check), else E_KEY for all. exact: each interval's factor from the samples
-        re-preintegrated at Ê₀ + e_base and the current bias (`repreintegrate`), J_k and C_k there."""
+        re-preintegrated at Ê₀ + e_base and the current bias (`repreintegrate`), J_k and C_k there. free_e=False
+        ("theta_e"): E fixed at Ê₀ + e_base, no β_k, ties or e (every factor on its segment bias)."""
         ex = self._exact_inputs(graph, values, e_base) if exact else None
         out, vals = gtsam.NonlinearFactorGraph(), gtsam.Values(values)
         lin = gtsam.Values()
@@ -354,7 +361,7 @@ class EndGyroMap:
             else:
                 pim = pim0
             bias = kk[4]
-            if k in self.clean:
+            if free_e and k in self.clean:
                 bias = beta_key(k)
                 ties[k] = (kk[4], equivalent_bias(J, dR, dt_k), E_KEY if groups is None else groups[k])
             ends = (kk[0], kk[1], kk[2], kk[3], bias)

@@ -207,8 +207,9 @@ class StreamOptions:
     # the batch's 0.2 s clean intervals only (stream_gmap.clean_as_batch). "exact" (session 19, helper Z): each round
     # re-preintegrates every interval's kept samples at the current Ê and bias with the batch's code (stream_gmap
     # eq. 3; 6 floats per sample kept); "exact_batch_clean": both; "theta" (diagnostic): θ free in the E rounds, as
-    # the batch's (stream_windows_end's θ-free factors); "theta_gate": those rounds as the settling gate only. False:
-    # the start's E. Default "theta_gate" since session 19 (the lead, on helper Z's numbers: BROAD 24 falls back like
+    # the batch's (stream_windows_end's θ-free factors); "theta_gate": those rounds as the settling gate only;
+    # "theta_e" (helper Z2): their Ê applied in the default's θ-held end graph (04 0.504 → 0.269°, 02 0.106 → 0.156° from
+    # the batch; opt-in). False: the start's E. Default "theta_gate" since session 19 (the lead, on helper Z's numbers: BROAD 24 falls back like
     # the batch, 0.303 → 0.035° from it; 01/02/04 identical; True before).
     gyro_map_end: bool | str = "theta_gate"
     # session 19 (helper Y): the end graph (full iSAM2, keep_history) re-estimates the magnetometer noise σ_m with the
