@@ -61,7 +61,7 @@ import numpy as np
 
 from imugraph.calibration.alignment import estimate_mag_delay
 from imugraph.calibration.alignment import shift_rows as move_rows   # eq. (2)
-from imugraph.geometry import quat_conj, quat_mul, quat_to_rotmat, quat_to_rotvec, rotmat_to_quat
+from imugraph.geometry import quat_conj, quat_mul, quat_to_rotvec, rotmat_to_quat
 
 __all__ = ["DelayEnd", "fill_short_holes", "gyro_rates", "move_rows"]
 
@@ -168,16 +168,13 @@ class DelayEnd:
         (or, without θ states / refits, iSAM2's own) — both are `_exact_mag_graph` of iSAM2's factors."""
         return self.sm._exact_mag_graph(self.sm._solver.getFactorsUnsafe())
 
-    def _mag_cost(self, rows: list, x: gtsam.Values) -> float:
-        """Σ_k of the exact magnetometer factors' cost ½‖r_k‖²_Σk (Huber) at x, built from the per-interval `rows`."""
-        sm = self.sm
-        total = 0.0
-        for k in sm._mag_index:
-            f = sm._mag_factor(k, quat_to_rotmat(sm._hist_kRb[k]), rows[k], exact=True)
-            total += 0.0 if f is None else float(f.error(x))
-        return total
+    def _mag_cost(self, graph: gtsam.NonlinearFactorGraph, x: gtsam.Values) -> float:
+        """Σ_k of the exact magnetometer factors' cost ½‖r_k‖²_Σk (Huber) at x: the last len(_mag_index) factors of
+        `graph` (`_exact_mag_graph` adds them there, one per indexed keyframe)."""
+        n = len(self.sm._mag_index)
+        return float(sum(graph.at(i).error(x) for i in range(graph.size() - n, graph.size())))
 
-    def _guard(self, graph0, graph1, values, rows0: list, rows1: list) -> tuple[bool, gtsam.Values, gtsam.Values]:
+    def _guard(self, graph0, graph1, values) -> tuple[bool, gtsam.Values, gtsam.Values]:
         """mag_delay_end="guarded" (step 5): the shift as a discrete model parameter chosen by the end graph. Both end
         graphs (s₀'s and s₁'s rows, the same factors on the same keys: one averaged magnetometer factor per indexed
         keyframe, whose χ² has 3 degrees of freedom whatever its row count) are solved by the end LM from the same
@@ -192,8 +189,8 @@ class DelayEnd:
         x0 = sm._final_lm(graph0, values)
         x1 = sm._final_lm(graph1, values)
         f0, f1 = float(graph0.error(x0)), float(graph1.error(x1))
-        self.info.update(guard_cost_s0=f0, guard_cost_s1=f1, guard_mag_s0=self._mag_cost(rows0, x0),
-                         guard_mag_s1=self._mag_cost(rows1, x1), guard_factors=len(sm._mag_index))
+        self.info.update(guard_cost_s0=f0, guard_cost_s1=f1, guard_mag_s0=self._mag_cost(graph0, x0),
+                         guard_mag_s1=self._mag_cost(graph1, x1), guard_factors=len(sm._mag_index))
         return f1 < f0, x0, x1
 
     def __call__(self, graph, values):
@@ -224,7 +221,7 @@ class DelayEnd:
             sm._hist_y[:] = new_y
             graph1 = self._replace_factors(graph)
             if graph0 is not None:              # step 5: the end graph decides between s₀ and s₁
-                keep1, x0, x1 = self._guard(graph0, graph1, values, old_y, new_y)
+                keep1, x0, x1 = self._guard(graph0, graph1, values)
                 if not keep1:                   # back to the stream's pairing: the end graph as it came
                     if old_raw is not None:
                         sm._hist_raw[:] = old_raw
