@@ -318,3 +318,13 @@ def print_run_means(rows: Sequence[dict], configs: Sequence[str]) -> None:
         if v.size:
             print(f"{c}: vs_batch_field_h mean {v.mean():.3f}°, ≤ 0.1°: {int((v <= 0.1).sum())}/{v.size}; "
                   f"truth mean {tr.mean():.3f}°")
+
+
+def stream_row_line(r: dict, width: int, middle: str) -> str:
+    """One printed row of the stream_vs_batch wrappers: trial, config, the stream vs the batch (heading-aligned),
+    vs the same model and vs the truth, then `middle` (the wrapper's own columns), the stream's CPU and the load."""
+    import os
+
+    return (f"{r['trial']} {r['config']:{width}s} vs_batch_field_h {r['vs_batch_field_h_deg']:.3f}° same "
+            f"{r['same_deg']:.3f}° truth {r['stream_truth_deg']:.3f}° (batch {r['batch_field_truth_deg']:.3f}°) | "
+            f"{middle} stream cpu {r['stream_cpu_s']:.1f} s | load {os.getloadavg()[0]:.1f}")

@@ -11,7 +11,6 @@ bootstrap's (the stream's start) and the whole-trial batch calibration's (`full`
 
 from __future__ import annotations
 
-import os
 import sys
 import time
 from pathlib import Path
@@ -21,7 +20,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 import benchmarks.stream_vs_batch as svb  # noqa: E402
-from benchmarks.common import print_run_means, select_trials, stream_variant_parser, trial_number  # noqa: E402
+from benchmarks.common import print_run_means, select_trials, stream_row_line, stream_variant_parser, trial_number  # noqa: E402
 from benchmarks.output import write_json  # noqa: E402
 
 _LAST: list = []
@@ -56,12 +55,11 @@ def main(argv: list[str] | None = None) -> int:
             r.update(extra, sigma_boot=boot.velocity_sigma, tau_boot=boot.velocity_tau,
                      sigma_full=full.velocity_sigma, tau_full=full.velocity_tau,
                      sigma_end=ve.get("sigma"), tau_end=ve.get("tau"))
-            print(f"{r['trial']} {r['config']:16s} vs_batch_field_h {r['vs_batch_field_h_deg']:.3f}° same "
-                  f"{r['same_deg']:.3f}° truth {r['stream_truth_deg']:.3f}° (batch {r['batch_field_truth_deg']:.3f}°) | "
-                  f"σ_v boot {r['sigma_boot']:.3f} end {r['sigma_end'] or float('nan'):.3f} batch {r['sigma_full']:.3f}"
-                  f" | τ_v boot {r['tau_boot']:.3f} end {r['tau_end'] or float('nan'):.3f} batch {r['tau_full']:.3f} | "
-                  f"id {ve.get('identified')} outer {ve.get('outer')} inner {ve.get('inner')} ext cpu {ve.get('cpu_s', 0.0):.1f} s "
-                  f"stream cpu {r['stream_cpu_s']:.1f} s | load {os.getloadavg()[0]:.1f}", flush=True)
+            print(stream_row_line(r, 16, f"σ_v boot {r['sigma_boot']:.3f} end {r['sigma_end'] or float('nan'):.3f} "
+                                         f"batch {r['sigma_full']:.3f} | τ_v boot {r['tau_boot']:.3f} end "
+                                         f"{r['tau_end'] or float('nan'):.3f} batch {r['tau_full']:.3f} | id "
+                                         f"{ve.get('identified')} outer {ve.get('outer')} inner {ve.get('inner')} ext cpu "
+                                         f"{ve.get('cpu_s', 0.0):.1f} s"), flush=True)
         rows += new
         write_json(a.out, {"rows": rows, "configs": {c: svb.CONFIGS[c] for c in configs}})
     print_run_means(rows, configs)

@@ -13,7 +13,6 @@ calibration.json noise the stream wrote (`end_noise_mag`).
 
 from __future__ import annotations
 
-import os
 import sys
 import time
 from pathlib import Path
@@ -23,7 +22,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 import benchmarks.stream_vs_batch as svb  # noqa: E402
-from benchmarks.common import print_run_means, select_trials, stream_variant_parser, trial_number  # noqa: E402
+from benchmarks.common import print_run_means, select_trials, stream_row_line, stream_variant_parser, trial_number  # noqa: E402
 from benchmarks.output import write_json  # noqa: E402
 
 _LAST: list = []
@@ -77,11 +76,10 @@ def main(argv: list[str] | None = None) -> int:
             ne = extra["noise_end"] or {}
             r.update(extra, **{f"{c}_boot": np.asarray(boot.noise[c], float).tolist() for c in ("gyr", "acc", "mag")},
                      **{f"{c}_full": np.asarray(full.noise[c], float).tolist() for c in ("gyr", "acc", "mag")})
-            print(f"{r['trial']} {r['config']:10s} vs_batch_field_h {r['vs_batch_field_h_deg']:.3f}° same "
-                  f"{r['same_deg']:.3f}° truth {r['stream_truth_deg']:.3f}° (batch {r['batch_field_truth_deg']:.3f}°) | "
-                  f"σ_m boot {_fmt(r['mag_boot'])} end {_fmt(ne.get('sigma'))} batch {_fmt(r['mag_full'])} | "
-                  f"solves {ne.get('outer')} step {ne.get('step', float('nan')):.4f} ext cpu {ne.get('cpu_s', 0.0):.1f} s "
-                  f"stream cpu {r['stream_cpu_s']:.1f} s | load {os.getloadavg()[0]:.1f}", flush=True)
+            print(stream_row_line(r, 10, f"σ_m boot {_fmt(r['mag_boot'])} end {_fmt(ne.get('sigma'))} batch "
+                                         f"{_fmt(r['mag_full'])} | solves {ne.get('outer')} step "
+                                         f"{ne.get('step', float('nan')):.4f} ext cpu {ne.get('cpu_s', 0.0):.1f} s"),
+                  flush=True)
         rows += new
         write_json(a.out, {"rows": rows, "configs": {c: svb.CONFIGS[c] for c in configs}})
     print_run_means(rows, sorted({r["config"] for r in rows}))
