@@ -5,6 +5,16 @@ size against the relevance threshold, the two next-ranked effects and the wall t
 broad_diagnosis.json under --out.
 
     .venv/bin/python benchmarks/diagnose_broad.py --trials 32,34,36,15,16,01,04,10
+    .venv/bin/python benchmarks/diagnose_broad.py --trials all
+
+Each line also names the verdicts the recording's own label allows (`expected_verdicts`: BROAD's trials.json
+groups, read only to score, never by the diagnosis) and whether the verdict is one of them. The rule, from what
+the experimenters did to each recording:
+  attached / stationary magnet, office → magnetic_disturbance;  phone vibration → vibration;
+  tapping (finger taps: short broadband shocks; the library has no impact effect) → vibration or none;
+  undisturbed rotation → none;  undisturbed fast translation or combined motion → linear_acceleration;
+  undisturbed slow translation or combined motion → none or linear_acceleration (the hand's slow linear
+  acceleration may lie below the effect's relevance);  mixed → any effect but none.
 """
 
 from __future__ import annotations
@@ -15,7 +25,36 @@ import sys
 import time
 from pathlib import Path
 
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+from benchmarks.common import groups_of  # noqa: E402
+
 DEFAULT = "32,34,36,15,16,01,04,10"
+ALL = "01,02,04,06,07,10,12,15,16,21,24,26,28,30,32,34,36"
+EFFECTS = ("magnetic_disturbance", "linear_acceleration", "gyro_bias_drift", "time_offset", "gyro_scale",
+           "saturation", "accelerometer_bias", "vibration")
+
+
+def expected_verdicts(groups: list[str]) -> tuple[str, ...]:
+    """The verdicts a BROAD recording's label allows (module docstring), from its trials.json groups.
+
+    Returns () when the groups say nothing (trials.json absent): the line then reports no match.
+    """
+    g = set(groups)
+    if g & {"attached_magnet", "stationary_magnet", "office_environment"}:
+        return ("magnetic_disturbance",)
+    if "vibration" in g:
+        return ("vibration",)
+    if "tapping" in g:
+        return ("vibration", "none")
+    if "mixed" in g:
+        return EFFECTS
+    if "undisturbed" not in g:
+        return ()
+    if "rotation" in g:
+        return ("none",)
+    if "fast" in g:
+        return ("linear_acceleration",)
+    return ("none", "linear_acceleration")
 
 
 def main(argv=None) -> int:
@@ -26,7 +65,8 @@ def main(argv=None) -> int:
     from imugraph.io.writers import atomic_write_text, json_ready
 
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--trials", default=DEFAULT, help=f"BROAD trial numbers, comma separated (default {DEFAULT})")
+    p.add_argument("--trials", default=DEFAULT,
+                   help=f"BROAD trial numbers, comma separated, or 'all' ({ALL}); default {DEFAULT}")
     p.add_argument("--keyframe-hz", type=float, default=5.0)
     p.add_argument("--out", default="bench_out/diagnose_broad", help="folder for broad_diagnosis.json")
     model_arguments(p)
@@ -34,7 +74,8 @@ def main(argv=None) -> int:
     opt = diagnose_options(args, keyframe_hz=args.keyframe_hz)
     root = broad_dir()
     rows = []
-    for tr in [t.strip() for t in args.trials.split(",") if t.strip()]:
+    trials = ALL if args.trials == "all" else args.trials
+    for tr in [t.strip() for t in trials.split(",") if t.strip()]:
         hits = sorted(Path(root).glob(f"{tr}_*.mat")) if Path(root).is_dir() else []
         if not hits:
             print(f"{tr}: not found under {root}", file=sys.stderr)
@@ -50,6 +91,8 @@ def main(argv=None) -> int:
                "shrink": win.shrink if win else None, "size": size,
                "ranking": [(r.name, round(float(r.penalised), 3), r.significant, r.relevant)
                            for r in d.effects[:3]]}
+        row["expected_verdicts"] = list(expected_verdicts(groups_of(hits[0], root)))
+        row["label_match"] = d.verdict in row["expected_verdicts"]
         rows.append(row)
         w = f" window {win.t_start:.1f}–{win.t_end:.1f} s" if win and win.t_start is not None else ""
         nan = float("nan")
@@ -57,8 +100,12 @@ def main(argv=None) -> int:
               f"{size.get('unit', '')}") if win else ""
         nxt = ", ".join(f"{n} ({pen:+.2f}{' sig' if sg else ''}{' rel' if rl else ''})"
                         for n, pen, sg, rl in row["ranking"])
-        print(f"{hits[0].stem}: {d.verdict}{w}{sh} | ranked: {nxt} | {sec:.0f} s for {row['duration_s']:.0f} s",
-              flush=True)
+        exp = "/".join(row["expected_verdicts"]) or "?"
+        print(f"{hits[0].stem}: {d.verdict}{w}{sh} | ranked: {nxt} | label allows {exp}: "
+              f"{'yes' if row['label_match'] else 'NO'} | {sec:.0f} s for {row['duration_s']:.0f} s", flush=True)
+    if rows:
+        n_ok = sum(r["label_match"] for r in rows)
+        print(f"verdict allowed by the recording's label: {n_ok}/{len(rows)}")
     out = Path(args.out)
     atomic_write_text(out / "broad_diagnosis.json", json.dumps(json_ready(rows), indent=1))
     return 0
