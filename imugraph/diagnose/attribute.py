@@ -213,6 +213,8 @@ def evaluate_effect(effect, real, sim, null_gap: dict, folds: list, opt: Attribu
                 for c in CHANNELS if c != ch)                  # a change within the noise floor is not worse
     penalised = (1.0 - (g1 + cost) / g0 if g0 > 0 else 0.0) - worse                              # (A2)
     size = effect.size(full, fitted) if hasattr(effect, "size") else {"value": np.inf, "threshold": 0.0}
+    if hasattr(effect, "size_bound"):             # S20-V (T12): the relevance with the folds' uncertainty of the size
+        size = effect.size_bound(size, fold_sizes)
     gain, gain_per, n_scored = ll.result(n_params)                                             # (A4')
     ll_base, ll_ext = ll.levels()
     own_gain, own_per, _ = own.result(n_params) if own.folds else (float("nan"), None, 0)

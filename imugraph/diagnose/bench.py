@@ -127,6 +127,20 @@ def model_arguments(p: argparse.ArgumentParser) -> None:
         ("--local-check", "S17-H (V'): a localised verdict leaves when a global effect on its channel explains its "
                           "support at least as well by the held-out log score (DiagnoseOptions.local_check; "
                           "default off)"),
+        ("--magnet-intermittent", "S20-M (M6): magnetic_disturbance's windows for an intermittent disturbance (a "
+                                  "stationary magnet visited several times; DiagnoseOptions.magnet_intermittent; "
+                                  "default off)"),
+        ("--magnet-visit-drift", "S20-M (M7): magnetic_disturbance's window field drifting through the window "
+                                 "(DiagnoseOptions.magnet_visit_drift; default off)"),
+        ("--vibration-motion-check", "S20-V (V6): vibration relevant only beyond the band RMS the measured angular "
+                                     "motion explains at a hand's lever arm (DiagnoseOptions.vibration_motion_check; "
+                                     "default off)"),
+        ("--timing-confidence", "S20-V (T12): time_offset relevant only when |τ| ≥ 1 sample + 1.645 × its folds' "
+                                "jackknife SE (DiagnoseOptions.timing_confidence; default off)"),
+        ("--refit-hold-noise", "S20-Mb: the full refit's (F1) rounds hold the base fit's noise levels instead of "
+                               "re-estimating them (DiagnoseOptions.refit_hold_noise; default off)"),
+        ("--timestamp-jitter", "S20-T: the timestamp_jitter effect (host receive stamps re-timed on a fitted sample "
+                               "clock) in the library (DiagnoseOptions.timestamp_jitter; default off)"),
     ]
     for flag, text in switches:
         p.add_argument(flag, action=argparse.BooleanOptionalAction, default=None, help=text)
@@ -157,7 +171,13 @@ def diagnose_options(args: argparse.Namespace, **fields):
                         saturation_area=getattr(args, "saturation_area", None),
                         vibration_band_windows=getattr(args, "vibration_band_windows", None),
                         fold_fixed_structure=getattr(args, "fold_fixed_structure", None),
-                        local_check=getattr(args, "local_check", None), **fields)   # None: the defaults
+                        local_check=getattr(args, "local_check", None),
+                        timestamp_jitter=getattr(args, "timestamp_jitter", None),
+                        magnet_intermittent=getattr(args, "magnet_intermittent", None),
+                        magnet_visit_drift=getattr(args, "magnet_visit_drift", None),
+                        vibration_motion_check=getattr(args, "vibration_motion_check", None),
+                        timing_confidence=getattr(args, "timing_confidence", None),
+                        refit_hold_noise=getattr(args, "refit_hold_noise", None), **fields)   # None: the defaults
     if getattr(args, "cross_gap", None) is not None:                        # S16 (G1')
         o = replace(o, gap=replace(o.gap, cross_weight=float(args.cross_gap)))
     if getattr(args, "cross_form", None) is not None:

@@ -88,7 +88,7 @@ def refit_effect(effect, real: Fit, rounds: int = 2, window=None) -> tuple[Fit, 
         if prev is not None and _change(new, prev, real.session) < CONVERGED:
             info["converged"] = True          # y_r ≈ y_{r−1}: fit_base would return θ_{r−1} again
             break
-        cur = fit_simulation(replace_session(real.session, **new), cur)
+        cur = fit_simulation(replace_session(real.session, **new), cur, refit_options(real))   # S20-Mb: σ held?
         cur.info["mag_delay_s"] = real.info.get("mag_delay_s", 0.0)   # θ_r's data: the recording's τ_m (B3)
         prev = new
     info["window"] = window
@@ -97,6 +97,17 @@ def refit_effect(effect, real: Fit, rounds: int = 2, window=None) -> tuple[Fit, 
 
 
 CONVERGED = 0.02     # relative change of the corrected data below which the alternation stops
+HOLD_NOISE = False   # S20-Mb: the refits' noise levels held at the base fit's (DiagnoseOptions.refit_hold_noise; opt-in)
+
+
+def refit_options(real: Fit):
+    """The calibration Options of a refit θ_r (F1): the base model's, with the noise levels held at the base
+    fit's when HOLD_NOISE (S20-Mb); None: fit_simulation's default (the noise re-estimated)."""
+    if not HOLD_NOISE:
+        return None
+    from imugraph.diagnose.fit import base_options
+
+    return replace(base_options(real.info.get("keyframe_hz", 5.0)), reestimate_noise=False)
 
 
 def may_be_localised(effect, screened) -> bool:

@@ -67,6 +67,25 @@ class DiagnoseOptions:
         local_check: S17-H (V'): a localised verdict leaves when a significant, relevant global effect on its
             channel scores at least its held-out log score on its support (imugraph/diagnose/local_check.py);
             None: the module flag `local_check.LOCAL_CHECK` (default False).
+        magnet_intermittent: S20-M (M6): magnetic_disturbance's windows for an intermittent disturbance (a
+            stationary magnet visited several times): up to 8 windows, each passing (M3)'s test, kept when the
+            edge refinement shortens them (effects/magnet_intermittent.py); None: the module flag
+            `magnetic_disturbance.INTERMITTENT` (default False).
+        magnet_visit_drift: S20-M (M7): magnetic_disturbance's window field drifting through the window (Legendre
+            orders 1–2 of Δo_w and Δn_w, effects/magnet_intermittent.py); None: the module flag
+            `magnetic_disturbance.VISIT_DRIFT` (default False).
+        vibration_motion_check: S20-V (V6): vibration is relevant only when its band RMS also exceeds the band RMS
+            the measured angular motion explains at a hand's lever arm (effects/vibration.py); None: the module
+            flag `vibration.MOTION_CHECK` (default False).
+        timing_confidence: S20-V (T12): time_offset is relevant only when |τ| ≥ 1 sample + z·SE, SE the folds'
+            jackknife (effects/time_offset.py `size_bound`); None: the module flag `time_offset.SIZE_CONFIDENCE`
+            (default False).
+        timestamp_jitter: S20-T: the timestamp_jitter effect (effects/timestamp_jitter.py: host receive stamps
+            re-timed on a fitted sample clock) added to the library; None: the module flag
+            `timestamp_jitter.ENABLED` (default False).
+        refit_hold_noise: S20-Mb: the full refit's (F1) rounds (refit.refit_effect) hold the base fit's noise
+            levels instead of re-estimating them, so that θ* differs from the base fit only by what the effect
+            removed from the data; None: the module flag `refit.HOLD_NOISE` (default False).
     """
 
     keyframe_hz: float = 5.0
@@ -85,6 +104,12 @@ class DiagnoseOptions:
     vibration_band_windows: bool | None = None
     fold_fixed_structure: bool | None = None
     local_check: bool | None = None
+    magnet_intermittent: bool | None = None
+    magnet_visit_drift: bool | None = None
+    vibration_motion_check: bool | None = None
+    timing_confidence: bool | None = None
+    timestamp_jitter: bool | None = None
+    refit_hold_noise: bool | None = None
     gap: GapOptions = field(default_factory=GapOptions)
     attribution: AttributionOptions = field(default_factory=AttributionOptions)
 
@@ -131,6 +156,7 @@ def load_effects(names=None) -> dict:
         from imugraph.diagnose.effects import EFFECTS
     except ImportError:
         EFFECTS = {}
+    EFFECTS = _with_optional(EFFECTS, names)
     if names is None:
         return dict(EFFECTS)
     from imugraph.errors import SessionError
@@ -139,6 +165,18 @@ def load_effects(names=None) -> dict:
     if missing:
         raise SessionError("--effects", "effects", ", ".join(missing), f"names among {sorted(EFFECTS)}")
     return {n: EFFECTS[n] for n in names}
+
+
+def _with_optional(effects: dict, names) -> dict:
+    """The library plus the opt-in effects (S20-T timestamp_jitter) that are switched on or named."""
+    try:
+        from imugraph.diagnose.effects import timestamp_jitter
+    except ImportError:
+        return effects
+    name = timestamp_jitter.EFFECT.name
+    if timestamp_jitter.ENABLED or (names is not None and name in names):
+        return {**effects, name: timestamp_jitter.EFFECT}
+    return effects
 
 
 def null_fold_gap(null: Fit, sim: Fit, sigma: dict, folds: list, gap_opt: GapOptions) -> dict:
@@ -166,13 +204,19 @@ def model_switches(options: DiagnoseOptions):
     # (option field, module, module flags it sets, converter): the boolean ones take bool(value)
     pkg = "imugraph.diagnose."
     table = [("vibration_band_windows", "effects.vibration", ("BAND_WINDOWS",), bool),
+             ("vibration_motion_check", "effects.vibration", ("MOTION_CHECK",), bool),
+             ("timing_confidence", "effects.time_offset", ("SIZE_CONFIDENCE",), bool),
              ("fold_fixed_structure", "attribute", ("FOLD_FIXED_STRUCTURE",), bool),
+             ("timestamp_jitter", "effects.timestamp_jitter", ("ENABLED",), bool),
+             ("refit_hold_noise", "refit", ("HOLD_NOISE",), bool),
              ("local_check", "local_check", ("LOCAL_CHECK",), bool),
              ("gyro_delay_model", "effects.time_offset", ("GYRO_DELAY_MODEL",), bool),
              ("magnet_ramps", "effects.magnetic_disturbance", ("RAMPS",), bool),
              ("saturation_area", "effects.saturation", ("CENSOR_AREA",), bool),
              ("saturation_censor", "effects.saturation", ("CENSOR_GYRO",), bool),
              ("magnet_step_refit", "effects.magnetic_disturbance", ("STEP_REFIT",), bool),
+             ("magnet_intermittent", "effects.magnetic_disturbance", ("INTERMITTENT",), bool),
+             ("magnet_visit_drift", "effects.magnetic_disturbance", ("VISIT_DRIFT",), bool),
              ("drift_basis", "effects.gyro_bias_drift", ("BASIS",), str),
              ("timing_rules", "effects.time_offset", ("MAG_REMAINDER_OUT", "LOG_SCORE_SIGNIFICANCE",
                                                       "ROTATION_CHECK"), bool),

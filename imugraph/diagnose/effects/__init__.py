@@ -16,4 +16,5 @@ EFFECTS: dict = {m.EFFECT.name: m.EFFECT for m in (
     magnetic_disturbance, linear_acceleration, gyro_bias_drift, time_offset, gyro_scale, saturation,
     accelerometer_bias, vibration)}
 
+from imugraph.diagnose.effects import timestamp_jitter  # noqa: E402,F401  opt-in (S20-T): run.load_effects adds it
 __all__ = ["EFFECTS", "Effect", "Correction"]

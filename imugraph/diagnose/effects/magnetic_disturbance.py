@@ -55,6 +55,8 @@ PAD_S = 1.0                  # windows widened by this for the refit (the ramps 
 RELEVANT_FRACTION = 0.10     # relevance: extra field ≥ 10 % of |m| (M2)
 RAMPS = True                 # S15 (R1): the window's field with fitted linear ramps at its edges (default since S15)
 STEP_REFIT = True            # S16-E (M3'): re-search windows on the residual of the (M1) fit of those found (default since S16)
+INTERMITTENT = False         # S20-M (M6): several visits of a stationary magnet (effects/magnet_intermittent.py; opt-in)
+VISIT_DRIFT = False          # S20-M (M7): each window's field drifting through it (magnet_intermittent.drift_jacobian; opt-in)
 
 
 class MagneticCorrection(Correction):
@@ -202,6 +204,10 @@ class MagneticDisturbance(Effect):
         """Disturbance windows (t_start, t_end) from the magnetometer residual of all samples, longest
         first: steps of its mean (`step_windows`, (M3): a field fixed to the sensor), then windows of
         excess residual energy that overlap none of them (a field that is not constant in the body frame)."""
+        if INTERMITTENT:                           # S20-M (M6): up to MAX_VISITS windows (a stationary magnet)
+            from imugraph.diagnose.effects.magnet_intermittent import find_windows
+
+            return find_windows(fit)
         t = fit.session.t
         r = fit.residuals["mag"]
         half = max(3, int(round(2.0 * fit.session.rate)))
@@ -241,6 +247,11 @@ def _solve_fields(fit, r, use, bRn, D, env: list) -> tuple:
         e = e_w[m][:, None, None]                                         # 1 in the window; ramps (R1)
         J[m, :, c:c + 3] = e * np.eye(3)                                  # Δo_w
         J[m, :, c + 3:c + 6] = e * (D @ bRn[m])                           # D bRn Δn_w
+    if VISIT_DRIFT and env:                   # S20-M (M7): each window's field drifting (Legendre), after (M1)'s columns
+        from imugraph.diagnose.effects.magnet_intermittent import drift_jacobian
+
+        J = np.concatenate([J, drift_jacobian(fit, env, bRn, D)], axis=2)
+        n_col = J.shape[2]
     w = 1.0 / np.asarray(fit.sigma["mag"], float)
     A = (J[use] * w[None, :, None]).reshape(-1, n_col)
     y = (r[use] * w).reshape(-1)

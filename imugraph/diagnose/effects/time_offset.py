@@ -21,7 +21,7 @@ The gyro candidates (whose exact evaluation re-integrates the trajectory) are sk
 first-order floor of their cost (T4, `_first_order_floor`) is above the best acc/mag candidate. The
 correction undoes the shift by interpolation: y'_c(t) = y_c(t + τ).
 
-Relevance (`size`): |τ| ≥ one sample period.
+Relevance (`size`): |τ| ≥ one sample period (S20-V (T12), opt-in: + 1.645 × the folds' jackknife SE).
 
 S14-A rules (opt-in: `DiagnoseOptions.timing_rules`, module flags below, default off; docs/diagnose.md §4
 S14-A): (T5) a magnetometer shift within ½ sample is the base model's alignment remainder, not a candidate
@@ -60,6 +60,8 @@ ROTATION_CHECK = True        # (T7): a gyro-referenced delay only where rotation
 # keeps the base model's magnetometer lag τ_m as measured against the gyro: with the gyro's delay τ removed
 # the field lags the corrected gyro by τ_m + τ, re-aligned by whole samples (`field_after_gyro_shift`).
 GYRO_DELAY_MODEL = True
+SIZE_CONFIDENCE = False      # S20-V (T12): relevant only when |τ| exceeds 1 sample beyond its folds' SE (default off)
+SIZE_Z = 1.645               # (T12): one-sided 95 % normal quantile
 
 
 def injection_range_s(rate_hz: float) -> tuple[float, float]:
@@ -362,6 +364,22 @@ class TimeOffset(Effect):
         """|τ| in samples (relevance: ≥ 1 sample period; a shorter delay is below the time resolution)."""
         return {"value": abs(float(corr.params["tau_s"])) * fit.session.rate, "threshold": 1.0,
                 "unit": "samples"}
+
+    def size_bound(self, size: dict, fold_sizes) -> dict:
+        """S20-V (T12), SIZE_CONFIDENCE: relevance asks that |τ| reach one sample beyond its estimation
+        uncertainty, the delete-one-block jackknife over the K cross-validation folds (contiguous blocks, so
+        the motion's own correlation is in it; τ_k fitted without block k, `EffectResult.fold_sizes`):
+
+            SE² = (K − 1)/K Σ_k (τ_k − τ̄)²,   relevant ⇔ |τ| ≥ 1 sample + z SE  (z = SIZE_Z)      (T12)
+
+        A sensor whose channels are skewed by about a sample (the BROAD unit's accelerometer leads its gyro
+        by 0.9–1.35 samples on every rotation trial) is then not named for a delay it cannot be shown to
+        exceed the time resolution by. Without the flag or with < 3 finite fold sizes: `size` unchanged."""
+        tau_k = np.asarray([x for x in (fold_sizes or []) if np.isfinite(x)], float)
+        if not SIZE_CONFIDENCE or len(tau_k) < 3:
+            return size
+        se = float(np.sqrt((len(tau_k) - 1) / len(tau_k) * np.sum((tau_k - tau_k.mean()) ** 2)))
+        return {**size, "se": se, "threshold": float(size["threshold"]) + SIZE_Z * se}             # (T12)
 
 
 EFFECT = TimeOffset()

@@ -43,6 +43,13 @@ others +0.20 … +1.08; docs/diagnose.md §S16-F).
 
 Relevance (`size`): band RMS ≥ 0.3 m/s².
 
+Motion check (S20-V, opt-in: MOTION_CHECK / DiagnoseOptions.vibration_motion_check, default off). (V2) takes
+everything above 15 Hz for a vibration, but a hand's fast rotation has a broadband tail there that the gyro
+measures too (BROAD 07 whole: band 14.5–25.7 Hz at the motion band's edge, 0.53 m/s² in the window of
+motion; the phone motor of 26 is a line at 40.2 Hz, 2.92 m/s²). With the option the relevance also asks for
+more than the band RMS that the measured rotation explains at a hand's lever arm, as linear_acceleration's
+(L2) does for the low band ((V6), `motion_band_rms`; the threshold becomes max(0.3 m/s², that RMS)).
+
 Injection ranges (RANGES): f₀ = 20–80 Hz (above the motion band; motors, hand tools and engines vibrate at tens
 of Hz) (at most 0.4 × the sampling rate), amplitude 0.6–3 m/s², random
 direction, slow frequency wander ±2 %, window 15–40 % of the session, raised-cosine ramps 0.1–0.5 s.
@@ -64,6 +71,7 @@ RELEVANT_RMS = 0.3           # relevance: band RMS ≥ 0.3 m/s² (≈ 10× a MEM
 BAND_WINDOWS = True          # S16-F (V3)–(V4): windows re-localised on the fitted band, narrow-band excess only (default since S16)
 BAND_MARGIN_HZ = 1.0         # (V3): band-pass f_lo − 1 Hz … f_hi + 1 Hz (the ±2 % wander of f₀ stays inside)
 NARROW_SHARE = 0.5           # (V4): share of the window's above-motion-band excess power inside the band
+MOTION_CHECK = False         # S20-V (V6): relevance ≥ the band RMS the measured angular motion explains (default off)
 
 
 def above_motion_band(x: np.ndarray, rate: float) -> np.ndarray:
@@ -121,6 +129,34 @@ def band_windows(fit, f_lo_hz: float, f_hi_hz: float) -> list:
     flag &= (p_band - q_band) >= NARROW_SHARE * np.maximum(p_above - q_above, 0.0)                  # (V4)
     found = flag_windows(s.t, flag, merge_s=1.0, min_s=2.0)
     return [(float(s.t[i0]), float(s.t[i1 - 1])) for i0, i1 in found[:MAX_WINDOWS]]
+
+
+def motion_band_rms(fit, train: np.ndarray, wins: list, nper: int, lo: int, hi: int) -> list:
+    """(V6) per window w: the band RMS of the accelerometer excess that the MEASURED angular motion explains
+    at a hand's lever arm r_h (linear_acceleration.HAND_LEVER_M, as (L2)). A rigid body turning at ω feels at
+    r the tangential α × r and the centripetal ω × (ω × r); above the motion band the part that varies fast is
+    α_hf × r and, to first order, ω̄ × (ω_hf × r) + ω_hf × (ω̄ × r) (ω̄: the slow rate), so per axis
+
+        u = r_h (ω̇ + 2 |ω̄| ω),   ω = y_gyr − b̂ (the gyro, not the fit),                               (V6)
+
+    (|α × r| ≤ |α| r_h; the two terms are in quadrature at each frequency, so their powers add) and its
+    excess in the window over the outside, band bins lo..hi, in (V1)'s own estimator and units:
+    P_w = Σ_axes Σ_band max(S_u,w − S_u,out, 0) / nper (the gyro's white noise cancels in the difference).
+    A hand's fast rotation has a broadband tail above 15 Hz that the gyro sees too (BROAD 07); a motor or a
+    phone vibrates the accelerometer far beyond what its rotation explains (26)."""
+    from imugraph.diagnose.effects.linear_acceleration import HAND_LEVER_M, MOTION_SMOOTH_S
+
+    s = fit.session
+    w = np.asarray(s.gyr, float) - np.nan_to_num(np.asarray(fit.b_gyr_bias, float))
+    w_bar = smooth(np.linalg.norm(w, axis=1), max(1, int(round(MOTION_SMOOTH_S * s.rate))))
+    u = HAND_LEVER_M * (np.gradient(w, s.t, axis=0) + 2.0 * w_bar[:, None] * w)                     # (V6)
+    _, u_out = train_psd(u, train & ~window_mask(s.t, wins), nper)
+    out = []
+    for a, b in wins:
+        _, u_w = train_psd(u, train & window_mask(s.t, [(a, b)]), nper)
+        ex = np.maximum(u_w[lo:hi + 1] - u_out[lo:hi + 1], 0.0)
+        out.append(float(np.sqrt(np.sum(ex) / nper)) if np.all(np.isfinite(ex)) else 0.0)
+    return out
 
 
 class VibrationCorrection(Correction):
@@ -196,6 +232,8 @@ class Vibration(Effect):
         params = {"windows": [{"t_start": a, "t_end": b, "amp_ms2": amp.tolist()} for (a, b), amp in zip(wins, amps)],
                   "freq_hz": float(f[k0] * rate), "band_hz": [float(f[lo] * rate), float(f[hi] * rate)],
                   "amp_ms2": amps[best].tolist()}
+        if MOTION_CHECK:                                                                  # (V6)
+            params["motion_rms"] = motion_band_rms(fit, train, wins, nper, lo, hi)[best]
         corr = VibrationCorrection(self.name, params, n_params=5 + 5 * len(wins),
                                    t_start=wins[best][0], t_end=wins[best][1], channel=self.channel,
                                    deltas={"f": f, "s_out": s_out, "s_v": s_vs})
@@ -213,10 +251,16 @@ class Vibration(Effect):
 
 
     def size(self, corr, fit) -> dict:
-        """RMS of the band-limited excess acceleration in the windows, m/s² (relevance ≥ 0.3 m/s²)."""
+        """RMS of the band-limited excess acceleration in the windows, m/s² (relevance ≥ 0.3 m/s²; with
+        MOTION_CHECK (V6) also ≥ the band RMS the measured angular motion explains in the same window):
+
+            relevant ⇔ a_band ≥ max(RELEVANT_RMS, a_motion)                                         (V6')"""
         amp = np.asarray(corr.params.get("amp_ms2", [0.0, 0.0, 0.0]), float)
-        return {"value": float(np.linalg.norm(amp) / np.sqrt(2.0)), "threshold": RELEVANT_RMS,
-                "unit": "m/s² RMS"}
+        out = {"value": float(np.linalg.norm(amp) / np.sqrt(2.0)), "threshold": RELEVANT_RMS, "unit": "m/s² RMS"}
+        if "motion_rms" in corr.params:                                                   # (V6')
+            out["motion_rms"] = float(corr.params["motion_rms"])
+            out["threshold"] = max(RELEVANT_RMS, out["motion_rms"])
+        return out
 
 
 EFFECT = Vibration()

@@ -1,0 +1,409 @@
+"""timestamp_jitter: the samples are stamped on arrival at a host (PC receive time), not when sensed.
+
+Model: the sensor samples on its own uniform clock; sample j is sensed at τ_j and stamped at t_j:
+
+    τ_j = T₀ + Δ·k_j,   k_j integer, k_{j+1} − k_j ≥ 1 (a step > 1: samples lost on the link),
+    t_j = τ_j + d_j,    d_j ≥ 0 the receive delay (buffering, radio/USB scheduling)                   (J1)
+
+The base model integrates the gyro over the STAMPED steps Δt_j = t_{j+1} − t_j, so the rotation of
+sample j is (y_j − δ_ω)·Δt_j where it was (y_j − δ_ω)·Δτ_j. On the base model's time base (the stamps,
+kept: acc and mag pair with the orientation by sample index, not by time) the effect is the gyro
+correction
+
+    Δω_j = (y_j − δ_ω)·(Δτ_j / Δt_j − 1)      (y' = y + Δω integrates to the clock's rotation)        (J2)
+
+whose residuals are evaluated exactly (`gyro_exact`, effects/base.py rule 1). Over a keyframe interval [a, b] at a steady rate ω the
+stamped integration errs by ω·(d_b − d_a): a jitter of a few ms is many σ of the keyframe-mismatch
+residual (σ_ω/√M) while the body turns.
+
+Fit (`fit_clock`, from the stamps alone: no residual, no truth, so nothing is fitted to held-out
+samples): the period and a tick from the stamps' phase coherence (J5, `clock_period`: a lost sample keeps
+the phase, a burst's samples have random phases); the lost samples k by a monotone Viterbi over the
+cumulative count D_j = k_j − j with a low-quantile (q = 0.2) pinball cost — most stamps arrive with a small
+delay, buffered bursts and late packets are the upper tail —, alternated 4 times with Δ, T₀ refitted by
+the quantile regression of t on k:
+
+    cost = Σ_j ρ_q(t_j − T₀ − Δ(j + D_j)) + λ·D_{N−1},   D_j nondecreasing,   λ = Δ/2 per lost sample  (J3)
+
+When the two starts give different clocks (the trade between a period and lost samples when the jitter
+nears a period), the one whose re-timed base fit closes best is kept (J7, `CHOOSE_BY_CLOSING`): the lower
+RMS keyframe closing error ε_k (`closing_error_deg`), the rotation by which the gyro integrated over an
+interval misses the next keyframe — the clock under which the gyro agrees with acc and mag (eV50p
+MPU6500: (J3) preferred 17 lost samples at 11.554 ms, ε 0.36°; the other start 0 lost, ε 0.07°) — among the
+candidates whose stamps deviate from them by a robust RMS ≤ 2 samples (J7'): twice the spread up to which
+injected clocks are identified (mean delay 1 period: 0.71); set after V1000 LSM9DS0, whose second start
+(10.928 ms, 37 lost, spread 11.3 samples) closed better (ε 2.23 vs 2.94°, both ≫ the other files' 0.07–0.26°:
+no clock makes its gyro agree) while the robot says it is worse (0.2 s rotation error 8.88° vs 4.25°).
+Uniform stamps (a recording stamped by its own clock, BROAD, simulations) are their own clock: Δω = 0.
+The extended model's residuals: the gyro residual (R1) on the CLOCK's time base (J4, `JitterCorrection`);
+its full refit (`refit`) is the base model fitted to the recording re-timed on the clock — exact, where
+the alternation on Δω is not (Δω holds the base fit's bias, itself bent by the stamps); the screening
+scores that refit too (J6, `SCREEN_REFIT`): with the keyframes of the base fit held, bent by the stamps
+(the gyro σ is tiny, so the keyframes follow the stamped integration), the first-order Δω alone
+(SCREEN_REFIT False) screened (A2) −1.3 to −5.1 on the four V1000 files, was never refitted there and left
+the verdict linear_acceleration; refitted, (A2) +0.66 to +0.88 (docs/diagnose.md §S20-T).
+
+Relevance (`size`): the robust RMS (1.4826·MAD) of the stamps' deviation from the fitted clock,
+d_j − median(d), in sample periods ≥ 1/√12 ≈ 0.29: a stamp rounded to the sample grid errs by ±½ sample,
+RMS 1/√12 — beyond that the stamps do not state when the samples were sensed. The orientation error the
+stamps cause (RMS over keyframe intervals of |Σ (y − δ_ω)(Δt − Δτ)|, degrees) is reported beside it.
+
+Injection (RANGES): a receive delay d_j exponential with mean 0.5–1 sample period (robust RMS 0.36–0.71
+samples, above relevance; Rasteiro after its first burst: 0.3–0.8) plus, with p = 0.5, a burst: the link
+stalls 0.2–1 s and flushes the buffered samples at 4× the rate (the first 1.4 s of every Rasteiro file);
+stamps t_j = τ_j + d_j made increasing (a host never stamps two packets in the wrong order). Beyond a mean
+delay of ~1 period, FIFO queueing bunches the stamps and the clock is no longer identified from them
+(a 12 ms mean on a 10 ms clock: lock √N·C 3.4–4.0, period off by 7–50 %; 8 ms: lock 8.6–9.6, τ within
+0.3 ms): such stamps are not injected.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from imugraph.diagnose.effects.base import Correction, Effect, check_train, gyro_exact, noise_scale
+
+RANGES = {"mean_delay_samples": (0.5, 1.0), "burst_p": 0.5, "burst_s": (0.2, 1.0)}
+QUANTILE = 0.2               # (J3) the clock runs along this quantile of the stamps' delay
+ROUNDS = 4                   # alternations of the clock line and the drops (J3)
+RELEVANT_SAMPLES = 1.0 / np.sqrt(12.0)   # relevance: robust RMS of the stamp deviation, sample periods
+STAMPS_KEY = "timestamp_jitter_stamps"   # meta key: the original stamps of a re-timed session (refit)
+SCREEN_REFIT = True          # (J6) the screening scores the refit θ* (the keyframes-fixed Δω cannot undo a base
+                             # fit bent by the stamps: V1000 MPU9150 screened (A2) −1.32, refitted +0.88, §S20-T)
+CHOOSE_BY_CLOSING = True     # (J7) between the starts' clocks, the one whose re-timed base fit closes best
+MAX_SPREAD = 2.0             # (J7') a candidate clock needing a robust stamp spread > 2 samples is not chosen by (J7)
+ENABLED = False              # opt-in: DiagnoseOptions.timestamp_jitter (in EFFECTS only when True)
+
+
+def _pinball(r: np.ndarray, q: float) -> np.ndarray:
+    return np.where(r >= 0, q * r, (q - 1.0) * r)
+
+
+def _quantile_line(k: np.ndarray, t: np.ndarray, q: float, iters: int = 30) -> tuple[float, float]:
+    """(T₀, Δ) minimising Σ ρ_q(t − T₀ − Δk) by iteratively reweighted least squares (J3)."""
+    A = np.c_[np.ones_like(k, dtype=float), k.astype(float)]
+    c = np.linalg.lstsq(A, t, rcond=None)[0]
+    for _ in range(iters):
+        r = t - A @ c
+        w = np.where(r >= 0, q, 1.0 - q) / np.maximum(np.abs(r), 1e-6)
+        c_new = np.linalg.lstsq(A * np.sqrt(w)[:, None], t * np.sqrt(w), rcond=None)[0]
+        if np.allclose(c_new, c, rtol=0, atol=1e-9):
+            c = c_new
+            break
+        c = c_new
+    return float(c[0]), float(c[1])
+
+
+def _drops_viterbi(t: np.ndarray, T0: float, period: float, q: float, d_max: int) -> np.ndarray:
+    """(N,) cumulative lost samples D_j (nondecreasing integers in [0, d_max]) minimising (J3)."""
+    n = len(t)
+    states = np.arange(d_max + 1)
+    cost = _pinball(t[0] - T0 - period * states, q)
+    back = np.zeros((n, d_max + 1), np.int32)
+    for j in range(1, n):
+        best = np.minimum.accumulate(cost)                       # best predecessor D' ≤ D
+        back[j] = np.maximum.accumulate(np.where(cost <= best, states, 0))
+        cost = best + _pinball(t[j] - T0 - period * (j + states), q)
+    D = np.zeros(n, np.int64)
+    D[-1] = int(np.argmin(cost + 0.5 * period * states))    # λ = Δ/2 per lost sample (Σ increments = D_N−1)
+    for j in range(n - 1, 0, -1):
+        D[j - 1] = back[j][D[j]]
+    return D
+
+
+def _coherence(f: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """C(f) = |Σ_j exp(2πi f t_j)| / N for each f (J5), in blocks (memory 256 × N complex)."""
+    out = np.empty(len(f))
+    for i in range(0, len(f), 256):
+        out[i:i + 256] = np.abs(np.exp(2j * np.pi * np.outer(f[i:i + 256], t)).sum(axis=1)) / max(len(t), 1)
+    return out
+
+
+def clock_period(t: np.ndarray, span=(0.6, 1.5), seg_s: float = 2.0, n_seg: int = 8) -> tuple:
+    """(Δ₀, a tick t₀, lock √N·C(f₀)) of the sample clock from the stamps' phase coherence (J5):
+
+        C(f) = |Σ_j exp(2πi f t_j)| / N,   f₀ = argmax_f C(f)                                          (J5)
+
+    A lost sample keeps the phase (the next one is a whole period later) and a burst's samples have random
+    phases, so neither biases f₀, where a slope of t over the index counts every lost sample as a period
+    (V1000 LSM9DS0: 11.1 ms for a 10 ms clock). Coarse: the sum of C over up to `n_seg` segments of `seg_s`
+    spread over the recording, f in span · [(N − 1)/T], grid 0.1/seg_s. Then refined over prefixes of doubling length (41 points within ±0.2/T of
+    the previous f₀). The tick from the phase at f₀ (the circular mean of t mod Δ₀). The lock √N·C(f₀) is
+    ≈ 1 for phases at random (a Rayleigh variable; its maximum over the grid's ~10³ frequencies ≈ 3); reported
+    only (Rasteiro: 3.1–20.8; the Viterbi and the quantile line refine a weakly locked start, §S20-T)."""
+    t0_abs = float(np.asarray(t, float)[0])
+    t = np.asarray(t, float) - t0_abs
+    T = max(float(t[-1]), 1e-9)
+    f_med = (len(t) - 1) / T                                  # the mean rate (the median step fails when packets bunch)
+    grid = np.arange(span[0] * f_med, span[1] * f_med, max(0.1 / seg_s, (span[1] - span[0]) * f_med / 2e4))
+    starts = np.linspace(0.0, max(T - seg_s, 0.0), n_seg)
+    segs = [t[(t >= a) & (t < a + seg_s)] for a in starts]
+    segs = [x for x in segs if len(x) >= 8] or [t]
+    c = sum(_coherence(grid, x - x[0]) for x in segs)
+    f0 = float(grid[np.argmax(c)])
+    L = seg_s
+    while True:
+        L = min(2 * L, T)
+        x = t[t <= L]
+        fine = np.linspace(f0 - 0.4 / L, f0 + 0.4 / L, 41)
+        f0 = float(fine[np.argmax(_coherence(fine, x))])
+        if L >= T:
+            break
+    z = np.exp(2j * np.pi * f0 * t).sum()
+    return 1.0 / f0, float(t0_abs) + float(np.angle(z)) / (2 * np.pi * f0), float(np.abs(z) / np.sqrt(len(t)))
+
+
+def fit_clock(t: np.ndarray, q: float = QUANTILE, rounds: int = ROUNDS, candidates: bool = False):
+    """The sample clock (J1) behind the stamps t (N,): {"tau": (N,) s, "k": (N,) int, "period": Δ,
+    "T0", "lost": samples lost, "deviation": (N,) t − τ, s, "cost": (J3), "lock": (J5)}. Uniform stamps
+    (every step within 1e-6 of the median: a recording stamped by its own sample clock) are returned as
+    their own clock. candidates: the list of the distinct clocks of the two starts, lowest (J3) first."""
+    t = np.asarray(t, float)
+    n = len(t)
+    j = np.arange(n)
+    dt = np.diff(t)
+    med = float(np.median(dt)) if n > 1 else 0.0
+    if n < 3 or np.max(np.abs(dt - med)) <= 1e-6 * med:
+        same = {"tau": t.copy(), "k": j.copy(), "period": med, "T0": float(t[0]), "lost": 0,
+                "deviation": np.zeros(n), "lock": float(np.sqrt(n)), "cost": 0.0}
+        return [same] if candidates else same
+    period, tick, lock = clock_period(t)
+    # two starts of (J3), the lower cost kept: the phase-locked clock (J5), and the quantile line over the index
+    # (no sample lost) for stamps too bunched to lock a phase (mean delay ≳ 0.9 period)
+    T_line, P_line = _quantile_line(j, t, q)
+    found = []
+    for T_start, P_start in ((tick, period), (T_line, P_line)):
+        c, cost = _refine(t, T_start, P_start, q, rounds)
+        c.update(lock=lock, cost=cost)
+        if not any(np.array_equal(np.diff(c["k"]), np.diff(o["k"])) for o in found):
+            found.append(c)
+    found.sort(key=lambda c: c["cost"])
+    return found if candidates else found[0]
+
+
+def _refine(t: np.ndarray, tick: float, period: float, q: float, rounds: int) -> tuple[dict, float]:
+    """(clock, its (J3) cost) from a start (a tick, a period): the Viterbi of the lost samples alternated
+    with the quantile line; the start placed a backlog of periods before the first stamp (bursts)."""
+    n = len(t)
+    j = np.arange(n)
+    dt = np.diff(t)
+    t0 = float(t[0])
+    backlog = int(max(0.0, np.ceil(np.max(j - (t - t0) / period)))) + 1     # index ahead of the stamps (bursts)
+    T0 = tick + period * np.floor((t0 - tick) / period) - period * backlog    # a tick before every sample
+    for _ in range(rounds):
+        extra = float(np.maximum(0, np.round(dt / period) - 1).sum())
+        d_max = int(min(backlog + extra + 10, 5 * n))
+        D = _drops_viterbi(t, T0, period, q, d_max)                                  # (J3)
+        T0, period = _quantile_line(j + D, t, q)
+    k = j + D
+    k0 = int(k[0])
+    T0 += period * k0
+    k = k - k0
+    tau = T0 + period * k
+    lost = int(k[-1] - (n - 1))
+    cost = float(_pinball(t - tau, q).sum()) + 0.5 * period * lost                  # (J3)
+    return {"tau": tau, "k": k, "period": period, "T0": T0, "lost": lost, "deviation": t - tau}, cost
+
+
+_CLOCK_CACHE: dict = {}
+_REFIT_CACHE: dict = {}      # (real fit, θ*, info) of `TimestampJitter.refit`: screening and stage 2 share it
+_CHOSEN: dict = {}           # (stamps, gyro) → the clock `refit` chose (J7)
+
+
+def _robust_rms(clock: dict) -> float:
+    """1.4826·MAD of the stamps' deviation from the clock, in sample periods (the effect's size)."""
+    dev = np.asarray(clock["deviation"], float)
+    return 1.4826 * float(np.median(np.abs(dev - np.median(dev)))) / max(float(clock["period"]), 1e-12)
+
+
+def closing_error_deg(fit) -> float:
+    """RMS over keyframe intervals of |ε_k|, ε_k = Σ_{j∈k} r_gyr,j Δt_j, degrees: the rotation by which the
+    gyro integrated over an interval misses the next keyframe (with the samples between keyframes
+    integrated from the gyro, (R1) spreads ε_k over the interval's samples as ε_k/(M Δt_j))."""
+    kf = np.asarray(fit.keyframe_samples)
+    dt = np.r_[np.diff(fit.session.t), 0.0]
+    e = np.add.reduceat(np.nan_to_num(fit.residuals["gyr"]) * dt[:, None], kf[:-1], axis=0)   # [kf_k, kf_k+1)
+    return float(np.degrees(np.sqrt(np.mean(np.sum(e**2, axis=1))))) if len(e) else 0.0
+
+
+def _stamps_key(t: np.ndarray) -> tuple:
+    return (len(t), hash(np.ascontiguousarray(t, float).tobytes()))
+
+
+def _gyr_key(gyr) -> int | None:
+    return None if gyr is None else hash(np.ascontiguousarray(gyr, float).tobytes())
+
+
+def clock_of(t: np.ndarray, gyr: np.ndarray | None = None) -> dict:
+    """The clock of the stamps t: the one `TimestampJitter.refit` chose among the candidates (J7) for the
+    recording with these stamps and this gyro once it ran, else `fit_clock(t)` (lowest (J3)); cached per
+    stamp array (every fold and round: same stamps)."""
+    key = _stamps_key(t)
+    chosen = _CHOSEN.get((key, _gyr_key(gyr)))
+    if chosen is not None:
+        return chosen
+    if key not in _CLOCK_CACHE:
+        if len(_CLOCK_CACHE) >= 8:
+            _CLOCK_CACHE.pop(next(iter(_CLOCK_CACHE)))
+        _CLOCK_CACHE[key] = fit_clock(t)
+    return _CLOCK_CACHE[key]
+
+
+def clock_rate_change(t: np.ndarray, clock: dict) -> np.ndarray:
+    """(N,) Δτ_j / Δt_j − 1 of (J2) (0 at the last sample and at non-increasing stamps)."""
+    dt = np.diff(t)
+    dtau = np.diff(clock["tau"])
+    ratio = np.where(dt > 0, dtau / np.where(dt > 0, dt, 1.0), 1.0) - 1.0
+    return np.r_[ratio, 0.0]
+
+
+def retimed(session, clock: dict | None = None):
+    """The session on its sample clock (J1): t ← τ − τ₀ (the refit θ*, the benchmark's evidence)."""
+    from imugraph.io.session import Session
+
+    c = clock or clock_of(session.t)
+    meta = dict(session.meta, retimed={"period_s": c["period"], "lost": c["lost"]})
+    return Session(t=c["tau"] - c["tau"][0], gyr=session.gyr.copy(), acc=session.acc.copy(),
+                   mag=session.mag.copy(), quat=None if session.quat is None else session.quat.copy(),
+                   movement=session.movement, source=session.source, name=session.name + "_retimed", meta=meta)
+
+
+class JitterCorrection(Correction):
+    """The gyro corrected by (J2) on the stamps' time base, residuals by exact re-integration; the gyro
+    residual (R1) on the CLOCK's time base: the keyframe-mismatch rotation divided by the clock's
+    durations, r_j = (y_j − δ_ω − ω̂'_j) = r_stamped,j · Δt_j / Δτ_j (J4) — on the stamps' base a burst
+    of buffered samples (Δt = Δτ/4) would divide the same mismatch by a quarter of the time."""
+
+    def raw_residuals(self, fit) -> dict:
+        if self.deltas.get("of") is fit and "residuals" in self.deltas:        # (J6): the refit's residuals
+            return {c: v.copy() for c, v in self.deltas["residuals"].items()}
+        out = gyro_exact(fit, self.deltas["d_omega"])
+        out["gyr"] = out["gyr"] / (1.0 + self.deltas["ratio"])[:, None]                  # (J4)
+        return out
+
+    def corrected(self, fit) -> dict:
+        return {"gyr": fit.session.gyr + np.nan_to_num(np.asarray(self.deltas["d_omega"], float))}
+
+
+class TimestampJitter(Effect):
+    name = "timestamp_jitter"
+    channel = "gyr"
+    windowed = False
+    ranges = RANGES
+
+    def inject(self, session, rng, *, window=None, strength=None):
+        """Stamp the samples on arrival: t'_j = t_j + d_j (module doc). strength: mean delay in sample
+        periods (default uniform in RANGES); a burst (p = burst_p) in `window` or a random place."""
+        from imugraph.io.session import Session
+
+        period = float(np.median(session.dt))
+        m = float(strength) if strength is not None else float(rng.uniform(*RANGES["mean_delay_samples"]))
+        d = rng.exponential(m * period, session.n)                                  # receive delay
+        burst = None
+        if window is not None or rng.uniform() < RANGES["burst_p"]:
+            b_len = float(rng.uniform(*RANGES["burst_s"]))
+            a = int(np.searchsorted(session.t, window[0])) if window is not None \
+                else int(rng.integers(0, max(1, session.n - int(b_len / period) - 1)))
+            j = np.arange(a, session.n)
+            stall = b_len - (j - a) * period * 0.75          # the link stalls b_len, then flushes at 4×
+            d[j] = np.maximum(d[j], stall)
+            burst = (float(session.t[a]), float(session.t[a] + b_len / 0.75))
+        eps = 1e-4 * period * np.arange(session.n)           # FIFO: t'_j = max(t_j + d_j, t'_{j−1} + 10⁻⁴ Δ)
+        t_new = np.maximum.accumulate(session.t + d - eps) + eps
+        truth = {"params": {"mean_delay_samples": m, "burst": burst},
+                 "t_start": None, "t_end": None}
+        meta = dict(session.meta, injected={**session.meta.get("injected", {}), self.name: truth})
+        out = Session(t=t_new - t_new[0] + session.t[0], gyr=session.gyr.copy(), acc=session.acc.copy(),
+                      mag=session.mag.copy(), quat=None if session.quat is None else session.quat.copy(),
+                      movement=session.movement, source=session.source, name=session.name + "+timestamp_jitter",
+                      meta=meta)
+        return out, truth
+
+    def fit(self, fit, train, window=None) -> Correction:
+        """The sample clock from the stamps (J1)–(J3), (J7), then Δω of (J2) at the fit's bias. The clock's
+        parameters use no residual (the stamps are another data stream); the choice between the two starts'
+        clocks (J7) uses their re-timed fits on all samples, as θ* itself is fitted (the weak leak accepted
+        in docs/diagnose.md §3); `train` only picks the samples of the noise re-estimation (rule 3)."""
+        train = check_train(fit, train)
+        s = fit.session
+        stamps = s.meta.get(STAMPS_KEY)
+        if SCREEN_REFIT and stamps is None and np.any(clock_rate_change(s.t, clock_of(s.t))):      # (J6)
+            self.refit(fit)                            # (J7): the clock chosen among the candidates
+        clock = clock_of(s.t if stamps is None else np.asarray(stamps, float), s.gyr)
+        # on the refit θ* (`refit`) the session is already on the clock: nothing left to correct
+        ratio = clock_rate_change(s.t, clock) if stamps is None else np.zeros(s.n)
+        d_omega = (s.gyr - fit.b_gyr_bias) * ratio[:, None]                          # (J2)
+        d_omega[~np.all(np.isfinite(d_omega), axis=1)] = 0.0
+        dev = clock["deviation"]
+        corr = JitterCorrection(self.name, {"period_s": clock["period"], "lost_samples": clock["lost"],
+                                            "deviation_ms_p50_p99": [1e3 * float(np.median(dev)),
+                                                                     1e3 * float(np.quantile(dev, 0.99))]},
+                                n_params=2 + int(clock["lost"]), channel=self.channel,
+                                deltas={"d_omega": d_omega, "clock": clock, "ratio": ratio})
+        if SCREEN_REFIT and stamps is None and np.any(ratio):                     # (J6)
+            ext, _ = self.refit(fit)
+            corr.deltas.update(of=fit, residuals={c: ext.residuals[c].copy() for c in ext.residuals})
+        r = corr.raw_residuals(fit)
+        corr.deltas["noise_scale"] = noise_scale(fit, r, train, ["acc", "mag"])
+        return corr
+
+    def refit(self, real, rounds: int = 2, window=None):
+        """Full refit (docs/diagnose.md §3 (F1)) of the extended model: the base model fitted to the recording
+        re-timed on its sample clock (J1) — the exact model, where the alternation on Δω of (J2) is not: Δω
+        holds the base fit's bias δ_ω, biased by the stamps, and (y' − δ̂)Δt ≠ (y − δ)Δτ for any other bias.
+        Started from the real fit (`fit_simulation`, its noise and rest), keyframes every as many samples as
+        the base fit's (its stride), field on the gyro's time base as in `real.session`. Returns (θ* on the
+        re-timed session, whose meta keeps the original stamps for `fit`/`size`, info)."""
+        from dataclasses import replace as dc_replace
+
+        from imugraph.diagnose.fit import base_options, fit_simulation
+
+        key = (id(real), len(real.session.t), hash(np.ascontiguousarray(real.session.t).tobytes()),
+               hash(np.ascontiguousarray(real.session.gyr).tobytes()))
+        hit = _REFIT_CACHE.get(key)
+        if hit is not None and hit[0] is real:
+            return hit[1], dict(hit[2])
+        def on_clock(clock):
+            s_r = retimed(real.session, clock)
+            s_r.meta[STAMPS_KEY] = real.session.t.copy()
+            hz = float(real.info.get("keyframe_hz", 5.0)) * s_r.rate / real.session.rate     # same stride
+            ext = fit_simulation(s_r, real, base_options(hz))
+            ext.info["mag_delay_s"] = real.info.get("mag_delay_s", 0.0)
+            return dc_replace(ext, info=dict(ext.info, keyframe_hz=real.info.get("keyframe_hz", 5.0)))
+
+        cands = fit_clock(real.session.t, candidates=True)
+        fits = [on_clock(c) for c in cands]
+        eps = [closing_error_deg(f) for f in fits]
+        spread = [_robust_rms(c) for c in cands]
+        ok = [k for k in range(len(cands)) if spread[k] <= MAX_SPREAD or k == 0]          # (J7') plausible clocks
+        i = min(ok, key=lambda k: eps[k]) if CHOOSE_BY_CLOSING and len(ok) > 1 else 0      # (J7)
+        clock, ext = cands[i], fits[i]
+        if len(_CHOSEN) >= 8:
+            _CHOSEN.pop(next(iter(_CHOSEN)))
+        _CHOSEN[(_stamps_key(real.session.t), _gyr_key(real.session.gyr))] = clock
+        info = {"rounds": [{"params": {"period_s": clock["period"], "lost_samples": clock["lost"]},
+                            "t_start": None, "t_end": None}], "window": None, "changed": True,
+                "stride": int(ext.info["stride"]),
+                "candidates": [{"period_s": c["period"], "lost": c["lost"], "cost_J3": c["cost"],
+                                "closing_deg": e, "spread_samples": r} for c, e, r in zip(cands, eps, spread)]}
+        if len(_REFIT_CACHE) >= 2:
+            _REFIT_CACHE.pop(next(iter(_REFIT_CACHE)))
+        _REFIT_CACHE[key] = (real, ext, info)
+        return ext, dict(info)
+
+    def size(self, corr, fit) -> dict:
+        """Robust RMS (1.4826·MAD) of the stamps' deviation from the clock, in sample periods (module doc),
+        and the orientation error they cause over the keyframe intervals (RMS, degrees)."""
+        c = corr.deltas["clock"]
+        rms = _robust_rms(c)
+        stamps = np.asarray(fit.session.meta.get(STAMPS_KEY, fit.session.t), float)
+        step = np.r_[np.diff(c["tau"]) - np.diff(stamps), 0.0]                       # Δτ_j − Δt_j
+        dth = np.nan_to_num(fit.session.gyr - fit.b_gyr_bias) * step[:, None]
+        kf = np.asarray(fit.keyframe_samples)
+        per_int = np.add.reduceat(dth, kf[:-1], axis=0) if len(kf) > 1 else dth
+        ang = float(np.degrees(np.sqrt(np.mean(np.sum(per_int**2, axis=1)))))
+        return {"value": rms, "threshold": RELEVANT_SAMPLES, "unit": "samples (robust RMS of t − τ)",
+                "orientation_error_deg_rms": ang}
+
+
+EFFECT = TimestampJitter()
