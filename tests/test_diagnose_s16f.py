@@ -16,9 +16,11 @@ RATE = 285.714
 
 
 def _fit_with(t, r):
-    sess = SimpleNamespace(t=t, rate=RATE, n=len(t))
+    """A fit of a sensor that does not turn (gyro zero, no bias): (V6) then explains nothing."""
+    sess = SimpleNamespace(t=t, rate=RATE, n=len(t), gyr=np.zeros_like(r))
     return SimpleNamespace(residuals={"acc": r, "gyr": np.zeros_like(r), "mag": np.zeros_like(r)},
-                           sigma={c: np.ones(3) for c in ("gyr", "acc", "mag")}, session=sess, n=len(t))
+                           sigma={c: np.ones(3) for c in ("gyr", "acc", "mag")}, session=sess, n=len(t),
+                           b_gyr_bias=np.zeros(3))
 
 
 @pytest.fixture(scope="module")

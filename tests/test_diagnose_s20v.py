@@ -104,18 +104,19 @@ def test_timing_confidence_keeps_a_clear_delay_and_drops_one_at_the_threshold(mo
     assert tof.EFFECT.size_bound(few, [0.88, 1.34, 1.44, 1.01, 1.35]) == few
 
 
-def test_switches_default_off_and_scoped():
-    """DiagnoseOptions / command-line flags set the module flags for one diagnosis only; default off."""
+def test_switches_default_on_and_scoped():
+    """DiagnoseOptions / command-line flags set the module flags for one diagnosis only; default on since
+    session 20."""
     from imugraph.diagnose.bench import diagnose_options, model_arguments
 
-    assert vib.MOTION_CHECK is False and tof.SIZE_CONFIDENCE is False
-    with model_switches(DiagnoseOptions(vibration_motion_check=True, timing_confidence=True)):
-        assert vib.MOTION_CHECK is True and tof.SIZE_CONFIDENCE is True
-    assert vib.MOTION_CHECK is False and tof.SIZE_CONFIDENCE is False
+    assert vib.MOTION_CHECK is True and tof.SIZE_CONFIDENCE is True
+    with model_switches(DiagnoseOptions(vibration_motion_check=False, timing_confidence=False)):
+        assert vib.MOTION_CHECK is False and tof.SIZE_CONFIDENCE is False
+    assert vib.MOTION_CHECK is True and tof.SIZE_CONFIDENCE is True
     p = argparse.ArgumentParser()
     model_arguments(p)
-    o = diagnose_options(p.parse_args(["--vibration-motion-check", "--timing-confidence"]))
-    assert o.vibration_motion_check is True and o.timing_confidence is True
+    o = diagnose_options(p.parse_args(["--no-vibration-motion-check", "--no-timing-confidence"]))
+    assert o.vibration_motion_check is False and o.timing_confidence is False
     o = diagnose_options(p.parse_args([]))
     assert o.vibration_motion_check is None and o.timing_confidence is None
 

@@ -106,15 +106,17 @@ def test_refit_on_the_clock_removes_the_stamps_gyro_misfit():
     assert tj.EFFECT.size(corr, ext)["value"] >= tj.RELEVANT_SAMPLES
 
 
-def test_the_effect_is_opt_in():
+def test_the_effect_is_in_the_library_and_can_be_switched_off():
+    """In the library since session 20 (last, so the harness' earlier cases are drawn as before); switched off it
+    is dropped unless named."""
     from imugraph.diagnose.effects import EFFECTS
     from imugraph.diagnose.run import DiagnoseOptions, load_effects, model_switches
 
-    assert "timestamp_jitter" not in EFFECTS and "timestamp_jitter" not in load_effects()
-    with model_switches(DiagnoseOptions(timestamp_jitter=True)):
-        assert "timestamp_jitter" in load_effects()
-    assert "timestamp_jitter" not in load_effects()
-    assert list(load_effects(("timestamp_jitter",))) == ["timestamp_jitter"]
+    assert list(EFFECTS)[-1] == "timestamp_jitter" and "timestamp_jitter" in load_effects()
+    with model_switches(DiagnoseOptions(timestamp_jitter=False)):
+        assert "timestamp_jitter" not in load_effects()
+        assert list(load_effects(("timestamp_jitter",))) == ["timestamp_jitter"]
+    assert "timestamp_jitter" in load_effects()
 
 
 def test_closing_error_is_the_rotation_the_interval_misses():

@@ -121,6 +121,10 @@ def fold_gaps(real, sim, folds: list, gap_opt: GapOptions = GapOptions()) -> lis
 # chooses a discrete structure (time_offset: which channel is late) is refitted in each fold with the structure
 # of its all-sample fit held (`Effect.fit_fold`), so that every fold scores the model the verdict would name.
 FOLD_FIXED_STRUCTURE = True
+# S20-W (docs/diagnose.md §S20-W, `DiagnoseOptions.whitening_jacobian`, default off): the held-out log score (A4) of an
+# effect whose residuals are WHITENED (linear_acceleration, vibration) adds its filter's Jacobian −(1/n) ln|det W|
+# (nested.log_det (L3)), so that it is the log-likelihood of the raw residual, as the base model's is.
+WHITENING_JACOBIAN = False
 
 
 def fit_on_fold(effect, fitted, train: np.ndarray, window, full):
@@ -189,7 +193,12 @@ def evaluate_effect(effect, real, sim, null_gap: dict, folds: list, opt: Attribu
             except (KeyError, TypeError, ValueError, IndexError):
                 fold_sizes.append(float("nan"))
         raw = corr.raw_residuals(real if ext is None else ext)
-        ll.add(real.residuals, raw, ~fold if support is None or rest is None else ~fold & support, test)
+        ll_train = ~fold if support is None or rest is None else ~fold & support
+        if WHITENING_JACOBIAN:             # S20-W (L3): a whitened residual's score charged its filter's ln|det W|
+            from imugraph.diagnose.nested import add_fold, log_det
+            add_fold(ll, real.residuals, raw, ll_train, test, {}, log_det(corr, real if ext is None else ext))
+        else:
+            ll.add(real.residuals, raw, ll_train, test)
         if (getattr(corr, "deltas", None) or {}).get("heldout") is not None:
             own.add_costs(corr.deltas["heldout"])
             own_ll.add_costs(corr.deltas["heldout"]["ll"])
@@ -342,6 +351,9 @@ def attribute(real, sim, null_gap: dict, effects: dict, opt: AttributionOptions 
     from imugraph.diagnose import local_check
     if local_check.LOCAL_CHECK:                                          # (V'), S17-H
         local_check.check_locals(ranked, real, folds, effects, say)
+    from imugraph.diagnose import nested
+    if nested.NESTED_CHECK:                                              # (V''), S20-W
+        nested.check_nested(ranked, real, folds, effects, opt.margin, say)
     return ranked
 
 

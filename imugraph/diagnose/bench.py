@@ -134,13 +134,22 @@ def model_arguments(p: argparse.ArgumentParser) -> None:
                                  "(DiagnoseOptions.magnet_visit_drift; default off)"),
         ("--vibration-motion-check", "S20-V (V6): vibration relevant only beyond the band RMS the measured angular "
                                      "motion explains at a hand's lever arm (DiagnoseOptions.vibration_motion_check; "
-                                     "default off)"),
+                                     "default on since session 20)"),
         ("--timing-confidence", "S20-V (T12): time_offset relevant only when |τ| ≥ 1 sample + 1.645 × its folds' "
-                                "jackknife SE (DiagnoseOptions.timing_confidence; default off)"),
+                                "jackknife SE (DiagnoseOptions.timing_confidence; default on since session 20)"),
         ("--refit-hold-noise", "S20-Mb: the full refit's (F1) rounds hold the base fit's noise levels instead of "
                                "re-estimating them (DiagnoseOptions.refit_hold_noise; default off)"),
+        ("--refit-accelerate", "S20-Mb (F2): the full refit's alternation extrapolated to its fixed point "
+                               "(Aitken, after 4 rounds; DiagnoseOptions.refit_accelerate; default off)"),
+        ("--nested-check", "S20-W (V''): an effect named by the log-score route must keep its held-out log score "
+                           "on top of a stronger relevant effect on its channel (DiagnoseOptions.nested_check; "
+                           "default off)"),
+        ("--shift-prediction", "S20-W (T13): time_offset's acc/mag residual y − h(t − τ), the prediction shifted, not "
+                               "the data interpolated (DiagnoseOptions.shift_prediction; default off)"),
+        ("--whitening-jacobian", "S20-W (L3): the log score of a whitened residual (linear_acceleration, vibration) "
+                                 "charged its filter's Jacobian (DiagnoseOptions.whitening_jacobian; default off)"),
         ("--timestamp-jitter", "S20-T: the timestamp_jitter effect (host receive stamps re-timed on a fitted sample "
-                               "clock) in the library (DiagnoseOptions.timestamp_jitter; default off)"),
+                               "clock) in the library (DiagnoseOptions.timestamp_jitter; default on since session 20)"),
     ]
     for flag, text in switches:
         p.add_argument(flag, action=argparse.BooleanOptionalAction, default=None, help=text)
@@ -172,12 +181,16 @@ def diagnose_options(args: argparse.Namespace, **fields):
                         vibration_band_windows=getattr(args, "vibration_band_windows", None),
                         fold_fixed_structure=getattr(args, "fold_fixed_structure", None),
                         local_check=getattr(args, "local_check", None),
+                        nested_check=getattr(args, "nested_check", None),
+                        shift_prediction=getattr(args, "shift_prediction", None),
+                        whitening_jacobian=getattr(args, "whitening_jacobian", None),
                         timestamp_jitter=getattr(args, "timestamp_jitter", None),
                         magnet_intermittent=getattr(args, "magnet_intermittent", None),
                         magnet_visit_drift=getattr(args, "magnet_visit_drift", None),
                         vibration_motion_check=getattr(args, "vibration_motion_check", None),
                         timing_confidence=getattr(args, "timing_confidence", None),
-                        refit_hold_noise=getattr(args, "refit_hold_noise", None), **fields)   # None: the defaults
+                        refit_hold_noise=getattr(args, "refit_hold_noise", None),
+                        refit_accelerate=getattr(args, "refit_accelerate", None), **fields)   # None: the defaults
     if getattr(args, "cross_gap", None) is not None:                        # S16 (G1')
         o = replace(o, gap=replace(o.gap, cross_weight=float(args.cross_gap)))
     if getattr(args, "cross_form", None) is not None:
@@ -214,10 +227,15 @@ def harness_run(args: argparse.Namespace, sessions: list, diagnose_fn, progress=
     and --hosts, diagnosing with diagnose_fn; progress: optional callable(str) (a header line, then one per case)."""
     from imugraph.diagnose.effects import EFFECTS
     from imugraph.diagnose.harness import run_harness
+    from imugraph.diagnose.run import load_effects, model_switches
     from imugraph.errors import SessionError
 
     names = getattr(args, "effects", None)
-    names = [n.strip() for n in names.split(",") if n.strip()] if names else list(EFFECTS)
+    if names:
+        names = [n.strip() for n in names.split(",") if n.strip()]
+    else:                                     # the library the diagnoses will use (--no-timestamp-jitter drops it)
+        with model_switches(diagnose_options(args)):
+            names = list(load_effects())
     bad = [n for n in names if n not in EFFECTS]
     if bad:
         raise SessionError("--effects", "effects", ", ".join(bad), f"names among {sorted(EFFECTS)}")

@@ -76,16 +76,28 @@ class DiagnoseOptions:
             `magnetic_disturbance.VISIT_DRIFT` (default False).
         vibration_motion_check: S20-V (V6): vibration is relevant only when its band RMS also exceeds the band RMS
             the measured angular motion explains at a hand's lever arm (effects/vibration.py); None: the module
-            flag `vibration.MOTION_CHECK` (default False).
+            flag `vibration.MOTION_CHECK` (default True since session 20).
         timing_confidence: S20-V (T12): time_offset is relevant only when |τ| ≥ 1 sample + z·SE, SE the folds'
             jackknife (effects/time_offset.py `size_bound`); None: the module flag `time_offset.SIZE_CONFIDENCE`
-            (default False).
+            (default True since session 20).
         timestamp_jitter: S20-T: the timestamp_jitter effect (effects/timestamp_jitter.py: host receive stamps
             re-timed on a fitted sample clock) added to the library; None: the module flag
-            `timestamp_jitter.ENABLED` (default False).
+            `timestamp_jitter.ENABLED` (default True since session 20; False drops it from the library).
         refit_hold_noise: S20-Mb: the full refit's (F1) rounds (refit.refit_effect) hold the base fit's noise
             levels instead of re-estimating them, so that θ* differs from the base fit only by what the effect
             removed from the data; None: the module flag `refit.HOLD_NOISE` (default False).
+        refit_accelerate: S20-Mb (F2): the full refit's alternation runs 4 rounds and then jumps to the Aitken
+            extrapolation of its corrected data (its slow linear convergence left θ* far from the fixed point);
+            None: the module flag `refit.ACCELERATE` (default False).
+        nested_check: S20-W (V''): an effect significant only by the log-score route leaves the verdict unless it
+            keeps its held-out log score on top of a relevant effect on its channel with a larger one (a nested
+            test, imugraph/diagnose/nested.py); None: the module flag `nested.NESTED_CHECK` (default False).
+        shift_prediction: S20-W (T13): time_offset's acc/mag residual is y − h(t − τ) (the prediction shifted) instead
+            of the data shifted by linear interpolation (which smooths the noise for a fractional τ); None: the
+            module flag `time_offset.SHIFT_PREDICTION` (default False).
+        whitening_jacobian: S20-W (L3): the held-out log score of a whitened residual (linear_acceleration, vibration)
+            charged its filter's Jacobian −(1/n) ln|det W| (imugraph/diagnose/nested.py `log_det`); None: the module
+            flag `attribute.WHITENING_JACOBIAN` (default False).
     """
 
     keyframe_hz: float = 5.0
@@ -110,6 +122,10 @@ class DiagnoseOptions:
     timing_confidence: bool | None = None
     timestamp_jitter: bool | None = None
     refit_hold_noise: bool | None = None
+    refit_accelerate: bool | None = None
+    nested_check: bool | None = None
+    shift_prediction: bool | None = None
+    whitening_jacobian: bool | None = None
     gap: GapOptions = field(default_factory=GapOptions)
     attribution: AttributionOptions = field(default_factory=AttributionOptions)
 
@@ -168,15 +184,15 @@ def load_effects(names=None) -> dict:
 
 
 def _with_optional(effects: dict, names) -> dict:
-    """The library plus the opt-in effects (S20-T timestamp_jitter) that are switched on or named."""
+    """The library without the effects switched off (S20-T timestamp_jitter when its flag is False), unless named."""
     try:
         from imugraph.diagnose.effects import timestamp_jitter
     except ImportError:
         return effects
     name = timestamp_jitter.EFFECT.name
     if timestamp_jitter.ENABLED or (names is not None and name in names):
-        return {**effects, name: timestamp_jitter.EFFECT}
-    return effects
+        return effects
+    return {n: e for n, e in effects.items() if n != name}
 
 
 def null_fold_gap(null: Fit, sim: Fit, sigma: dict, folds: list, gap_opt: GapOptions) -> dict:
@@ -209,7 +225,11 @@ def model_switches(options: DiagnoseOptions):
              ("fold_fixed_structure", "attribute", ("FOLD_FIXED_STRUCTURE",), bool),
              ("timestamp_jitter", "effects.timestamp_jitter", ("ENABLED",), bool),
              ("refit_hold_noise", "refit", ("HOLD_NOISE",), bool),
+             ("refit_accelerate", "refit", ("ACCELERATE",), bool),
              ("local_check", "local_check", ("LOCAL_CHECK",), bool),
+             ("nested_check", "nested", ("NESTED_CHECK",), bool),
+             ("shift_prediction", "effects.time_offset", ("SHIFT_PREDICTION",), bool),
+             ("whitening_jacobian", "attribute", ("WHITENING_JACOBIAN",), bool),
              ("gyro_delay_model", "effects.time_offset", ("GYRO_DELAY_MODEL",), bool),
              ("magnet_ramps", "effects.magnetic_disturbance", ("RAMPS",), bool),
              ("saturation_area", "effects.saturation", ("CENSOR_AREA",), bool),

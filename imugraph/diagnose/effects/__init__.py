@@ -9,12 +9,13 @@ returns a `Correction` whose `residuals(fit)` evaluates the extended model at ev
 from __future__ import annotations
 
 from imugraph.diagnose.effects import (accelerometer_bias, gyro_bias_drift, gyro_scale, linear_acceleration,
-                                       magnetic_disturbance, saturation, time_offset, vibration)
+                                       magnetic_disturbance, saturation, time_offset, timestamp_jitter, vibration)
 from imugraph.diagnose.effects.base import Correction, Effect
 
+# timestamp_jitter last (session 20): the harness draws its cases effect by effect from one random stream, so the
+# earlier effects' cases stay what they were. run.load_effects drops it when its flag is off.
 EFFECTS: dict = {m.EFFECT.name: m.EFFECT for m in (
     magnetic_disturbance, linear_acceleration, gyro_bias_drift, time_offset, gyro_scale, saturation,
-    accelerometer_bias, vibration)}
+    accelerometer_bias, vibration, timestamp_jitter)}
 
-from imugraph.diagnose.effects import timestamp_jitter  # noqa: E402,F401  opt-in (S20-T): run.load_effects adds it
 __all__ = ["EFFECTS", "Effect", "Correction"]

@@ -68,6 +68,22 @@ class LinearAccelerationCorrection(Correction):
         a_n = np.nan_to_num(self.signal(fit))
         return {"acc": fit.session.acc - np.einsum("nji,nj->ni", fit.nRb, a_n)}
 
+    def log_det_per_sample(self, n: int, rate_hz: float) -> dict:
+        """S20-W: channel → (1/n) ln|det W| of the whitening filter W that `raw_residuals` applies (a circulant
+        filter |H(f)| per nav axis, rotated back orthogonally), summed over the axes:
+
+            J_acc = Σ_axis mean_f ln|H_axis(f)|   (≤ 0: |H| ≤ 1)                                        (L3)
+
+        The density of the raw residual r under (L1) is that of w = W r times |det W|, so the log score (A4)
+        of the whitened residual w must add −J per sample to be the negative log-likelihood of r; without it
+        a stronger filter (larger P, lower f_c) scores better whatever the data (nested.py (V''1))."""
+        g = np.asarray(self.deltas["gain"](n, rate_hz), float)                       # (F, 3) on rfftfreq(n)
+        w = np.full(len(g), 2.0)                                                     # each rfft bin twice ...
+        w[0] = 1.0                                                                   # ... but DC
+        if n % 2 == 0:
+            w[-1] = 1.0                                                              # ... and Nyquist
+        return {"acc": float(np.sum(w[:, None] * np.log(np.maximum(g, 1e-300))) / n)}
+
     def raw_residuals(self, fit) -> dict:
         out = {c: fit.residuals[c].copy() for c in fit.residuals}
         a_n = np.einsum("nij,nj->ni", fit.nRb, fit.residuals["acc"])               # â = R̂ r_acc

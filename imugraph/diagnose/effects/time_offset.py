@@ -60,8 +60,13 @@ ROTATION_CHECK = True        # (T7): a gyro-referenced delay only where rotation
 # keeps the base model's magnetometer lag τ_m as measured against the gyro: with the gyro's delay τ removed
 # the field lags the corrected gyro by τ_m + τ, re-aligned by whole samples (`field_after_gyro_shift`).
 GYRO_DELAY_MODEL = True
-SIZE_CONFIDENCE = False      # S20-V (T12): relevant only when |τ| exceeds 1 sample beyond its folds' SE (default off)
+SIZE_CONFIDENCE = True       # S20-V (T12): relevant only when |τ| exceeds 1 sample beyond its folds' SE (default since S20)
 SIZE_Z = 1.645               # (T12): one-sided 95 % normal quantile
+# S20-W (T13, `DiagnoseOptions.shift_prediction`, default off; docs/diagnose.md §S20-W): an acc/mag delay's residual is
+# y_j − h_c(x(t_j − τ)) — the smooth PREDICTION shifted —, not the data shifted by linear interpolation, which for a
+# fractional τ (fraction φ) averages neighbouring samples: white noise then drops to ((1−φ)² + φ²) σ² (½ σ² at φ = ½)
+# and the held-out log score (A4) rises with no delay in the data at all (the gaittoolbox foot, §S20-W).
+SHIFT_PREDICTION = False
 
 
 def injection_range_s(rate_hz: float) -> tuple[float, float]:
@@ -213,6 +218,10 @@ class TimeOffsetCorrection(Correction):
             mag = field_after_gyro_shift(fit, tau) if GYRO_DELAY_MODEL else None       # (T9)
             if mag is not None:
                 out["mag"] = out["mag"] + (mag - s.mag)      # h_mag does not depend on the data: y changes only
+            return out
+        if SHIFT_PREDICTION:                                                           # (T13)
+            out = {k: v.copy() for k, v in fit.residuals.items()}
+            out[c] = y - shift_signal(s.t, fit.predicted()[c], tau)        # r = y(t) − h(t − τ), data untouched
             return out
         return fit.residuals_with(**{c: y_new})
 

@@ -72,7 +72,7 @@ SCREEN_REFIT = True          # (J6) the screening scores the refit θ* (the keyf
                              # fit bent by the stamps: V1000 MPU9150 screened (A2) −1.32, refitted +0.88, §S20-T)
 CHOOSE_BY_CLOSING = True     # (J7) between the starts' clocks, the one whose re-timed base fit closes best
 MAX_SPREAD = 2.0             # (J7') a candidate clock needing a robust stamp spread > 2 samples is not chosen by (J7)
-ENABLED = False              # opt-in: DiagnoseOptions.timestamp_jitter (in EFFECTS only when True)
+ENABLED = True               # DiagnoseOptions.timestamp_jitter (default since S20; run.load_effects drops it when False)
 
 
 def _pinball(r: np.ndarray, q: float) -> np.ndarray:

@@ -43,7 +43,7 @@ others +0.20 … +1.08; docs/diagnose.md §S16-F).
 
 Relevance (`size`): band RMS ≥ 0.3 m/s².
 
-Motion check (S20-V, opt-in: MOTION_CHECK / DiagnoseOptions.vibration_motion_check, default off). (V2) takes
+Motion check (S20-V: MOTION_CHECK / DiagnoseOptions.vibration_motion_check, default since session 20). (V2) takes
 everything above 15 Hz for a vibration, but a hand's fast rotation has a broadband tail there that the gyro
 measures too (BROAD 07 whole: band 14.5–25.7 Hz at the motion band's edge, 0.53 m/s² in the window of
 motion; the phone motor of 26 is a line at 40.2 Hz, 2.92 m/s²). With the option the relevance also asks for
@@ -71,7 +71,7 @@ RELEVANT_RMS = 0.3           # relevance: band RMS ≥ 0.3 m/s² (≈ 10× a MEM
 BAND_WINDOWS = True          # S16-F (V3)–(V4): windows re-localised on the fitted band, narrow-band excess only (default since S16)
 BAND_MARGIN_HZ = 1.0         # (V3): band-pass f_lo − 1 Hz … f_hi + 1 Hz (the ±2 % wander of f₀ stays inside)
 NARROW_SHARE = 0.5           # (V4): share of the window's above-motion-band excess power inside the band
-MOTION_CHECK = False         # S20-V (V6): relevance ≥ the band RMS the measured angular motion explains (default off)
+MOTION_CHECK = True          # S20-V (V6): relevance ≥ the band RMS the measured angular motion explains (default since S20)
 
 
 def above_motion_band(x: np.ndarray, rate: float) -> np.ndarray:
