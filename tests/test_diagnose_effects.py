@@ -34,7 +34,7 @@ def rms(x, m):
 
 def test_registry_names_and_interface():
     assert set(EFFECTS) == {"magnetic_disturbance", "linear_acceleration", "gyro_bias_drift", "time_offset",
-                            "gyro_scale", "saturation", "accelerometer_bias", "vibration"}
+                            "gyro_scale", "saturation", "accelerometer_bias", "vibration", "timestamp_jitter"}
     for name, e in EFFECTS.items():
         assert e.name == name and e.channel in ("gyr", "acc", "mag") and e.ranges
 
@@ -42,13 +42,14 @@ def test_registry_names_and_interface():
 @pytest.mark.parametrize("name", sorted(EFFECTS))
 def test_inject_does_not_modify_input_and_reports_truth(name):
     s = simulated_session(1, 20.0, 100.0)
-    before = [a.copy() for a in (s.gyr, s.acc, s.mag)]
+    before = [a.copy() for a in (s.gyr, s.acc, s.mag, s.t)]
     s2, truth = EFFECTS[name].inject(s, np.random.default_rng(0))
-    for a, b in zip(before, (s.gyr, s.acc, s.mag)):
+    for a, b in zip(before, (s.gyr, s.acc, s.mag, s.t)):
         np.testing.assert_array_equal(a, b)
     assert s2.n == s.n and set(truth) >= {"params", "t_start", "t_end"}
-    changed = sum(not np.allclose(a, b, equal_nan=True) for a, b in zip(before, (s2.gyr, s2.acc, s2.mag)))
-    assert changed == 1
+    changed = [not np.allclose(a, b, equal_nan=True) for a, b in zip(before, (s2.gyr, s2.acc, s2.mag, s2.t))]
+    # one channel changed — or, for timestamp_jitter, only the stamps (the samples are the sensor's own)
+    assert changed == [False, False, False, True] if name == "timestamp_jitter" else sum(changed) == 1
     if EFFECTS[name].windowed:
         assert s.t[0] < truth["t_start"] < truth["t_end"] < s.t[-1]
     hidden = hide_label(s2, "x")

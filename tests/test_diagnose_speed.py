@@ -105,7 +105,7 @@ def test_alternation_stops_when_the_correction_stops_changing(clean, monkeypatch
 
     _, f = clean
     calls = []
-    monkeypatch.setattr(refit, "fit_simulation", lambda sess, start, **kw: calls.append(1) or start)
+    monkeypatch.setattr(refit, "fit_simulation", lambda sess, start, *a, **kw: calls.append(1) or start)
     monkeypatch.setattr(refit, "on_session", lambda fit, session: fit)
     _, info = refit.refit_effect(_Fixed(step), f, rounds=3)
     assert len(calls) == n_fits
