@@ -35,6 +35,9 @@ from pathlib import Path
 
 import numpy as np
 
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+from benchmarks.common import select_trials  # noqa: E402
+
 THRESHOLD = 0.10             # fraction of |m|: magnetic_disturbance's relevance (M2)
 SMOOTH_S = 0.25
 MERGE_S = 0.5
@@ -233,7 +236,6 @@ def explain(session, ref: dict) -> None:
 
 
 def main(argv=None) -> int:
-    from imugraph.config import broad_dir
     from imugraph.diagnose.bench import diagnose_options, model_arguments
     from imugraph.io.readers import load_session
 
@@ -247,13 +249,9 @@ def main(argv=None) -> int:
     model_arguments(p)
     args = p.parse_args(argv)
     opt = diagnose_options(args)
-    root = Path(broad_dir())
-    for tr in [x.strip() for x in args.trials.split(",") if x.strip()]:
-        hits = sorted(root.glob(f"{tr}_*.mat"))
-        if not hits:
-            print(f"{tr}: not found under {root}", file=sys.stderr)
-            continue
-        s = load_session(hits[0])
+    for path in (select_trials(args.trials) if args.trials else []):
+        hits = [path]
+        s = load_session(path)
         ref = reference(s)
         tot = sum(b - a for a, b in ref["intervals"])
         sus = sum(b - a for a, b in ref["sustained"])

@@ -27,6 +27,9 @@ from pathlib import Path
 
 import numpy as np
 
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+from benchmarks.common import select_trials  # noqa: E402
+
 
 def rms(fit, c: str, sg: np.ndarray, m: np.ndarray) -> float:
     """Whitened RMS of channel c's residual (R1)–(R3) with the base fit's σ over the samples m."""
@@ -202,7 +205,6 @@ def simulated(seed: int = 7) -> None:
 
 
 def main(argv=None) -> int:
-    from imugraph.config import broad_dir
     from imugraph.io.readers import load_session
 
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -214,13 +216,9 @@ def main(argv=None) -> int:
     if args.sim:
         for seed in [int(x) for x in args.sim_seeds.split(",") if x.strip()]:
             simulated(seed)
-    root = Path(broad_dir())
-    for tr in [x.strip() for x in args.trials.split(",") if x.strip()]:
-        hits = sorted(root.glob(f"{tr}_*.mat"))
-        if not hits:
-            print(f"{tr}: not found under {root}", file=sys.stderr)
-            continue
-        s = load_session(hits[0])
+    for path in (select_trials(args.trials) if args.trials else []):
+        hits = [path]
+        s = load_session(path)
         print(f"{hits[0].stem}:", flush=True)
         for name in [x.strip() for x in args.effects.split(",") if x.strip()]:
             study(s, name)

@@ -41,9 +41,7 @@ def find_windows(fit) -> list:
     t = fit.session.t
     r = fit.residuals["mag"]
     half = max(3, int(round(2.0 * fit.session.rate)))
-    bRn = np.transpose(fit.nRb, (0, 2, 1))
-    earth = float(np.median(np.linalg.norm((bRn @ fit.calibration.n_mag) @ np.asarray(fit.calibration.D).T,
-                                           axis=1)))
+    earth = md.earth_field_norm(fit)
     found, r_rest = md.step_windows_refit(fit, r, earth, max_windows=MAX_VISITS)         # (M3') × MAX_VISITS
     n_step = len(found)
     z2 = np.sum((r_rest / fit.sigma["mag"]) ** 2, axis=1) / 3.0

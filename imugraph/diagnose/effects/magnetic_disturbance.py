@@ -177,9 +177,7 @@ class MagneticDisturbance(Effect):
 
     def size(self, corr, fit) -> dict:
         """Largest window's extra field (median |Δo_w + D bRn Δn_w| over it) / median |D bRn n_mag|."""
-        bRn = np.transpose(fit.nRb, (0, 2, 1))
-        earth = float(np.median(np.linalg.norm((bRn @ fit.calibration.n_mag) @ np.asarray(fit.calibration.D).T,
-                                               axis=1)))
+        earth = earth_field_norm(fit)
         dw = np.linalg.norm(corr.deltas.get("window", np.zeros((fit.n, 3))), axis=1)
         best = 0.0
         for w in corr.params.get("windows", []):
@@ -211,9 +209,7 @@ class MagneticDisturbance(Effect):
         t = fit.session.t
         r = fit.residuals["mag"]
         half = max(3, int(round(2.0 * fit.session.rate)))
-        bRn = np.transpose(fit.nRb, (0, 2, 1))
-        earth = float(np.median(np.linalg.norm((bRn @ fit.calibration.n_mag) @ np.asarray(fit.calibration.D).T,
-                                               axis=1)))
+        earth = earth_field_norm(fit)
         if STEP_REFIT:                             # S16-E (M3'): each search after the (M1) fit of the windows found
             found, r_rest = step_windows_refit(fit, r, earth)
         else:
@@ -229,6 +225,13 @@ class MagneticDisturbance(Effect):
             if t[b] - t[a] >= STEP_MIN_S:          # an edge refined onto the other: no window left
                 out.append((float(t[a]), float(t[b])))
         return sorted(out, key=lambda w: -(w[1] - w[0]))
+
+
+def earth_field_norm(fit) -> float:
+    """The undisturbed field's size in the magnetometer's units, median_j |D bRn,j n_mag| (the unit of (M3)'s
+    0.05 |m| floor and of the relevance)."""
+    bRn = np.transpose(fit.nRb, (0, 2, 1))
+    return float(np.median(np.linalg.norm((bRn @ fit.calibration.n_mag) @ np.asarray(fit.calibration.D).T, axis=1)))
 
 
 def _solve_fields(fit, r, use, bRn, D, env: list) -> tuple:
