@@ -53,6 +53,20 @@ def sensors(data: Path) -> list[tuple[str, str, Path]]:
     return [x for x in out if x[2].exists()]
 
 
+def jerk_lag(s, max_lag: int = 15) -> int:
+    """Lag (samples, + = acc after gyr) maximising the correlation of the standardised jerk norms |Δacc|, |Δgyr|:
+    impacts and turns seen by both channels peak together unless one channel is late."""
+    import numpy as np
+
+    a = np.linalg.norm(np.diff(s.acc, axis=0), axis=1)
+    g = np.linalg.norm(np.diff(s.gyr, axis=0), axis=1)
+    ok = np.isfinite(a) & np.isfinite(g)
+    a, g = np.where(ok, (a - a[ok].mean()) / a[ok].std(), 0.0), np.where(ok, (g - g[ok].mean()) / g[ok].std(), 0.0)
+    xc = [np.mean(a[max(0, k):len(a) + min(0, k)] * g[max(0, -k):len(g) + min(0, -k)])
+          for k in range(-max_lag, max_lag + 1)]
+    return int(np.argmax(xc)) - max_lag
+
+
 def _fmt(r) -> str:
     s = r.size or {}
     return (f"{r.name}/{r.channel} pen {r.penalised:+.2f} ll {r.loglik_gain:+.3f} size "
@@ -70,12 +84,17 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--only", default=None, help="comma-separated set:segment names (e.g. gait:L_Foot)")
     p.add_argument("--out", default="bench_out/w20", help="folder for body_worn.json")
+    p.add_argument("--broad", default=None, help="instead: these BROAD trials (e.g. 04), same columns")
     model_arguments(p)
     args = p.parse_args(argv)
     opt = diagnose_options(args)
     only = set(args.only.split(",")) if args.only else None
     rows = []
-    for kind, seg, path in sensors(Path(data_dir())):
+    todo = sensors(Path(data_dir()))
+    if args.broad:
+        from imugraph.config import broad_dir
+        todo = [("broad", tr, sorted(Path(broad_dir()).glob(f"{tr}_*.mat"))[0]) for tr in args.broad.split(",")]
+    for kind, seg, path in todo:
         if only and f"{kind}:{seg}" not in only:
             continue
         s = load_session(path)
@@ -94,7 +113,12 @@ def main(argv=None) -> int:
                "verdict_result": next((_fmt(r) for r in d.effects if r.name == d.verdict), None)}
         rows.append(row)
         tol = (f"time_offset {to.channel} τ {(to.size or {}).get('value', float('nan')):.2f} smp ll "
-               f"{to.loglik_gain:+.3f}{' S' if to.significant else ''}{' R' if to.relevant else ''}") if to else ""
+               f"{to.loglik_gain:+.3f}{' S' if to.significant else ''}{' R' if to.relevant else ''}{' X' if to.explained_by else ''}"
+               f" thr {(to.size or {}).get('threshold', float('nan')):.2f} folds τ "
+               f"{','.join(f'{x:.2f}' for x in (to.fold_sizes or []))} ll "
+               f"{','.join(f'{x:+.3f}' for x in (to.loglik_folds or []))}") if to else ""
+        row["jerk_lag"] = jerk_lag(s)
+        tol += f" | jerk lag acc−gyr {row['jerk_lag']:+d} smp"
         print(f"{kind}:{seg:9s} {d.verdict:20s} expect {'/'.join(exp):25s} {'yes' if row['ok'] else 'NO '} | "
               f"verdict {row['verdict_result'] or '-'} | top3: {'; '.join(row['top3'])} | {tol} | "
               f"{cpu:.1f} s CPU, {row['duration_s']:.0f} s at {s.rate:.0f} Hz", flush=True)

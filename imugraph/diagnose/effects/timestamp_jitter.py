@@ -376,6 +376,9 @@ class TimestampJitter(Effect):
         eps = [closing_error_deg(f) for f in fits]
         spread = [_robust_rms(c) for c in cands]
         ok = [k for k in range(len(cands)) if spread[k] <= MAX_SPREAD or k == 0]          # (J7') plausible clocks
+        if spread[0] < RELEVANT_SAMPLES:      # (J7''): stamps within a stamp's rounding of the (J3) clock ARE a clock
+            ok = [0]                          # (lost samples only: x-IMU3's device stamps); the gyro's closing would
+                                              # otherwise pick a period that stands in for a gyro scale error
         i = min(ok, key=lambda k: eps[k]) if CHOOSE_BY_CLOSING and len(ok) > 1 else 0      # (J7)
         clock, ext = cands[i], fits[i]
         if len(_CHOSEN) >= 8:
