@@ -67,6 +67,8 @@ SIZE_Z = 1.645               # (T12): one-sided 95 % normal quantile
 # fractional τ (fraction φ) averages neighbouring samples: white noise then drops to ((1−φ)² + φ²) σ² (½ σ² at φ = ½)
 # and the held-out log score (A4) rises with no delay in the data at all (the gaittoolbox foot, §S20-W).
 SHIFT_PREDICTION = False
+SHIFT_PREDICTION_CHANNELS = ("acc", "mag")   # (T13) applies to these; ("acc",): the field keeps the data shift, whose
+                                             # sub-sample part the base model's whole-sample lag leaves (BROAD 04, §S20-W)
 
 
 def injection_range_s(rate_hz: float) -> tuple[float, float]:
@@ -219,7 +221,7 @@ class TimeOffsetCorrection(Correction):
             if mag is not None:
                 out["mag"] = out["mag"] + (mag - s.mag)      # h_mag does not depend on the data: y changes only
             return out
-        if SHIFT_PREDICTION:                                                           # (T13)
+        if SHIFT_PREDICTION and c in SHIFT_PREDICTION_CHANNELS:                        # (T13)
             out = {k: v.copy() for k, v in fit.residuals.items()}
             out[c] = y - shift_signal(s.t, fit.predicted()[c], tau)        # r = y(t) − h(t − τ), data untouched
             return out
