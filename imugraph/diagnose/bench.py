@@ -90,6 +90,56 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     model_arguments(p)
 
 
+# on/off switches of DiagnoseOptions, each --x-y the field x_y (None: the module's own default, stated in the help)
+SWITCHES = [
+    ("--timing-rules", "time_offset's rules T5–T7 (field remainder out, log-score significance, rotation "
+                       "check; DiagnoseOptions.timing_rules; default on)"),
+    ("--gyro-delay-model", "S15: time_offset's extended model of a gyro delay (T8)–(T10) (DiagnoseOptions."
+                           "gyro_delay_model; default on)"),
+    ("--magnet-ramps", "S15: magnetic_disturbance's field with fitted ramps at the window edges (R1) "
+                       "(DiagnoseOptions.magnet_ramps; default on)"),
+    ("--magnet-step-refit", "S16-E (M3'): magnetic_disturbance's step search repeated on the residual of the "
+                            "(M1) fit of the windows found (DiagnoseOptions.magnet_step_refit; default on since "
+                            "session 16)"),
+    ("--saturation-censor", "S16-E (C1'): a gyro sample on a rail censored in saturation's residuals "
+                            "(DiagnoseOptions.saturation_censor; default on since session 16)"),
+    ("--saturation-area", "S16-E (C1''): the censored gyro values estimated per keyframe interval against the "
+                          "keyframes (DiagnoseOptions.saturation_area; default off)"),
+    ("--vibration-band-windows", "S16-F (V3)-(V4): vibration's windows re-localised on the fitted band, "
+                                 "narrow-band excess only (DiagnoseOptions.vibration_band_windows; default on "
+                                 "since session 16)"),
+    ("--fold-fixed-structure", "S17-H (T11): cross-validation folds refit an effect with the discrete structure "
+                               "of its all-sample fit held (time_offset's channel; DiagnoseOptions."
+                               "fold_fixed_structure; default on since session 17)"),
+    ("--local-check", "S17-H (V'): a localised verdict leaves when a global effect on its channel explains its "
+                      "support at least as well by the held-out log score (DiagnoseOptions.local_check; "
+                      "default off)"),
+    ("--magnet-intermittent", "S20-M (M6): magnetic_disturbance's windows for an intermittent disturbance (a "
+                              "stationary magnet visited several times; DiagnoseOptions.magnet_intermittent; "
+                              "default off)"),
+    ("--magnet-visit-drift", "S20-M (M7): magnetic_disturbance's window field drifting through the window "
+                             "(DiagnoseOptions.magnet_visit_drift; default off)"),
+    ("--vibration-motion-check", "S20-V (V6): vibration relevant only beyond the band RMS the measured angular "
+                                 "motion explains at a hand's lever arm (DiagnoseOptions.vibration_motion_check; "
+                                 "default on since session 20)"),
+    ("--timing-confidence", "S20-V (T12): time_offset relevant only when |τ| ≥ 1 sample + 1.645 × its folds' "
+                            "jackknife SE (DiagnoseOptions.timing_confidence; default on since session 20)"),
+    ("--refit-hold-noise", "S20-Mb: the full refit's (F1) rounds hold the base fit's noise levels instead of "
+                           "re-estimating them (DiagnoseOptions.refit_hold_noise; default off)"),
+    ("--refit-accelerate", "S20-Mb (F2): the full refit's alternation extrapolated to its fixed point "
+                           "(Aitken, after 4 rounds; DiagnoseOptions.refit_accelerate; default off)"),
+    ("--nested-check", "S20-W (V''): an effect named by the log-score route must keep its held-out log score "
+                       "on top of a stronger relevant effect on its channel (DiagnoseOptions.nested_check; "
+                       "default off)"),
+    ("--shift-prediction", "S20-W (T13): time_offset's acc/mag residual y − h(t − τ), the prediction shifted, not "
+                           "the data interpolated (DiagnoseOptions.shift_prediction; default off)"),
+    ("--whitening-jacobian", "S20-W (L3): the log score of a whitened residual (linear_acceleration, vibration) "
+                             "charged its filter's Jacobian (DiagnoseOptions.whitening_jacobian; default off)"),
+    ("--timestamp-jitter", "S20-T: the timestamp_jitter effect (host receive stamps re-timed on a fitted sample "
+                           "clock) in the library (DiagnoseOptions.timestamp_jitter; default on since session 20)"),
+]
+
+
 def model_arguments(p: argparse.ArgumentParser) -> None:
     """The diagnosis' model switches (read back by `diagnose_options`)."""
     p.add_argument("--joint-gyro", action=argparse.BooleanOptionalAction, default=None,
@@ -103,55 +153,7 @@ def model_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--joint-refit", action=argparse.BooleanOptionalAction, default=None,
                    help="stage-2 alternation for a jointly fitted gyro effect (AttributionOptions.joint_refit; "
                         "default off)")
-    # on/off switches of DiagnoseOptions (None: the module's own default, stated in the help)
-    switches = [
-        ("--timing-rules", "time_offset's rules T5–T7 (field remainder out, log-score significance, rotation "
-                           "check; DiagnoseOptions.timing_rules; default on)"),
-        ("--gyro-delay-model", "S15: time_offset's extended model of a gyro delay (T8)–(T10) (DiagnoseOptions."
-                               "gyro_delay_model; default on)"),
-        ("--magnet-ramps", "S15: magnetic_disturbance's field with fitted ramps at the window edges (R1) "
-                           "(DiagnoseOptions.magnet_ramps; default on)"),
-        ("--magnet-step-refit", "S16-E (M3'): magnetic_disturbance's step search repeated on the residual of the "
-                                "(M1) fit of the windows found (DiagnoseOptions.magnet_step_refit; default on since "
-                                "session 16)"),
-        ("--saturation-censor", "S16-E (C1'): a gyro sample on a rail censored in saturation's residuals "
-                                "(DiagnoseOptions.saturation_censor; default on since session 16)"),
-        ("--saturation-area", "S16-E (C1''): the censored gyro values estimated per keyframe interval against the "
-                              "keyframes (DiagnoseOptions.saturation_area; default off)"),
-        ("--vibration-band-windows", "S16-F (V3)-(V4): vibration's windows re-localised on the fitted band, "
-                                     "narrow-band excess only (DiagnoseOptions.vibration_band_windows; default on "
-                                     "since session 16)"),
-        ("--fold-fixed-structure", "S17-H (T11): cross-validation folds refit an effect with the discrete structure "
-                                   "of its all-sample fit held (time_offset's channel; DiagnoseOptions."
-                                   "fold_fixed_structure; default on since session 17)"),
-        ("--local-check", "S17-H (V'): a localised verdict leaves when a global effect on its channel explains its "
-                          "support at least as well by the held-out log score (DiagnoseOptions.local_check; "
-                          "default off)"),
-        ("--magnet-intermittent", "S20-M (M6): magnetic_disturbance's windows for an intermittent disturbance (a "
-                                  "stationary magnet visited several times; DiagnoseOptions.magnet_intermittent; "
-                                  "default off)"),
-        ("--magnet-visit-drift", "S20-M (M7): magnetic_disturbance's window field drifting through the window "
-                                 "(DiagnoseOptions.magnet_visit_drift; default off)"),
-        ("--vibration-motion-check", "S20-V (V6): vibration relevant only beyond the band RMS the measured angular "
-                                     "motion explains at a hand's lever arm (DiagnoseOptions.vibration_motion_check; "
-                                     "default on since session 20)"),
-        ("--timing-confidence", "S20-V (T12): time_offset relevant only when |τ| ≥ 1 sample + 1.645 × its folds' "
-                                "jackknife SE (DiagnoseOptions.timing_confidence; default on since session 20)"),
-        ("--refit-hold-noise", "S20-Mb: the full refit's (F1) rounds hold the base fit's noise levels instead of "
-                               "re-estimating them (DiagnoseOptions.refit_hold_noise; default off)"),
-        ("--refit-accelerate", "S20-Mb (F2): the full refit's alternation extrapolated to its fixed point "
-                               "(Aitken, after 4 rounds; DiagnoseOptions.refit_accelerate; default off)"),
-        ("--nested-check", "S20-W (V''): an effect named by the log-score route must keep its held-out log score "
-                           "on top of a stronger relevant effect on its channel (DiagnoseOptions.nested_check; "
-                           "default off)"),
-        ("--shift-prediction", "S20-W (T13): time_offset's acc/mag residual y − h(t − τ), the prediction shifted, not "
-                               "the data interpolated (DiagnoseOptions.shift_prediction; default off)"),
-        ("--whitening-jacobian", "S20-W (L3): the log score of a whitened residual (linear_acceleration, vibration) "
-                                 "charged its filter's Jacobian (DiagnoseOptions.whitening_jacobian; default off)"),
-        ("--timestamp-jitter", "S20-T: the timestamp_jitter effect (host receive stamps re-timed on a fitted sample "
-                               "clock) in the library (DiagnoseOptions.timestamp_jitter; default on since session 20)"),
-    ]
-    for flag, text in switches:
+    for flag, text in SWITCHES:
         p.add_argument(flag, action=argparse.BooleanOptionalAction, default=None, help=text)
     p.add_argument("--cross-gap", type=float, default=None, metavar="W",
                    help="S16: weight w_x of the gap's cross-channel term (G1'), the correlation of the acc and "
@@ -169,28 +171,10 @@ def diagnose_options(args: argparse.Namespace, **fields):
 
     from imugraph.diagnose.run import DiagnoseOptions
 
+    switches = {n: getattr(args, n, None) for n in (flag[2:].replace("-", "_") for flag, _ in SWITCHES)}
     o = DiagnoseOptions(joint_gyro=getattr(args, "joint_gyro", None),
                         subsample_lag=getattr(args, "subsample_lag", None),
-                        timing_rules=getattr(args, "timing_rules", None),
-                        drift_basis=getattr(args, "drift_basis", None),
-                        gyro_delay_model=getattr(args, "gyro_delay_model", None),
-                        magnet_ramps=getattr(args, "magnet_ramps", None),
-                        magnet_step_refit=getattr(args, "magnet_step_refit", None),
-                        saturation_censor=getattr(args, "saturation_censor", None),
-                        saturation_area=getattr(args, "saturation_area", None),
-                        vibration_band_windows=getattr(args, "vibration_band_windows", None),
-                        fold_fixed_structure=getattr(args, "fold_fixed_structure", None),
-                        local_check=getattr(args, "local_check", None),
-                        nested_check=getattr(args, "nested_check", None),
-                        shift_prediction=getattr(args, "shift_prediction", None),
-                        whitening_jacobian=getattr(args, "whitening_jacobian", None),
-                        timestamp_jitter=getattr(args, "timestamp_jitter", None),
-                        magnet_intermittent=getattr(args, "magnet_intermittent", None),
-                        magnet_visit_drift=getattr(args, "magnet_visit_drift", None),
-                        vibration_motion_check=getattr(args, "vibration_motion_check", None),
-                        timing_confidence=getattr(args, "timing_confidence", None),
-                        refit_hold_noise=getattr(args, "refit_hold_noise", None),
-                        refit_accelerate=getattr(args, "refit_accelerate", None), **fields)   # None: the defaults
+                        drift_basis=getattr(args, "drift_basis", None), **switches, **fields)   # None: the defaults
     if getattr(args, "cross_gap", None) is not None:                        # S16 (G1')
         o = replace(o, gap=replace(o.gap, cross_weight=float(args.cross_gap)))
     if getattr(args, "cross_form", None) is not None:

@@ -172,27 +172,14 @@ def load_effects(names=None) -> dict:
         from imugraph.diagnose.effects import EFFECTS
     except ImportError:
         EFFECTS = {}
-    EFFECTS = _with_optional(EFFECTS, names)
-    if names is None:
-        return dict(EFFECTS)
+    if names is None:                     # the library without the effects switched off (S20-T timestamp_jitter)
+        return {n: e for n, e in EFFECTS.items() if getattr(e, "enabled", True)}
     from imugraph.errors import SessionError
 
     missing = [n for n in names if n not in EFFECTS]
     if missing:
         raise SessionError("--effects", "effects", ", ".join(missing), f"names among {sorted(EFFECTS)}")
     return {n: EFFECTS[n] for n in names}
-
-
-def _with_optional(effects: dict, names) -> dict:
-    """The library without the effects switched off (S20-T timestamp_jitter when its flag is False), unless named."""
-    try:
-        from imugraph.diagnose.effects import timestamp_jitter
-    except ImportError:
-        return effects
-    name = timestamp_jitter.EFFECT.name
-    if timestamp_jitter.ENABLED or (names is not None and name in names):
-        return effects
-    return {n: e for n, e in effects.items() if n != name}
 
 
 def null_fold_gap(null: Fit, sim: Fit, sigma: dict, folds: list, gap_opt: GapOptions) -> dict:

@@ -135,11 +135,12 @@ def check_train(fit, train) -> np.ndarray:
     return train
 
 
-def replace_session(s: Session, *, gyr=None, acc=None, mag=None, name_suffix="", meta=None) -> Session:
-    """A copy of `s` with some channels replaced (inputs untouched)."""
+def replace_session(s: Session, *, t=None, gyr=None, acc=None, mag=None, name_suffix="", meta=None) -> Session:
+    """A copy of `s` with some channels (or the stamps t) replaced (inputs untouched)."""
     m = dict(s.meta)
     m.update(meta or {})
-    return Session(t=s.t.copy(), gyr=s.gyr.copy() if gyr is None else np.asarray(gyr, float),
+    return Session(t=s.t.copy() if t is None else np.asarray(t, float),
+                   gyr=s.gyr.copy() if gyr is None else np.asarray(gyr, float),
                    acc=s.acc.copy() if acc is None else np.asarray(acc, float),
                    mag=s.mag.copy() if mag is None else np.asarray(mag, float),
                    quat=None if s.quat is None else s.quat.copy(),

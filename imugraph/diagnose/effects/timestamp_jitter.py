@@ -61,7 +61,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from imugraph.diagnose.effects.base import Correction, Effect, check_train, gyro_exact, noise_scale
+from imugraph.diagnose.effects.base import Correction, Effect, check_train, gyro_exact, noise_scale, replace_session
 
 RANGES = {"mean_delay_samples": (0.5, 1.0), "burst_p": 0.5, "burst_s": (0.2, 1.0)}
 QUANTILE = 0.2               # (J3) the clock runs along this quantile of the stamps' delay
@@ -234,19 +234,21 @@ def _gyr_key(gyr) -> int | None:
     return None if gyr is None else hash(np.ascontiguousarray(gyr, float).tobytes())
 
 
-def clock_of(t: np.ndarray, gyr: np.ndarray | None = None) -> dict:
-    """The clock of the stamps t: the one `TimestampJitter.refit` chose among the candidates (J7) for the
-    recording with these stamps and this gyro once it ran, else `fit_clock(t)` (lowest (J3)); cached per
-    stamp array (every fold and round: same stamps)."""
+def clock_candidates(t: np.ndarray) -> list:
+    """`fit_clock(t, candidates=True)`, cached per stamp array (every fold and round: same stamps)."""
     key = _stamps_key(t)
-    chosen = _CHOSEN.get((key, _gyr_key(gyr)))
-    if chosen is not None:
-        return chosen
     if key not in _CLOCK_CACHE:
         if len(_CLOCK_CACHE) >= 8:
             _CLOCK_CACHE.pop(next(iter(_CLOCK_CACHE)))
-        _CLOCK_CACHE[key] = fit_clock(t)
+        _CLOCK_CACHE[key] = fit_clock(t, candidates=True)
     return _CLOCK_CACHE[key]
+
+
+def clock_of(t: np.ndarray, gyr: np.ndarray | None = None) -> dict:
+    """The clock of the stamps t: the one `TimestampJitter.refit` chose among the candidates (J7) for the
+    recording with these stamps and this gyro once it ran, else `fit_clock(t)` (lowest (J3), cached)."""
+    chosen = _CHOSEN.get((_stamps_key(t), _gyr_key(gyr)))
+    return chosen if chosen is not None else clock_candidates(t)[0]
 
 
 def clock_rate_change(t: np.ndarray, clock: dict) -> np.ndarray:
@@ -259,13 +261,9 @@ def clock_rate_change(t: np.ndarray, clock: dict) -> np.ndarray:
 
 def retimed(session, clock: dict | None = None):
     """The session on its sample clock (J1): t ← τ − τ₀ (the refit θ*, the benchmark's evidence)."""
-    from imugraph.io.session import Session
-
     c = clock or clock_of(session.t)
-    meta = dict(session.meta, retimed={"period_s": c["period"], "lost": c["lost"]})
-    return Session(t=c["tau"] - c["tau"][0], gyr=session.gyr.copy(), acc=session.acc.copy(),
-                   mag=session.mag.copy(), quat=None if session.quat is None else session.quat.copy(),
-                   movement=session.movement, source=session.source, name=session.name + "_retimed", meta=meta)
+    return replace_session(session, t=c["tau"] - c["tau"][0], name_suffix="_retimed",
+                           meta={"retimed": {"period_s": c["period"], "lost": c["lost"]}})
 
 
 class JitterCorrection(Correction):
@@ -291,11 +289,14 @@ class TimestampJitter(Effect):
     windowed = False
     ranges = RANGES
 
+    @property
+    def enabled(self) -> bool:
+        """In the default library (`run.load_effects()`) only while ENABLED; a named request always has it."""
+        return ENABLED
+
     def inject(self, session, rng, *, window=None, strength=None):
         """Stamp the samples on arrival: t'_j = t_j + d_j (module doc). strength: mean delay in sample
         periods (default uniform in RANGES); a burst (p = burst_p) in `window` or a random place."""
-        from imugraph.io.session import Session
-
         period = float(np.median(session.dt))
         m = float(strength) if strength is not None else float(rng.uniform(*RANGES["mean_delay_samples"]))
         d = rng.exponential(m * period, session.n)                                  # receive delay
@@ -312,12 +313,9 @@ class TimestampJitter(Effect):
         t_new = np.maximum.accumulate(session.t + d - eps) + eps
         truth = {"params": {"mean_delay_samples": m, "burst": burst},
                  "t_start": None, "t_end": None}
-        meta = dict(session.meta, injected={**session.meta.get("injected", {}), self.name: truth})
-        out = Session(t=t_new - t_new[0] + session.t[0], gyr=session.gyr.copy(), acc=session.acc.copy(),
-                      mag=session.mag.copy(), quat=None if session.quat is None else session.quat.copy(),
-                      movement=session.movement, source=session.source, name=session.name + "+timestamp_jitter",
-                      meta=meta)
-        return out, truth
+        injected = {**session.meta.get("injected", {}), self.name: truth}
+        return replace_session(session, t=t_new - t_new[0] + session.t[0], name_suffix="+timestamp_jitter",
+                               meta={"injected": injected}), truth
 
     def fit(self, fit, train, window=None) -> Correction:
         """The sample clock from the stamps (J1)–(J3), (J7), then Δω of (J2) at the fit's bias. The clock's
@@ -327,8 +325,8 @@ class TimestampJitter(Effect):
         train = check_train(fit, train)
         s = fit.session
         stamps = s.meta.get(STAMPS_KEY)
-        if SCREEN_REFIT and stamps is None and np.any(clock_rate_change(s.t, clock_of(s.t))):      # (J6)
-            self.refit(fit)                            # (J7): the clock chosen among the candidates
+        screen = SCREEN_REFIT and stamps is None and np.any(clock_rate_change(s.t, clock_of(s.t)))   # (J6)
+        ext = self.refit(fit)[0] if screen else None   # (J7): the clock chosen among the candidates
         clock = clock_of(s.t if stamps is None else np.asarray(stamps, float), s.gyr)
         # on the refit θ* (`refit`) the session is already on the clock: nothing left to correct
         ratio = clock_rate_change(s.t, clock) if stamps is None else np.zeros(s.n)
@@ -340,8 +338,7 @@ class TimestampJitter(Effect):
                                                                      1e3 * float(np.quantile(dev, 0.99))]},
                                 n_params=2 + int(clock["lost"]), channel=self.channel,
                                 deltas={"d_omega": d_omega, "clock": clock, "ratio": ratio})
-        if SCREEN_REFIT and stamps is None and np.any(ratio):                     # (J6)
-            ext, _ = self.refit(fit)
+        if screen and np.any(ratio):                                               # (J6)
             corr.deltas.update(of=fit, residuals={c: ext.residuals[c].copy() for c in ext.residuals})
         r = corr.raw_residuals(fit)
         corr.deltas["noise_scale"] = noise_scale(fit, r, train, ["acc", "mag"])
@@ -371,7 +368,7 @@ class TimestampJitter(Effect):
             ext.info["mag_delay_s"] = real.info.get("mag_delay_s", 0.0)
             return dc_replace(ext, info=dict(ext.info, keyframe_hz=real.info.get("keyframe_hz", 5.0)))
 
-        cands = fit_clock(real.session.t, candidates=True)
+        cands = clock_candidates(real.session.t)
         fits = [on_clock(c) for c in cands]
         eps = [closing_error_deg(f) for f in fits]
         spread = [_robust_rms(c) for c in cands]

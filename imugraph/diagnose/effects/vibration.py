@@ -131,8 +131,8 @@ def band_windows(fit, f_lo_hz: float, f_hi_hz: float) -> list:
     return [(float(s.t[i0]), float(s.t[i1 - 1])) for i0, i1 in found[:MAX_WINDOWS]]
 
 
-def motion_band_rms(fit, train: np.ndarray, wins: list, nper: int, lo: int, hi: int) -> list:
-    """(V6) per window w: the band RMS of the accelerometer excess that the MEASURED angular motion explains
+def motion_band_rms(fit, train: np.ndarray, wins: list, nper: int, lo: int, hi: int, k: int) -> float:
+    """(V6) in window k of `wins`: the band RMS of the accelerometer excess that the MEASURED angular motion explains
     at a hand's lever arm r_h (linear_acceleration.HAND_LEVER_M, as (L2)). A rigid body turning at ω feels at
     r the tangential α × r and the centripetal ω × (ω × r); above the motion band the part that varies fast is
     α_hf × r and, to first order, ω̄ × (ω_hf × r) + ω_hf × (ω̄ × r) (ω̄: the slow rate), so per axis
@@ -151,12 +151,9 @@ def motion_band_rms(fit, train: np.ndarray, wins: list, nper: int, lo: int, hi: 
     w_bar = smooth(np.linalg.norm(w, axis=1), max(1, int(round(MOTION_SMOOTH_S * s.rate))))
     u = HAND_LEVER_M * (np.gradient(w, s.t, axis=0) + 2.0 * w_bar[:, None] * w)                     # (V6)
     _, u_out = train_psd(u, train & ~window_mask(s.t, wins), nper)
-    out = []
-    for a, b in wins:
-        _, u_w = train_psd(u, train & window_mask(s.t, [(a, b)]), nper)
-        ex = np.maximum(u_w[lo:hi + 1] - u_out[lo:hi + 1], 0.0)
-        out.append(float(np.sqrt(np.sum(ex) / nper)) if np.all(np.isfinite(ex)) else 0.0)
-    return out
+    _, u_w = train_psd(u, train & window_mask(s.t, [wins[k]]), nper)
+    ex = np.maximum(u_w[lo:hi + 1] - u_out[lo:hi + 1], 0.0)
+    return float(np.sqrt(np.sum(ex) / nper)) if np.all(np.isfinite(ex)) else 0.0
 
 
 class VibrationCorrection(Correction):
@@ -233,7 +230,7 @@ class Vibration(Effect):
                   "freq_hz": float(f[k0] * rate), "band_hz": [float(f[lo] * rate), float(f[hi] * rate)],
                   "amp_ms2": amps[best].tolist()}
         if MOTION_CHECK:                                                                  # (V6)
-            params["motion_rms"] = motion_band_rms(fit, train, wins, nper, lo, hi)[best]
+            params["motion_rms"] = motion_band_rms(fit, train, wins, nper, lo, hi, best)
         corr = VibrationCorrection(self.name, params, n_params=5 + 5 * len(wins),
                                    t_start=wins[best][0], t_end=wins[best][1], channel=self.channel,
                                    deltas={"f": f, "s_out": s_out, "s_v": s_vs})
