@@ -174,8 +174,7 @@ def explain(session, ref: dict) -> None:
 
     fit = fit_base(session, base_options(5.0))
     t, r, sig = session.t, fit.residuals["mag"], np.asarray(fit.sigma["mag"], float)
-    bRn = np.transpose(fit.nRb, (0, 2, 1))
-    earth = float(np.median(np.linalg.norm((bRn @ fit.calibration.n_mag) @ np.asarray(fit.calibration.D).T, axis=1)))
+    earth = md.earth_field_norm(fit)
     last = len(t) - 1
     raw = md.step_windows_refit(fit, r, earth, max_windows=8)[0]
     print(f"  base fit: |m| {earth:.1f}, σ_mag {np.round(sig, 2).tolist()}; (M3') accepted (up to 8, before "

@@ -76,8 +76,8 @@ def test_add_fold_charges_the_extended_model_its_jacobian():
     test = np.zeros(400, bool)
     test[::5] = True
     plain, charged = nested.GainAccumulator(), nested.GainAccumulator()
-    nested.add_fold(plain, r, r, ~test, test, {}, {})
-    nested.add_fold(charged, r, r, ~test, test, {}, {"acc": np.full(400, -0.2)})
+    plain.add(r, r, ~test, test)
+    charged.add(r, r, ~test, test, j_ext={"acc": np.full(400, -0.2)})
     assert plain.result(0)[1]["acc"] == pytest.approx(0.0)
     assert charged.result(0)[1]["acc"] == pytest.approx(-0.2)              # same residuals, filter paid for
 

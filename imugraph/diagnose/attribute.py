@@ -192,13 +192,12 @@ def evaluate_effect(effect, real, sim, null_gap: dict, folds: list, opt: Attribu
                 fold_sizes.append(float(effect.size(corr, fitted).get("value", np.nan)))
             except (KeyError, TypeError, ValueError, IndexError):
                 fold_sizes.append(float("nan"))
-        raw = corr.raw_residuals(real if ext is None else ext)
-        ll_train = ~fold if support is None or rest is None else ~fold & support
+        data = real if ext is None else ext
+        raw = corr.raw_residuals(data)
         if WHITENING_JACOBIAN:             # S20-W (L3): a whitened residual's score charged its filter's ln|det W|
-            from imugraph.diagnose.nested import add_fold, log_det
-            add_fold(ll, real.residuals, raw, ll_train, test, {}, log_det(corr, real if ext is None else ext))
-        else:
-            ll.add(real.residuals, raw, ll_train, test)
+            from imugraph.diagnose.nested import log_det
+        ll.add(real.residuals, raw, ~fold if support is None or rest is None else ~fold & support, test,
+               j_ext=log_det(corr, data) if WHITENING_JACOBIAN else None)
         if (getattr(corr, "deltas", None) or {}).get("heldout") is not None:
             own.add_costs(corr.deltas["heldout"])
             own_ll.add_costs(corr.deltas["heldout"]["ll"])

@@ -33,7 +33,7 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from imugraph.diagnose.score import CHANNELS, GainAccumulator, channel_scores, clearly_better
+from imugraph.diagnose.score import GainAccumulator, clearly_better
 
 NESTED_CHECK = False
 
@@ -63,31 +63,11 @@ def log_det(corr, fit) -> dict:
     if corr.name == "vibration" and wins and {"f", "s_out", "s_v"} <= set(d):
         from imugraph.diagnose.effects.base import window_mask
 
-        f_full = np.fft.rfftfreq(n)
-        so = np.stack([np.interp(f_full, d["f"], d["s_out"][:, a]) for a in range(3)], axis=1)
         out = np.zeros(n)
-        for w, s_v in zip(wins, d["s_v"]):
-            sv = np.stack([np.interp(f_full, d["f"], s_v[:, a]) for a in range(3)], axis=1)
-            out[window_mask(fit.session.t, [(w["t_start"], w["t_end"])])] = \
-                _mean_log_gain(np.sqrt(so / np.maximum(so + sv, 1e-30)), n)
+        for w, gain in corr.window_gains(n):                                    # (V1), as raw_residuals applies it
+            out[window_mask(fit.session.t, [(w["t_start"], w["t_end"])])] = _mean_log_gain(gain, n)
         return {"acc": out}
     return {}
-
-
-def add_fold(ll: GainAccumulator, r_base: dict, r_ext: dict, train, test, j_base: dict, j_ext: dict) -> None:
-    """One fold of (A4) with each model's Jacobian (`log_det`): ℓ_m − Σ_test J_m (rows finite in both)."""
-    scores = {}
-    for c in CHANNELS:
-        if c not in r_base:
-            continue
-        rb, re = np.asarray(r_base[c], float), np.asarray(r_ext.get(c, r_base[c]), float)
-        lb, le, n = channel_scores(rb, re, train, test)
-        ok = test & np.all(np.isfinite(rb), axis=1) & np.all(np.isfinite(re), axis=1)
-        if n:
-            lb -= float(np.sum(j_base[c][ok])) if c in j_base else 0.0
-            le -= float(np.sum(j_ext[c][ok])) if c in j_ext else 0.0
-        scores[c] = (lb, le, n)
-    ll._add_fold(scores)
 
 
 def by_log_score_only(res, margin: float) -> bool:
@@ -116,7 +96,7 @@ def nested_gain(real, folds: list, res, other, effect, other_effect) -> dict | N
         j_ge = log_det(ge, view)                       # G's filter on the data without E, and E's own filter
         for c, j in log_det(corr_e, real).items():     # (vibration's whitening of its window) when it has one
             j_ge[c] = j_ge.get(c, 0.0) + j
-        add_fold(ll, g.raw_residuals(real), ge.raw_residuals(view), train, fold, log_det(g, real), j_ge)
+        ll.add(g.raw_residuals(real), ge.raw_residuals(view), train, fold, log_det(g, real), j_ge)
     if not ll.folds:
         return None
     gain, per, _ = ll.result(res.n_params)

@@ -81,9 +81,9 @@ def refit_effect(effect, real: Fit, rounds: int = 2, window=None) -> tuple[Fit, 
     cur = real
     info = {"rounds": []}
     train = np.ones(real.n, bool)
-    prev = None
-    seq = []                                   # S20-Mb (F2): the corrected data of every round
+    seq = []                                   # the corrected data of every round (seq[-1]: the previous one)
     stop = CONVERGED / 10.0 if ACCELERATE else CONVERGED
+    opts = refit_options(real)                 # S20-Mb: σ held?
     for _ in range(max(rounds, ACCEL_ROUNDS) if ACCELERATE else rounds):
         view = real if cur is real else on_session(cur, real.session)
         corr = effect.fit(view, train, window=window)
@@ -91,18 +91,17 @@ def refit_effect(effect, real: Fit, rounds: int = 2, window=None) -> tuple[Fit, 
         info["rounds"].append({"params": corr.params, "t_start": corr.t_start, "t_end": corr.t_end})
         if not new:
             break
-        if prev is not None and _change(new, prev, real.session) < stop:
+        if seq and _change(new, seq[-1], real.session) < stop:
             info["converged"] = True          # y_r ≈ y_{r−1}: fit_base would return θ_{r−1} again
             break
-        cur = fit_simulation(replace_session(real.session, **new), cur, refit_options(real))   # S20-Mb: σ held?
+        cur = fit_simulation(replace_session(real.session, **new), cur, opts)
         cur.info["mag_delay_s"] = real.info.get("mag_delay_s", 0.0)   # θ_r's data: the recording's τ_m (B3)
-        prev = new
         seq.append(new)
     if ACCELERATE and len(seq) >= 3 and not info.get("converged"):                          # (F2)
         jump, rho = _aitken(seq[-3:])
         info["rho"] = rho
         if jump is not None:
-            cur = fit_simulation(replace_session(real.session, **jump), cur, refit_options(real))
+            cur = fit_simulation(replace_session(real.session, **jump), cur, opts)
             cur.info["mag_delay_s"] = real.info.get("mag_delay_s", 0.0)
             info["extrapolated"] = True
     info["window"] = window

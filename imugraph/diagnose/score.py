@@ -68,10 +68,24 @@ class GainAccumulator:
         self.base = {c: 0.0 for c in CHANNELS}       # Σ ℓ_base, Σ ℓ_ext (absolute levels, `levels`)
         self.ext = {c: 0.0 for c in CHANNELS}
 
-    def add(self, base: dict, ext: dict, train: np.ndarray, test: np.ndarray) -> None:
-        """Add one fold: base/ext are channel → (N, 3) raw residuals (ext falls back to base)."""
-        self._add_fold({c: channel_scores(np.asarray(base[c], float), np.asarray(ext.get(c, base[c]), float),
-                                          train, test) for c in CHANNELS if c in base})
+    def add(self, base: dict, ext: dict, train: np.ndarray, test: np.ndarray, j_base: dict | None = None,
+            j_ext: dict | None = None) -> None:
+        """Add one fold: base/ext are channel → (N, 3) raw residuals (ext falls back to base). j_base/j_ext:
+        channel → (N,) per-sample ln|det W| of a model whose residuals are whitened (S20-W (L3), `nested.log_det`),
+        charged on the scored rows: ℓ_m − Σ_test J_m (rows finite in both models)."""
+        scores = {}
+        for c in CHANNELS:
+            if c not in base:
+                continue
+            rb, re = np.asarray(base[c], float), np.asarray(ext.get(c, base[c]), float)
+            lb, le, n = channel_scores(rb, re, train, test)
+            jb, je = (j_base or {}).get(c), (j_ext or {}).get(c)
+            if n and (jb is not None or je is not None):
+                ok = test & np.all(np.isfinite(rb), axis=1) & np.all(np.isfinite(re), axis=1)
+                lb -= float(np.sum(jb[ok])) if jb is not None else 0.0
+                le -= float(np.sum(je[ok])) if je is not None else 0.0
+            scores[c] = (lb, le, n)
+        self._add_fold(scores)
 
     def _add_fold(self, scores: dict) -> None:
         """One fold's channel → (ℓ_base, ℓ_ext, rows) summed in; its Σ_c Δℓ_c / rows kept per fold."""

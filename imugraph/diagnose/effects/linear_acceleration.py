@@ -77,12 +77,9 @@ class LinearAccelerationCorrection(Correction):
         The density of the raw residual r under (L1) is that of w = W r times |det W|, so the log score (A4)
         of the whitened residual w must add −J per sample to be the negative log-likelihood of r; without it
         a stronger filter (larger P, lower f_c) scores better whatever the data (nested.py (V''1))."""
-        g = np.asarray(self.deltas["gain"](n, rate_hz), float)                       # (F, 3) on rfftfreq(n)
-        w = np.full(len(g), 2.0)                                                     # each rfft bin twice ...
-        w[0] = 1.0                                                                   # ... but DC
-        if n % 2 == 0:
-            w[-1] = 1.0                                                              # ... and Nyquist
-        return {"acc": float(np.sum(w[:, None] * np.log(np.maximum(g, 1e-300))) / n)}
+        from imugraph.diagnose.nested import _mean_log_gain
+
+        return {"acc": _mean_log_gain(self.deltas["gain"](n, rate_hz), n)}          # (F, 3) on rfftfreq(n)
 
     def raw_residuals(self, fit) -> dict:
         out = {c: fit.residuals[c].copy() for c in fit.residuals}

@@ -15,7 +15,7 @@ to the sensor (one long window) and has two limits that drop visits:
      was accepted by (M3') as 144.4–146.4 s (its minimum length, 8 blocks: 1.98 s from first to last sample)
      and dropped after the refinement had moved its start later (docs/diagnose.md §S20-M).
 
-This search (M6):
+The search (M6) (`MagneticDisturbance.find_windows` with INTERMITTENT, MAX_VISITS):
   * (M3') up to MAX_VISITS windows (the χ² Bonferroni threshold and the floor 0.05 |m| are (M3)'s: each
     further window must pass the same test on the residual of the (M1) fit of those found before);
   * the excess-energy windows of the (M1) residual that overlap none of them, as before (min 2 s);
@@ -29,36 +29,6 @@ pass (M3)'s test. Fields per window are fitted by (M1) as before (`_solve_fields
 from __future__ import annotations
 
 import numpy as np
-
-MAX_VISITS = 8               # windows at most (the (M3) test decides how many; this only bounds the work)
-
-
-def find_windows(fit) -> list:
-    """(M6) The disturbance windows (t_start, t_end), longest first, of an intermittent disturbance (module doc)."""
-    from imugraph.diagnose.effects import magnetic_disturbance as md
-    from imugraph.diagnose.effects.base import detect_windows, refine_edge
-
-    t = fit.session.t
-    r = fit.residuals["mag"]
-    half = max(3, int(round(2.0 * fit.session.rate)))
-    earth = md.earth_field_norm(fit)
-    found, r_rest = md.step_windows_refit(fit, r, earth, max_windows=MAX_VISITS)         # (M3') × MAX_VISITS
-    n_step = len(found)
-    z2 = np.sum((r_rest / fit.sigma["mag"]) ** 2, axis=1) / 3.0
-    for i0, i1 in detect_windows(t, z2, smooth_s=1.0, factor=4.0, min_s=2.0, merge_s=2.0):
-        if all(i1 <= a or i0 >= b for a, b in found):
-            found.append((i0, i1))
-    out = []
-    for k, (i0, i1) in enumerate(found[:MAX_VISITS]):
-        last = min(i1, len(t)) - 1
-        a = refine_edge(r, i0, half)
-        b = refine_edge(r, last, half)
-        if t[b] - t[a] >= md.STEP_MIN_S:
-            out.append((float(t[a]), float(t[b])))
-        elif k < n_step:                                   # accepted by (M3): its own edges stand
-            out.append((float(t[i0]), float(t[last])))
-    return sorted(out, key=lambda w: -(w[1] - w[0]))
-
 
 DRIFT_ORDER = 2              # (M7): Legendre orders 1..DRIFT_ORDER of each window's field
 
@@ -87,12 +57,13 @@ def drift_jacobian(fit, env: list, bRn: np.ndarray, D: np.ndarray) -> np.ndarray
             continue
         a, b = float(t[m].min()), float(t[m].max())
         tau = 2.0 * (t[m] - a) / max(b - a, 1e-9) - 1.0
+        DB = D @ bRn[m]                                                             # D bRn over the window
         for k in range(1, K + 1):
             P = np.polynomial.legendre.Legendre.basis(k)(tau) * e_w[m]
             c = 6 * (K * i + k - 1)
             J[m, :, c:c + 3] = P[:, None, None] * np.eye(3)                      # P_k Δo_w,k
-            J[m, :, c + 3:c + 6] = P[:, None, None] * (D @ bRn[m])                # P_k D bRn Δn_w,k
+            J[m, :, c + 3:c + 6] = P[:, None, None] * DB                          # P_k D bRn Δn_w,k
     return J
 
 
-__all__ = ["DRIFT_ORDER", "MAX_VISITS", "drift_jacobian", "find_windows"]
+__all__ = ["DRIFT_ORDER", "drift_jacobian"]

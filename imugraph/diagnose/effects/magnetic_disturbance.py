@@ -56,6 +56,7 @@ RELEVANT_FRACTION = 0.10     # relevance: extra field ≥ 10 % of |m| (M2)
 RAMPS = True                 # S15 (R1): the window's field with fitted linear ramps at its edges (default since S15)
 STEP_REFIT = True            # S16-E (M3'): re-search windows on the residual of the (M1) fit of those found (default since S16)
 INTERMITTENT = False         # S20-M (M6): several visits of a stationary magnet (effects/magnet_intermittent.py; opt-in)
+MAX_VISITS = 8               # (M6): windows at most (the (M3) test decides how many; this only bounds the work)
 VISIT_DRIFT = False          # S20-M (M7): each window's field drifting through it (magnet_intermittent.drift_jacobian; opt-in)
 
 
@@ -202,28 +203,29 @@ class MagneticDisturbance(Effect):
         """Disturbance windows (t_start, t_end) from the magnetometer residual of all samples, longest
         first: steps of its mean (`step_windows`, (M3): a field fixed to the sensor), then windows of
         excess residual energy that overlap none of them (a field that is not constant in the body frame)."""
-        if INTERMITTENT:                           # S20-M (M6): up to MAX_VISITS windows (a stationary magnet)
-            from imugraph.diagnose.effects.magnet_intermittent import find_windows
-
-            return find_windows(fit)
         t = fit.session.t
         r = fit.residuals["mag"]
         half = max(3, int(round(2.0 * fit.session.rate)))
         earth = earth_field_norm(fit)
-        if STEP_REFIT:                             # S16-E (M3'): each search after the (M1) fit of the windows found
-            found, r_rest = step_windows_refit(fit, r, earth)
+        n_max = MAX_VISITS if INTERMITTENT else MAX_WINDOWS      # S20-M (M6): a stationary magnet's several visits
+        if STEP_REFIT or INTERMITTENT:             # S16-E (M3'): each search after the (M1) fit of the windows found
+            found, r_rest = step_windows_refit(fit, r, earth, max_windows=n_max)
         else:
             found, r_rest = [(i0, i1) for i0, i1, _, _ in step_windows(t, r, earth)], r
+        n_step = len(found) if INTERMITTENT else 0                # (M6): a window (M3) accepted keeps its edges
         z2 = np.sum((r_rest / fit.sigma["mag"]) ** 2, axis=1) / 3.0
         for i0, i1 in detect_windows(t, z2, smooth_s=1.0, factor=4.0, min_s=2.0, merge_s=2.0):
             if all(i1 <= a or i0 >= b for a, b in found):
                 found.append((i0, i1))
         out = []
-        for i0, i1 in found[:MAX_WINDOWS]:
+        for k, (i0, i1) in enumerate(found[:n_max]):
+            last = min(i1, len(t)) - 1
             a = refine_edge(r, i0, half)
-            b = refine_edge(r, min(i1, len(t)) - 1, half)
-            if t[b] - t[a] >= STEP_MIN_S:          # an edge refined onto the other: no window left
+            b = refine_edge(r, last, half)
+            if t[b] - t[a] >= STEP_MIN_S:          # an edge refined onto the other: no window left ...
                 out.append((float(t[a]), float(t[b])))
+            elif k < n_step:                       # ... but (M6): a window (M3) accepted keeps its own edges
+                out.append((float(t[i0]), float(t[last])))
         return sorted(out, key=lambda w: -(w[1] - w[0]))
 
 

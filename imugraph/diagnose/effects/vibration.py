@@ -157,17 +157,22 @@ def motion_band_rms(fit, train: np.ndarray, wins: list, nper: int, lo: int, hi: 
 
 
 class VibrationCorrection(Correction):
+    def window_gains(self, n: int):
+        """(window, |H_w| (F, 3) on rfftfreq(n)) per window: its whitening gain (V1) √(S_out / (S_out + S_v,w)),
+        each window its own S_v (`raw_residuals`, and its Jacobian in nested.log_det)."""
+        f_w, s_out = self.deltas["f"], self.deltas["s_out"]
+        f_full = np.fft.rfftfreq(n)
+        so = np.stack([np.interp(f_full, f_w, s_out[:, a]) for a in range(3)], axis=1)
+        for w, s_v in zip(self.params["windows"], self.deltas["s_v"]):
+            sv = np.stack([np.interp(f_full, f_w, s_v[:, a]) for a in range(3)], axis=1)
+            yield w, np.sqrt(so / np.maximum(so + sv, 1e-30))
+
     def raw_residuals(self, fit) -> dict:
         out = {c: fit.residuals[c].copy() for c in fit.residuals}
-        wins = self.params["windows"]
-        if not wins:
+        if not self.params["windows"]:
             return out
-        f_w, s_out = self.deltas["f"], self.deltas["s_out"]
-        f_full = np.fft.rfftfreq(fit.n)
-        so = np.stack([np.interp(f_full, f_w, s_out[:, a]) for a in range(3)], axis=1)
-        for w, s_v in zip(wins, self.deltas["s_v"]):                   # each window its own S_v (V1)
-            sv = np.stack([np.interp(f_full, f_w, s_v[:, a]) for a in range(3)], axis=1)
-            filt = psd_filter(fit.residuals["acc"], np.sqrt(so / np.maximum(so + sv, 1e-30)))
+        for w, gain in self.window_gains(fit.n):
+            filt = psd_filter(fit.residuals["acc"], gain)
             inside = window_mask(fit.session.t, [(w["t_start"], w["t_end"])])
             out["acc"][inside] = filt[inside]
         return out
