@@ -2,7 +2,7 @@
 timestamps — measured against the robot, and the diagnosis with and without the timestamp_jitter effect.
 
 Per Rasteiro raw-sensor file (3 sequences × the 4 raw sensors):
-  clock   the fitted sample clock (effects/timestamp_jitter.py (J1)–(J3), chosen among the candidates by (J7),
+  clock   the fitted sample clock (imugraph/diagnose/sample_clock.py (J1)–(J3), chosen among the candidates by (J7),
           the candidates printed first): period, lost samples, phase lock (J5), the stamps'
           deviation t − τ (robust RMS in sample periods = the effect's size; 99th percentile in ms);
   robot   the gyro integrated over windows of `--window` samples on the STAMPS (Δt) and on the CLOCK (Δτ),

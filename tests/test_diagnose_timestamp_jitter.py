@@ -140,7 +140,7 @@ def test_device_stamps_with_lost_packets_are_not_jitter(data_file):
 
     s = load_session(data_file("xio_lower_body/pelvis 64F0EDBF (UDP)"))
     clock = tj.fit_clock(s.t)
-    assert clock["lost"] > 10 and tj._robust_rms(clock) < 0.01
+    assert clock["lost"] > 10 and tj.robust_rms(clock) < 0.01
     d = diagnose(s, DiagnoseOptions(effects=("timestamp_jitter",)))
     r = d.effects[0]
     assert r.name == "timestamp_jitter" and r.size["value"] < r.size["threshold"] and not r.relevant
