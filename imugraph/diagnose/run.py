@@ -69,7 +69,7 @@ class DiagnoseOptions:
             None: the module flag `local_check.LOCAL_CHECK` (default False).
         magnet_intermittent: S20-M (M6): magnetic_disturbance's windows for an intermittent disturbance (a
             stationary magnet visited several times): up to 8 windows, each passing (M3)'s test, kept when the
-            edge refinement shortens them (effects/magnet_intermittent.py); None: the module flag
+            edge refinement shortens them (MagneticDisturbance.find_windows); None: the module flag
             `magnetic_disturbance.INTERMITTENT` (default False).
         magnet_visit_drift: S20-M (M7): magnetic_disturbance's window field drifting through the window (Legendre
             orders 1–2 of Δo_w and Δn_w, effects/magnet_intermittent.py); None: the module flag

@@ -1,5 +1,7 @@
-"""magnetic_disturbance's window search for an intermittent disturbance (S20-M, opt-in: the module flag
-`magnetic_disturbance.INTERMITTENT`, `DiagnoseOptions.magnet_intermittent`; docs/diagnose.md §S20-M).
+"""An intermittent magnetic disturbance (S20-M, opt-in; docs/diagnose.md §S20-M): why and how
+magnetic_disturbance searches several windows (M6, conditions in `MagneticDisturbance.find_windows` under the
+flag `magnetic_disturbance.INTERMITTENT`, `DiagnoseOptions.magnet_intermittent`), and the code of (M7), a
+window's field drifting through it (`drift_jacobian`, flag `VISIT_DRIFT`).
 
 Why. A magnet lying at a fixed place (BROAD 28/30, "a small magnet placed in a stationary location") adds
 a field that is a function of the sensor's POSITION, b_mag,j = D bRn,j (n_mag + Δn(p_j)) + o + e_m with

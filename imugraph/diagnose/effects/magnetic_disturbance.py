@@ -55,7 +55,7 @@ PAD_S = 1.0                  # windows widened by this for the refit (the ramps 
 RELEVANT_FRACTION = 0.10     # relevance: extra field ≥ 10 % of |m| (M2)
 RAMPS = True                 # S15 (R1): the window's field with fitted linear ramps at its edges (default since S15)
 STEP_REFIT = True            # S16-E (M3'): re-search windows on the residual of the (M1) fit of those found (default since S16)
-INTERMITTENT = False         # S20-M (M6): several visits of a stationary magnet (effects/magnet_intermittent.py; opt-in)
+INTERMITTENT = False         # S20-M (M6): several visits of a stationary magnet (find_windows; opt-in)
 MAX_VISITS = 8               # (M6): windows at most (the (M3) test decides how many; this only bounds the work)
 VISIT_DRIFT = False          # S20-M (M7): each window's field drifting through it (magnet_intermittent.drift_jacobian; opt-in)
 
