@@ -252,6 +252,30 @@ def error_parts(q, s: Session, mask) -> tuple[float, float, float]:
     return tuple(f(q, s.quat, mask, s.rate).rms_deg for f in (orientation_error, inclination_error, heading_error))
 
 
+BOOT_BLOCK_S, N_BOOT = 10.0, 2000
+
+
+def rms_diff_ci(q_a: np.ndarray, q_b: np.ndarray, q_ref: np.ndarray, mask, rate: float) -> list[float]:
+    """95 % moving-block-bootstrap interval (degrees) of RMS_a − RMS_b over the samples both systems score.
+
+    Squared errors e²_a, e²_b per scored sample, each system at its own best shift and heading (as
+    `orientation_error`); nb = ⌈K/L⌉ blocks of L = BOOT_BLOCK_S seconds drawn with replacement (block sums from
+    a cumulative sum); percentiles 2.5 and 97.5 of √(Σe²_a/(nb L)) − √(Σe²_b/(nb L)) over N_BOOT resamples,
+    seed 0. Evaluation only: the reference is resampled, nothing is refitted. Errors correlated over longer
+    than a block make the interval too narrow, never too wide."""
+    from imugraph.evaluate import orientation_error_series
+
+    ia, ea = orientation_error_series(q_a, q_ref, mask)
+    ib, eb = orientation_error_series(q_b, q_ref, mask)
+    _, ja, jb = np.intersect1d(ia, ib, return_indices=True)
+    n, L = ja.size, max(1, int(round(BOOT_BLOCK_S * rate)))
+    L = min(L, n)
+    block = [np.convolve(e[j] ** 2, np.ones(L), "valid") for e, j in ((ea, ja), (eb, jb))]   # sums over L samples
+    starts = np.random.default_rng(0).integers(0, n - L + 1, size=(N_BOOT, -(-n // L)))
+    d = np.sqrt(block[0][starts].sum(1) / starts.shape[1] / L) - np.sqrt(block[1][starts].sum(1) / starts.shape[1] / L)
+    return [round(float(v), 4) for v in np.percentile(d, [2.5, 97.5])]
+
+
 def print_variant_summary(rows: Sequence[dict], script: str, arg: str, opts: Any, note: str = "") -> tuple | None:
     """The closing lines of a base-vs-variant benchmark (rows with "trial", "base", "variant", "diff"):
     the table, the two means and the largest increase. Returns (mean base, mean variant), or None (and a
