@@ -43,7 +43,8 @@ MIN_TOTAL_DEG = 180.0      # total rotation angle
 GYR_NOISE_FLOOR = 0.05     # rad/s: slower samples are not counted as rotation
 OCTANT_MIN_SHARE = 0.01    # of the picked directions
 CELL_DEG = 5.0             # one sample per this much integrated rotation
-_ADVICE = "D and o are not identifiable; rotate the sensor about all three axes"
+_ADVICE = ("rotate the sensor about all three axes and record again, or pass --allow-weak (library: "
+           "allow_weak=True) for a regularised estimate marked identifiable: false")
 
 
 def _unit(v: np.ndarray) -> np.ndarray:
@@ -140,18 +141,18 @@ def _problems(cov: dict) -> list[str]:
     out = []
     if cov["total_rotation_deg"] < MIN_TOTAL_DEG:
         out.append(f"the sensor hardly rotated (total {cov['total_rotation_deg']:.0f}°, need ≥ "
-                   f"{MIN_TOTAL_DEG:.0f}°): {_ADVICE}")
+                   f"{MIN_TOTAL_DEG:.0f}°)")
     if cov["axis_share"] > MAX_AXIS_SHARE:
         out.append(f"rotation about one axis only ({_axis_name(np.array(cov['dominant_axis']))} holds "
-                   f"{100 * cov['axis_share']:.0f} % of the rotation): {_ADVICE}")
+                   f"{100 * cov['axis_share']:.0f} % of the rotation)")
     if cov["mag_samples"] == 0:
         out.append("no magnetometer samples: the magnetometer cannot be calibrated")
     elif cov["mag_spread"][0] < MAG_MIN_SPREAD:
         out.append(f"the magnetometer readings cover only a circle or a small cap of the sphere "
-                   f"(smallest spread {cov['mag_spread'][0]:.3f}, need ≥ {MAG_MIN_SPREAD}): {_ADVICE}")
+                   f"(smallest spread {cov['mag_spread'][0]:.3f}, need ≥ {MAG_MIN_SPREAD})")
     if cov["acc_spread"][1] < ACC_MIN_SPREAD:
         out.append(f"gravity stays near one body direction (the sensor was hardly tilted; spread "
-                   f"{cov['acc_spread'][1]:.3f}, need ≥ {ACC_MIN_SPREAD}): {_ADVICE}")
+                   f"{cov['acc_spread'][1]:.3f}, need ≥ {ACC_MIN_SPREAD})")
     return out
 
 
@@ -196,7 +197,7 @@ def check_coverage(session: Session, nRb: np.ndarray | None = None,
     if not cov["identifiable"]:
         raise CalibrationError(f"{session.source}: field 'mag': found too little rotation to calibrate: "
                                + "; ".join(cov["problems"])
-                               + "; expected rotation about all three axes")
+                               + f"; expected data that identify D and o: {_ADVICE}")
     return cov
 
 

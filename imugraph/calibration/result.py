@@ -148,15 +148,56 @@ def _opt_float(value) -> float | None:
     return x
 
 
+def _window_number(d: dict, i: int, key: str) -> float:
+    """disturbances[i][key] as a finite float (s), else ValueError naming the field."""
+    if key not in d:
+        raise ValueError(f"disturbances[{i}].{key}: missing, expected a time in s (a finite number)")
+    v = d[key]
+    try:
+        if isinstance(v, (bool, str)) or v is None:
+            raise TypeError
+        x = float(v)
+    except (TypeError, ValueError):
+        raise ValueError(f"disturbances[{i}].{key}: {str(v)[:60]!r}, expected a time in s (a finite number)") from None
+    if not np.isfinite(x):
+        raise ValueError(f"disturbances[{i}].{key}: {x!r}, expected a time in s (a finite number)")
+    return x
+
+
+def _window(d: dict, i: int) -> dict:
+    """One disturbance window checked (the fields Calibration.corrected reads): t_start ≤ t_end finite (s),
+    offset null/absent or 3 finite numbers (raw magnetometer unit), modelled absent/null or a boolean."""
+    t0, t1 = _window_number(d, i, "t_start"), _window_number(d, i, "t_end")
+    if t0 > t1:
+        raise ValueError(f"disturbances[{i}].t_end: {t1!r} < t_start {t0!r}, expected t_start ≤ t_end")
+    out = {**d, "t_start": t0, "t_end": t1}
+    off = d.get("offset")
+    if off is not None:
+        try:
+            arr = np.asarray(off, float) if isinstance(off, list) else None
+        except (TypeError, ValueError):
+            arr = None
+        if arr is None or arr.shape != (3,) or not np.all(np.isfinite(arr)):
+            raise ValueError(f"disturbances[{i}].offset: {str(off)[:60]!r}, expected 3 finite numbers "
+                             "(the window's hard-iron shift) or null")
+        out["offset"] = arr.tolist()
+    if d.get("modelled") is not None and not isinstance(d["modelled"], bool):
+        raise ValueError(f"disturbances[{i}].modelled: {str(d['modelled'])[:60]!r}, expected true or false")
+    return out
+
+
 def _disturbances(value) -> list:
-    """The optional `disturbances` field of calibration.json: absent or null → []; each window's optional
-    `left_out` must be a list of [t_a, t_b] pairs of finite numbers with t_a ≤ t_b (s)."""
+    """The optional `disturbances` field of calibration.json: absent or null → []; each window needs finite
+    t_start ≤ t_end (s), an offset of 3 finite numbers or null, a boolean `modelled` if any (`_window`); its
+    optional `left_out` must be a list of [t_a, t_b] pairs of finite numbers with t_a ≤ t_b (s).
+    Raises ValueError whose message starts with the field, e.g. "disturbances[0].t_end: missing, ..."."""
     if value is None:
         return []
     if not isinstance(value, list) or not all(isinstance(d, dict) for d in value):
         raise ValueError(f"disturbances: {str(value)[:60]!r}, expected a list of objects")
     out = []
     for i, d in enumerate(value):
+        d = _window(d, i)
         runs = d.get("left_out")
         if runs is not None:
             try:

@@ -23,8 +23,14 @@ def run_demo(args: argparse.Namespace) -> int:
     Returns:
         0 on success (errors are raised as ImugraphError and reported by `imugraph.cli.main`).
     """
+    from imugraph.cli import DEMO_MIN_DURATION_S
+    from imugraph.errors import SessionError
     from imugraph.sim.scenario import distorted_session
 
+    if args.duration < DEMO_MIN_DURATION_S:     # checked before any output folder is made
+        raise SessionError("demo", "duration", f"{args.duration:g} s",
+                           f"at least {DEMO_MIN_DURATION_S:g} s (--duration): a shorter simulated motion holds too "
+                           "little rotation to calibrate the magnetometer")
     progress = common.Progress(args.quiet)
     progress.say(f"simulating {args.duration:g} s at {args.rate:g} Hz (seed {args.seed}), distorted magnetometer")
     session, truth = distorted_session(args.seed, args.duration, args.rate)

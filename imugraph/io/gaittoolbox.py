@@ -25,7 +25,7 @@ from imugraph.body.skeleton import LOWER_BODY, lower_body, skeleton_from_spec
 from imugraph.errors import SessionError
 from imugraph.io.body_session import BodySession
 from imugraph.io.session import Session
-from imugraph.io.xsens import read_xsens_mtw
+from imugraph.io.xsens import column_delimiter, read_xsens_mtw, to_commas
 
 PathLike = Union[str, Path]
 SENSOR_IDS = {"Pelvis": "00B40B91", "LeftUpperLeg": "00B40C45", "RightUpperLeg": "00B40C3C",
@@ -41,8 +41,10 @@ def _first_counter(path: Path) -> int:
     """PacketCounter of the first data row (after the // header and the column line)."""
     with open(path, "r", encoding="utf-8-sig", errors="replace") as fh:
         rows = (ln for ln in fh if not ln.startswith("//"))
-        cols = next(rows, "").strip().split(",")
-        first = next(rows, "").strip().split(",")
+        line = next(rows, "")
+        delim = column_delimiter(line)
+        cols = [c.strip() for c in line.strip().split(delim)]
+        first = to_commas([next(rows, "").strip()], delim)[0].split(",")
     try:
         return int(float(first[cols.index("PacketCounter")]))
     except (ValueError, IndexError):
@@ -91,6 +93,7 @@ def read_gaittoolbox(folder: PathLike, trial: str | None = None, skeleton=None) 
     sensors = {}
     for seg, s in sessions.items():
         part = s.slice(lo[seg], lo[seg] + n)
+        _check_finite(seg, part, lo[seg])
         sensors[seg] = Session(part.t - part.t[0], part.gyr, part.acc, part.mag, part.quat, None,
                                part.source, seg, dict(part.meta, sensor_id=SENSOR_IDS[seg]))
     t = sensors["Pelvis"].t
@@ -99,6 +102,24 @@ def read_gaittoolbox(folder: PathLike, trial: str | None = None, skeleton=None) 
             "first_packet": c0, "skeleton": how}
     return BodySession(t=t, sensors=sensors, skeleton=skel, truth=None, source=str(folder),
                        name=trial, meta=meta)
+
+
+def _check_finite(seg: str, part: Session, offset: int) -> None:
+    """gyr and acc of one sensor's common range finite, else SessionError naming the file, the sensor, the
+    sample index and time of the first non-finite run (t from the trial's common start) and the file's data row."""
+    from imugraph.io.validate import runs
+
+    for ch, col in (("gyr", "Gyr_X..Z"), ("acc", "Acc_X..Z")):
+        x = np.asarray(getattr(part, ch), float)
+        bad = ~np.all(np.isfinite(x), axis=1)
+        if not bad.any():
+            continue
+        start, stop = runs(bad)
+        a, b = int(start[0]), int(stop[0]) - 1
+        t = part.t - part.t[0]
+        raise SessionError(part.source, f"sensors[{seg}].{ch}", f"empty or non-finite {col} in {int(bad.sum())} "
+                           f"samples; first run at samples {a}..{b} (t = {t[a]:.2f}..{t[b]:.2f} s, data rows "
+                           f"{a + offset + 1}..{b + offset + 1} of the file)", "finite values in every sample")
 
 
 def _skeleton(skeleton) -> tuple:

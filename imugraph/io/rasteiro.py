@@ -107,7 +107,8 @@ def read_rasteiro_fields(path: Path, fields: dict) -> Session:
     src = str(path)
     sensor = path.stem.upper()
     if sensor not in SENSORS:
-        raise SessionError(src, "SENSgyro", f"a file of sensor '{path.stem}' (reference AHRS output)",
+        raise SessionError(src, "SENSgyro", f"a file of sensor '{path.stem}': a commercial AHRS's own orientation "
+                           "output, refused (imugraph needs raw gyroscope, accelerometer and magnetometer samples)",
                            f"one of the raw sensors {', '.join(SENSORS)}")
     gyr, acc, mag = (_rows(src, fields, k, 3) for k in ("SENSgyro", "SENSacc", "SENSmag"))
     t = _rows(src, fields, "MATLABtime", 1).reshape(-1)

@@ -150,7 +150,7 @@ def read_mat(path: Path) -> Session:
                            "a MATLAB v5 .mat with BROAD or Rasteiro variables") from None
     if "imu_gyr" in fields:
         return read_broad_mat_fields(path, fields)
-    if "SENSgyro" in fields:
+    if "SENSgyro" in fields or "ABBquaternion" in fields:    # Rasteiro (XSENS.mat has no SENSgyro: refused there)
         return read_rasteiro_fields(path, fields)
     names = [k for k in fields if not k.startswith("__")]
     raise SessionError(src, "imu_gyr", f"neither BROAD nor Rasteiro variables (found: {', '.join(names) or 'none'})",

@@ -5,7 +5,9 @@ The checks, in order (the first failing one is reported):
 
 1. shapes: t (N,), gyr/acc/mag (N, 3), quat (N, 4), movement (N,), numeric;
 2. length: at least `MIN_SAMPLES` samples and `MIN_SECONDS` seconds;
-3. time: finite, strictly increasing (unsorted and duplicate stamps are told apart), no gap longer
+3. time: finite, strictly increasing (unsorted and duplicate stamps are told apart), a plausible time
+   base (median step between 1/`MAX_RATE_HZ` and 1/`MIN_RATE_HZ` s, at most `MAX_DURATION_S` in all: stamps in
+   ms or µs read as s give a 0.29 Hz "rate" and a runaway solve), no gap longer
    than `GAP_STEPS` median steps unless the reader declared it in ``meta["gaps"]`` (a list of
    ``[t_before, t_after]`` pairs: formats that know about dropouts report them instead of failing);
 4. NaN/inf in gyr/acc: runs of at most `MAX_REPAIR_RUN` samples are repaired by linear
@@ -23,7 +25,9 @@ The checks, in order (the first failing one is reported):
        translation) it stays silent and rule (a) covers those fast motions.
 6. saturation: an axis of gyr or acc that holds its extreme value (|x| = max |x|, same sign) for
    `SAT_RUN` or more consecutive samples;
-7. magnetometer: not all NaN, no ±inf;  quat: unit norm where finite.
+7. magnetometer: not all NaN, no ±inf, and not constant on any axis over its samples (a dead or
+   disconnected magnetometer reads all zeros or one frozen value: no rotation can be seen in it, and the
+   solvers fail on it with a singular system);  quat: unit norm where finite.
 
 Validation never modifies its input: it returns the same Session when nothing was repaired, else
 a new one with repaired copies and an updated meta.
@@ -50,6 +54,9 @@ GYRO_MAX_RAD_S = 35.0
 DEG_VS_NONE = 0.5
 DEG_VS_RAD = 0.2
 G_STD = 9.80665
+MIN_RATE_HZ = 5.0            # an IMU session sampled slower than 5 Hz is a time base in the wrong unit (1 kHz in ms reads 1 Hz)
+MAX_RATE_HZ = 10000.0        # ... and faster than 10 kHz too (s read as ms would give 0.29 MHz)
+MAX_DURATION_S = 86400.0     # one day
 
 CHECKS = ("shapes", "length", "time", "nan", "units", "saturation", "mag", "quat")
 
@@ -108,6 +115,10 @@ def _check_length(s: Session) -> None:
     if n == 0:
         raise SessionError(s.source, "t", "0 samples (empty)", f"≥ {MIN_SAMPLES} samples over ≥ {MIN_SECONDS:g} s")
     dur = float(np.nanmax(s.t) - np.nanmin(s.t)) if np.isfinite(s.t).any() else 0.0
+    if n >= MIN_SAMPLES and 0 < dur < MIN_SECONDS:        # many samples in a short time: a unit, not a length
+        med = float(np.nanmedian(np.diff(np.asarray(s.t, float))))
+        if med > 0:
+            _check_time_base(s, med, dur)
     if n < MIN_SAMPLES or dur < MIN_SECONDS:
         raise SessionError(s.source, "t", f"{n} samples over {dur:.3g} s (too short)",
                            f"≥ {MIN_SAMPLES} samples over ≥ {MIN_SECONDS:g} s")
@@ -139,6 +150,7 @@ def _check_time(s: Session) -> None:
         raise SessionError(s.source, "t", f"duplicate time stamp {t[i]:.6g} s at indices {i} and {i + 1} "
                            f"({dup.size} duplicates)", "strictly increasing times")
     med = float(np.median(dt))
+    _check_time_base(s, med, float(t[-1] - t[0]))
     gaps = np.flatnonzero(dt > GAP_STEPS * med)
     declared = s.meta.get("gaps", []) if isinstance(s.meta, dict) else []
     for i in gaps:
@@ -146,6 +158,17 @@ def _check_time(s: Session) -> None:
             raise SessionError(s.source, "t", f"gap of {dt[i]:.4g} s ({dt[i] / med:.1f} median steps) at "
                                f"t = {t[i]:.4f} s (index {i}; {gaps.size} gaps)",
                                f"steps ≤ {GAP_STEPS:g} × the median step {med:.4g} s")
+
+
+def _check_time_base(s: Session, med: float, duration: float) -> None:
+    """Median step (s) and duration (s) of a plausible IMU time base: MIN_RATE_HZ ≤ 1/med ≤ MAX_RATE_HZ and
+    duration ≤ MAX_DURATION_S. A log stamped in ms read as s (BROAD 06 at 285.7 Hz: step 3.5 "s") fails here."""
+    rate = 1.0 / med
+    if MIN_RATE_HZ <= rate <= MAX_RATE_HZ and duration <= MAX_DURATION_S:
+        return
+    raise SessionError(s.source, "t", f"median step {med:.4g} s ({rate:.4g} Hz) over {duration:.6g} s",
+                       f"seconds (t in ms? divide by 1000): a rate of {MIN_RATE_HZ:g}–{MAX_RATE_HZ:g} Hz "
+                       f"over at most {MAX_DURATION_S / 3600:g} h")
 
 
 def _repair_nan(s: Session, field: str, x: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, list]:
@@ -247,8 +270,19 @@ def _check_mag(s: Session) -> None:
     if np.isinf(mag).any():
         i = int(np.flatnonzero(np.isinf(mag).any(axis=1))[0])
         raise SessionError(s.source, "mag", f"±inf at index {i}", "finite values, or NaN rows for no sample")
-    if not np.all(np.isfinite(mag), axis=1).any():
+    valid = np.all(np.isfinite(mag), axis=1)
+    if not valid.any():
         raise SessionError(s.source, "mag", "all NaN (no magnetometer sample)", "at least one finite (N, 3) row")
+    rows = mag[valid]
+    if rows.shape[0] < 2:
+        return
+    const = [a for j, a in enumerate("xyz") if np.all(rows[:, j] == rows[0, j])]
+    if const:
+        what = "all zero" if not np.any(rows) else ("constant " + ("on every axis" if len(const) == 3 else
+                                                                   f"on axis {', '.join(const)}"))
+        value = ", ".join(f"{a} = {rows[0, 'xyz'.index(a)]:.6g}" for a in const)
+        raise SessionError(s.source, "mag", f"{what} over all {rows.shape[0]} samples ({value}): a dead or "
+                           "disconnected magnetometer", "a field that varies as the sensor turns")
 
 
 def _check_quat(s: Session) -> None:
@@ -261,6 +295,41 @@ def _check_quat(s: Session) -> None:
         i = int(np.flatnonzero(ok)[np.argmax(np.abs(norms - 1.0))])
         raise SessionError(s.source, "quat", f"|quat| = {np.linalg.norm(q[i]):.4g} at index {i}",
                            "unit quaternions w,x,y,z (NaN rows where unknown)")
+
+
+CAL_NORM_RANGE = (0.5, 2.0)      # median |D⁻¹(b_mag − o)| of a calibration applied to its own sensor is ≈ 1
+
+
+def check_calibration_applies(session: Session, cal, cal_source: str = "calibration.json") -> float:
+    """Refuse a calibration that does not fit this session's magnetometer (one from another sensor).
+
+    The calibrated field m = D⁻¹(y − o) has unit norm for the sensor the calibration was estimated on (Kok &
+    Schön's model b_mag = D·bRn·n_mag + o + e with |n_mag| = 1); y is the raw field with the calibration's
+    disturbance windows applied (Calibration.corrected), as the smoother sees it. A median |m| outside
+    `CAL_NORM_RANGE` means D, o belong to another sensor or unit (BROAD's calibration on Rasteiro's MPU9150:
+    field-norm RMS 410 %, orientation 170° off, with no warning before this check).
+
+    Args:
+        session: the validated session the calibration is applied to.
+        cal: `imugraph.calibration.result.Calibration` (read by io.writers.read_calibration_json).
+        cal_source: the calibration's file, for the message.
+    Returns:
+        The median calibrated norm (≈ 1 when the calibration fits).
+    Raises:
+        SessionError: field 'calibration', naming the median norm found and the file.
+    """
+    y = cal.corrected(session.t, session.mag) if cal.disturbances else np.asarray(session.mag, float)
+    m_norm = np.linalg.norm(cal.apply(y), axis=1)
+    m_norm = m_norm[np.isfinite(m_norm)]
+    if m_norm.size == 0:
+        return float("nan")
+    med = float(np.median(m_norm))
+    lo, hi = CAL_NORM_RANGE
+    if not lo <= med <= hi:
+        raise SessionError(session.source, "calibration", f"median calibrated field norm {med:.3g} with {cal_source} "
+                           "(calibration from another sensor?)", f"≈ 1 (between {lo:g} and {hi:g}): a calibration "
+                           "of this magnetometer, in its unit")
+    return med
 
 
 def validate_session(session: Session, *, skip: Iterable[str] = ()) -> Session:

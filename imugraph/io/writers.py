@@ -151,7 +151,8 @@ def read_calibration_json(path: PathLike) -> Calibration:
     Returns:
         Calibration.
     Raises:
-        SessionError: missing file, invalid JSON, missing or malformed D/o/dip_deg, singular D.
+        SessionError: missing file, invalid JSON, missing or malformed D/o/dip_deg, singular D, a malformed
+            disturbance window (field 'disturbances[i].t_end' etc.: Calibration.corrected would fail on it).
     """
     src = str(path)
     try:
@@ -183,4 +184,14 @@ def read_calibration_json(path: PathLike) -> Calibration:
     try:
         return Calibration.from_dict(clean)
     except (TypeError, ValueError, KeyError) as exc:
-        raise SessionError(src, "file", f"malformed calibration ({exc})", "the calibration.json contract") from None
+        raise _contract_error(src, str(exc)) from None
+
+
+def _contract_error(src: str, message: str) -> SessionError:
+    """SessionError from a Calibration.from_dict ValueError: "FIELD: FOUND, expected EXPECTED" names the field
+    (e.g. disturbances[0].t_end); any other message is reported against the whole file."""
+    field, sep, rest = message.partition(": ")
+    found, sep2, expected = rest.rpartition(", expected ")
+    if sep and sep2 and field and " " not in field:
+        return SessionError(src, field, found, expected)
+    return SessionError(src, "file", f"malformed calibration ({message})", "the calibration.json contract")

@@ -1,8 +1,10 @@
 """Xsens MTw (MT Manager) text exports, as in gaittoolbox's ``rawimu/*.txt``.
 
 Layout: header lines starting with ``//`` (``// Update Rate: 100.0Hz`` gives the rate), then a
-comma-separated column line (``PacketCounter,SampleTimeFine,Acc_X,…,Gyr_X,…,Mag_X,…,Quat_q0…q3``)
-and the data. Units as exported: Acc m/s², Gyr rad/s, Mag normalised a.u. (kept). Time comes from
+column line (``PacketCounter,SampleTimeFine,Acc_X,…,Gyr_X,…,Mag_X,…,Quat_q0…q3``) and the data, separated
+by commas, or by tabs or semicolons as MT Manager's export settings allow (the column line's separator is
+used; with tabs or semicolons a decimal comma is read as a decimal point, `column_delimiter`). Units as
+exported: Acc m/s², Gyr rad/s, Mag normalised a.u. (kept). Time comes from
 ``SampleTimeFine`` (10 kHz ticks, 32-bit wrap) when it is filled in, else from ``PacketCounter``
 (16-bit wrap) divided by the update rate; missing packets are reported in ``meta["gaps"]``.
 ``Quat_q0..q3`` (w,x,y,z, sensor→global) is the MTw's own filter output, kept in `quat` with
@@ -24,18 +26,32 @@ from imugraph.io.xio import parse_csv_lines
 _RATE = re.compile(r"update\s*rate\s*:\s*([0-9.]+)\s*hz", re.I)
 
 
-def _header(path: Path) -> tuple[int, Optional[float], list]:
-    """Number of // lines, update rate (Hz or None), column names."""
+def column_delimiter(line: str) -> str:
+    """The separator of an MT Manager column line: tab or ';' when the line holds one, else ','."""
+    return "\t" if "\t" in line else (";" if ";" in line else ",")
+
+
+def to_commas(lines: list, delimiter: str) -> list:
+    """Data lines separated by `delimiter` as comma-separated lines with decimal points (a tab- or
+    semicolon-separated export may write decimal commas: "8,696773;0,341363" → "8.696773,0.341363")."""
+    if delimiter == ",":
+        return lines
+    return [ln.replace(",", ".").replace(delimiter, ",") for ln in lines]
+
+
+def _header(path: Path) -> tuple[int, Optional[float], list, str]:
+    """Number of // lines, update rate (Hz or None), column names, column delimiter."""
     n_comment, rate = 0, None
     with open(path, "r", encoding="utf-8-sig", errors="replace") as fh:
         for line in fh:
             if not line.startswith("//"):
-                return n_comment, rate, [c.strip() for c in line.strip().split(",")]
+                delim = column_delimiter(line)
+                return n_comment, rate, [c.strip() for c in line.strip().split(delim)], delim
             n_comment += 1
             m = _RATE.search(line)
             if m:
                 rate = float(m.group(1))
-    return n_comment, rate, []
+    return n_comment, rate, [], ","
 
 
 def _unwrap(counter: np.ndarray, modulus: float) -> np.ndarray:
@@ -83,13 +99,15 @@ def read_xsens_mtw(path: Path) -> Session:
         SessionError: no column line, missing columns, no rate, malformed rows.
     """
     src = str(path)
-    n_comment, rate, cols = _header(path)
+    n_comment, rate, cols, delim = _header(path)
     if not cols or "Acc_X" not in cols:
-        raise SessionError(src, "Acc_X", "no Xsens column line after the // header",
-                           "a line PacketCounter,SampleTimeFine,Acc_X,… (MT Manager export)")
+        found = f"column line {', '.join(cols)[:80]!r}" if cols else "no column line"
+        raise SessionError(src, "Acc_X", f"{found} after the // header",
+                           "a line PacketCounter,SampleTimeFine,Acc_X,… (MT Manager export; comma-, tab- or "
+                           "semicolon-separated)")
     with open(path, "r", encoding="utf-8-sig", errors="replace") as fh:
         lines = fh.read().splitlines()[n_comment:]
-    data = parse_csv_lines(src, cols, lines[1:], first_line=n_comment + 2)
+    data = parse_csv_lines(src, cols, to_commas(lines[1:], delim), first_line=n_comment + 2)
     t, time_source = _time(src, cols, data, rate)
     gyr = _columns(src, cols, data, "Gyr_", "XYZ")
     acc = _columns(src, cols, data, "Acc_", "XYZ")
@@ -97,6 +115,8 @@ def read_xsens_mtw(path: Path) -> Session:
     quat = _columns(src, cols, data, "Quat_q", "0123") if "Quat_q0" in cols else None
     meta = {"format": "xsens-mtw", "converted": [], "mag_unit": "a.u. (normalised)",
             "time_source": time_source, "rate_hz": rate}
+    if delim != ",":
+        meta["delimiter"] = delim
     if time_source == "PacketCounter" and t.size > 1:
         step = np.diff(t) * rate
         lost = np.flatnonzero(step > 1.5)

@@ -24,7 +24,7 @@ import numpy as np
 from imugraph.errors import SessionError
 from imugraph.geometry import quat_mul, quat_normalize, rotvec_to_quat
 
-_SOURCE = "<imugraph.sim.motion>"
+_SOURCE = "simulated motion"
 
 
 class Motion(NamedTuple):
@@ -103,13 +103,17 @@ def random_rotation_motion(
 def _check_timing(duration_s: float, rate_hz: float, rest_s: float, pauses: int, pause_s: float) -> int:
     """Validate the timing arguments and return the number of samples N."""
     if not (rate_hz > 0 and duration_s > 0):
-        raise SessionError(_SOURCE, "duration_s/rate_hz", f"{duration_s} s at {rate_hz} Hz",
-                           "positive duration and rate")
+        raise SessionError(_SOURCE, "duration", f"{duration_s:g} s at {rate_hz:g} Hz",
+                           "a positive duration (s) and rate (Hz)")
     n = int(round(duration_s * rate_hz))
     resting = 2 * rest_s + pauses * pause_s
     if n < 3 or resting >= duration_s:
-        raise SessionError(_SOURCE, "rest_s/pauses", f"{resting:g} s of rest in {duration_s:g} s "
-                           f"({n} samples)", "rests shorter than the motion and at least 3 samples")
+        rests = f"rest_s = {rest_s:g} s at each end"
+        if pauses:
+            rests += f", {pauses} pauses of pause_s = {pause_s:g} s"
+        raise SessionError(_SOURCE, "duration", f"{duration_s:g} s ({n} samples at {rate_hz:g} Hz), of which the "
+                           f"rests take {resting:g} s ({rests})",
+                           f"a duration longer than the {resting:g} s of rests, with at least 3 samples")
     return n
 
 
