@@ -113,9 +113,46 @@ def dask_client(scheduler: Optional[str] = None, workers: Optional[int] = None,
             yield client
         return
     n = workers or os.cpu_count() or 1
-    with LocalCluster(n_workers=n, processes=True, threads_per_worker=1, dashboard_address=None,
-                      silence_logs=logging.ERROR) as cluster, Client(cluster) as client:
+    try:
+        with _sigint_ignored():      # the worker processes inherit it: Ctrl-C is the client's to handle (below)
+            cluster = LocalCluster(n_workers=n, processes=True, threads_per_worker=1, dashboard_address=None,
+                                   silence_logs=logging.ERROR)
+    except KeyboardInterrupt:
+        raise
+    except Exception as exc:      # noqa: BLE001 — e.g. RuntimeError "Nanny failed to start" (no memory, no ports)
+        raise SessionError("local cluster", "workers", f"{n} worker processes that failed to start "
+                           f"({one_line(exc)})", "a cluster that starts (fewer --workers, or --scheduler "
+                           "ADDRESS of a running one)") from None
+    with cluster, Client(cluster) as client:
         yield client
+
+
+@contextlib.contextmanager
+def _sigint_ignored() -> Iterator[None]:
+    """SIGINT ignored while the local cluster's processes are spawned (they inherit the disposition: a terminal's
+    Ctrl-C, sent to the whole process group, then stops only the client, which cancels the tasks and closes the
+    cluster — instead of ~65 lines of tracebacks from the dying workers). Restored afterwards; a no-op off the
+    main thread (signal handlers can only be set there)."""
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+
+
+class BatchInterrupted(KeyboardInterrupt):
+    """Ctrl-C during `run_batch`: the tasks were cancelled and the cluster closed; `rows` holds the sessions that
+    had finished (in the order of `paths`), so that the caller can still write their summary."""
+
+    def __init__(self, rows: list, total: int):
+        super().__init__(f"{len(rows)} of {total} sessions finished")
+        self.rows, self.total = rows, total
 
 
 def run_batch(paths: Sequence[PathLike], out: PathLike, *, scheduler: Optional[str] = None,
@@ -135,41 +172,64 @@ def run_batch(paths: Sequence[PathLike], out: PathLike, *, scheduler: Optional[s
         One row per session, in the order of `paths` (see `run_one`).
 
     Raises:
-        SessionError: `out` cannot be created, or the scheduler does not answer.
+        SessionError: `out` cannot be created, the scheduler does not answer, or the local cluster does not start.
+        BatchInterrupted: Ctrl-C (a KeyboardInterrupt): the unfinished tasks cancelled, the cluster closed, the
+            finished sessions' rows attached.
     """
     from distributed import as_completed
     from tqdm import tqdm
 
-    root = Path(out).expanduser().absolute()
-    try:
-        root.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise SessionError(str(root), "out", f"a folder that cannot be created ({exc.strerror})",
-                           "a writable output folder (--out DIR)") from None
+    from imugraph.commands.common import out_dir_for
+
+    # created and checked writable (a real write) before any session runs: SessionError field 'out'
+    root = out_dir_for(str(Path(out).expanduser().absolute()), "batch")
     # absolute paths: a worker of an existing cluster does not share the client's working folder
     files = [str(Path(p).expanduser().absolute()) for p in paths]
     folders = [str(f) for f in output_folders(files, root)]
     n_local = min(workers or os.cpu_count() or 1, max(len(files), 1))
     rows: list[Optional[dict]] = [None] * len(files)
-    with dask_client(scheduler, n_local) as client:
-        # pure=False: a session listed twice is run twice, into its own folder
-        futures = [client.submit(run_one, f, d, options, pure=False, key=f"imugraph-{i}-{Path(f).stem}")
-                   for i, (f, d) in enumerate(zip(files, folders))]
-        index = {fut.key: i for i, fut in enumerate(futures)}
-        bar = tqdm(total=len(futures), unit="session", file=sys.stderr, disable=not progress, dynamic_ncols=True)
-        with bar:
-            for fut in as_completed(futures):
-                i = index[fut.key]
-                try:
-                    row = fut.result()
-                except Exception as exc:  # noqa: BLE001 — a worker that died (KilledWorker) or a lost task
-                    row = {"session": Path(files[i]).stem, "path": files[i], "out": folders[i],
-                           "status": "failed", "time_s": None, "error_deg": None, "error": one_line(exc)}
-                rows[i] = row
-                if row["status"] != "ok" and progress:
-                    bar.write(f"{row['session']}: failed: {row['error']}", file=sys.stderr)
-                bar.update(1)
+    try:
+        with dask_client(scheduler, n_local) as client:
+            _collect(client, files, folders, options, rows, progress, as_completed, tqdm)
+    except KeyboardInterrupt:
+        raise BatchInterrupted([r for r in rows if r is not None], len(files)) from None
     return [r for r in rows if r is not None]
+
+
+def _collect(client, files: list, folders: list, options: CalibrateOptions, rows: list, progress: bool,
+             as_completed, tqdm) -> None:
+    """Submit one `run_one` per session and fill `rows` as they complete; on Ctrl-C cancel what is left."""
+    # pure=False: a session listed twice is run twice, into its own folder
+    futures = [client.submit(run_one, f, d, options, pure=False, key=f"imugraph-{i}-{Path(f).stem}")
+               for i, (f, d) in enumerate(zip(files, folders))]
+    try:
+        _gather(futures, files, folders, rows, progress, as_completed, tqdm)
+    except KeyboardInterrupt:
+        with contextlib.suppress(Exception):
+            client.cancel([f for f in futures if not f.done()])
+        for i, fut in enumerate(futures):            # finished while the interrupt was handled
+            if rows[i] is None and fut.status == "finished":
+                with contextlib.suppress(Exception):
+                    rows[i] = fut.result(timeout=1)
+        raise
+
+
+def _gather(futures: list, files: list, folders: list, rows: list, progress: bool, as_completed, tqdm) -> None:
+    """The progress bar and rows of `run_batch` as the futures complete."""
+    index = {fut.key: i for i, fut in enumerate(futures)}
+    bar = tqdm(total=len(futures), unit="session", file=sys.stderr, disable=not progress, dynamic_ncols=True)
+    with bar:
+        for fut in as_completed(futures):
+            i = index[fut.key]
+            try:
+                row = fut.result()
+            except Exception as exc:  # noqa: BLE001 — a worker that died (KilledWorker) or a lost task
+                row = {"session": Path(files[i]).stem, "path": files[i], "out": folders[i],
+                       "status": "failed", "time_s": None, "error_deg": None, "error": one_line(exc)}
+            rows[i] = row
+            if row["status"] != "ok" and progress:
+                bar.write(f"{row['session']}: failed: {row['error']}", file=sys.stderr)
+            bar.update(1)
 
 
 def _cell(value) -> str:

@@ -13,7 +13,8 @@
 Every command takes --out and --quiet; calibrate and smooth take --data-dir (a SESSION that does not
 exist as given is looked up there; default $IMUGRAPH_DATA, else ../shared/data). Results go to stdout,
 progress lines to stderr. Errors raised on purpose (`ImugraphError`, unreadable or unwritable files)
-print one line `imugraph: error: <message>` on stderr and exit with 2; Ctrl-C exits with 130.
+print one line `imugraph: error: <message>` on stderr and exit with 2; Ctrl-C exits with 130; a closed
+stdout pipe (`imugraph calibrate … | head`) exits quietly with 141 (128 + SIGPIPE, what a shell reports).
 `batch` exits with 1 when some sessions failed (each reported on its own line; the others still ran).
 The heavy modules are imported by the command that needs them, so `--help` answers at once.
 """
@@ -29,6 +30,7 @@ from imugraph.errors import ImugraphError
 
 EXIT_ERROR = 2
 EXIT_INTERRUPTED = 130
+EXIT_BROKEN_PIPE = 141              # 128 + SIGPIPE, as a shell reports a command killed by a closed pipe
 
 # command → (module in imugraph.commands, function taking the parsed arguments, returning the exit code)
 COMMANDS = {
@@ -85,9 +87,14 @@ def _gyro_scale(p: argparse.ArgumentParser) -> None:
                    help="do not estimate the gyro scale/misalignment (faster)")
 
 
-def _simulation(p: argparse.ArgumentParser) -> None:
+# shortest `demo --duration` that calibrates: 30 of 30 seeds at 20 s, 25 of 30 at 15 s, 0 of 8 at 10–11 s
+# (benchmarks/f21a_demo_min_duration.py --durations 15,20 --seeds 0,...,29)
+DEMO_MIN_DURATION_S = 20.0
+
+
+def _simulation(p: argparse.ArgumentParser, duration_help: str = "length in s (default 120)") -> None:
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
-    p.add_argument("--duration", type=_positive(float), default=120.0, metavar="S", help="length in s (default 120)")
+    p.add_argument("--duration", type=_positive(float), default=120.0, metavar="S", help=duration_help)
     p.add_argument("--rate", type=_positive(float), default=100.0, metavar="HZ", help="sampling rate (default 100)")
 
 
@@ -171,14 +178,19 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("demo", help="calibrate a simulated distorted magnetometer and compare with the truth",
                        description="Writes the same files as calibrate and prints true vs estimated values.")
     _common(p, "output folder (default: imugraph_out/demo)")
-    _simulation(p)
+    _simulation(p, f"length in s (default 120, at least {DEMO_MIN_DURATION_S:g}: shorter motions hold too little "
+                   "rotation to calibrate)")
     _keyframes(p)
 
     p = sub.add_parser("simulate", help="write a simulated session (NPZ: gyr, acc, mag, t, quat)",
                        description="Random rotation about all axes, distorted magnetometer, gyro bias, noise.")
-    p.add_argument("--out", metavar="FILE.npz", required=True, help="session file to write")
+    p.add_argument("--out", metavar="FILE.npz", required=True,
+                   help="session file to write: .npz (with the truth), or .csv (the imugraph CSV columns, no truth)")
     p.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
     _simulation(p)
+    p.add_argument("--effect", metavar="NAME", action="append", default=None,
+                   help="inject an unmodelled effect of the diagnosis library into the simulated session (its "
+                        "inject(), seeded from --seed; repeatable or comma-separated; see imugraph diagnose)")
 
     p = sub.add_parser("mocap", help="body motion from several IMUs on one body (joints, sensor-to-segment)",
                        description="Writes mocap.npz, joint_angles.csv, motion.bvh, joint_angles.png, "
@@ -205,6 +217,17 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _silence_stdout() -> None:
+    """Point stdout at /dev/null so that the interpreter's final flush of a closed pipe raises nothing."""
+    import os
+
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+    except (OSError, ValueError):
+        pass
+
+
 def _error(message: str) -> int:
     print(f"imugraph: error: {' '.join(str(message).split())}", file=sys.stderr, flush=True)
     return EXIT_ERROR
@@ -226,7 +249,12 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     module, function = COMMANDS[args.command]
     try:
         run = getattr(importlib.import_module(f"imugraph.commands.{module}"), function)
-        return int(run(args))
+        code = int(run(args))
+        sys.stdout.flush()              # a closed pipe shows here, not in the interpreter's exit flush
+        return code
+    except BrokenPipeError:             # stdout (or stderr) read by e.g. `| head`, which stopped reading
+        _silence_stdout()
+        return EXIT_BROKEN_PIPE
     except KeyboardInterrupt:
         print("imugraph: interrupted", file=sys.stderr, flush=True)
         return EXIT_INTERRUPTED

@@ -96,10 +96,11 @@ def calibrate_path(path: Union[str, Path], out_dir: Optional[Union[str, Path]],
     progress = progress or common.Progress(quiet=True)
     path = Path(path)
     session = common.load(path, progress)
-    out = common.out_dir_for(None if out_dir is None else str(out_dir), path.stem)
-    estimate = estimate_calibration(session, options.keyframe_hz, progress, options.allow_weak,
-                                    options.gyro_scale)
-    common.write_estimate(out, session, estimate, progress)
+    # checked writable before the calibration; removed again if still empty when it fails (e.g. too little rotation)
+    with common.output_folder(None if out_dir is None else str(out_dir), path.stem) as out:
+        estimate = estimate_calibration(session, options.keyframe_hz, progress, options.allow_weak,
+                                        options.gyro_scale)
+        common.write_estimate(out, session, estimate, progress)
     cal = estimate.calibration
     scores = common.score(session, cal, estimate.quat)
     title = f"calibration of {session.name}: {session.n} samples at {session.rate:.1f} Hz → {out}"
@@ -148,7 +149,17 @@ def run_smooth(args: argparse.Namespace) -> int:
     cal = _read_calibration(args.calibration) if args.calibration else None
     path = common.resolve_session_path(args.session, args.data_dir)
     session = common.load(path, progress)
-    out = common.out_dir_for(args.out, Path(path).stem)
+    if cal is not None:              # a calibration of another sensor (median |D⁻¹(y − o)| far from 1): refused
+        from imugraph.io.validate import check_calibration_applies
+        check_calibration_applies(session, cal, args.calibration)
+    with common.output_folder(args.out, Path(path).stem) as out:     # no empty folder left by a failed run
+        return _smooth_into(out, args, session, cal, progress)
+
+
+def _smooth_into(out: Path, args: argparse.Namespace, session: Session, cal: Optional[Calibration],
+                 progress: common.Progress) -> int:
+    """run_smooth's body once the session is read: smooth (estimating the calibration when `cal` is None),
+    write into `out`, print the scores."""
     if cal is None:
         estimate = estimate_calibration(session, args.keyframe_hz, progress)
         cal, quat = estimate.calibration, estimate.quat

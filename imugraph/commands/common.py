@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import contextlib
 import sys
+import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -48,39 +49,85 @@ class Progress:
             yield
 
 
-def resolve_session_path(session: str, data_dir: Optional[str]) -> Path:
-    """The session file: `session` as given, else relative to the data directory.
+def resolve_session_path(session: str, data_dir: Optional[str], strict: bool = True) -> Path:
+    """The session file: `session` as given, else relative to the data directory, else a unique match in the data
+    directory's subfolders (`imugraph.config.find_session`).
 
     Args:
         session: path of a session file or x-IMU3 folder, absolute or relative.
         data_dir: --data-dir value, or None for `imugraph.config.data_dir()`.
+        strict: raise when nothing (or more than one file) matches; False returns `session` unchanged so that
+            the reader names it (batch: one missing session must not stop the others).
 
     Returns:
-        The existing path, or `session` unchanged when neither exists (the reader then names it).
-    """
-    path = Path(session).expanduser()
-    if path.exists() or path.is_absolute():
-        return path
-    from imugraph.config import data_dir as default_data_dir
+        The existing path (or `session` unchanged, strict=False).
 
-    base = Path(data_dir).expanduser() if data_dir else default_data_dir()
-    candidate = base / path
-    return candidate if candidate.exists() else path
+    Raises:
+        SessionError: field 'file': not found, naming the places looked in, or several matches (strict only).
+    """
+    from imugraph.config import find_session
+
+    try:
+        return find_session(session, data_dir)
+    except SessionError:
+        if strict:
+            raise
+        return Path(session).expanduser()
 
 
 def out_dir_for(out: Optional[str], stem: str) -> Path:
-    """Output folder: --out when given, else imugraph_out/<stem>; created (with parents) if missing.
+    """Output folder: --out when given, else imugraph_out/<stem>; created (with parents) if missing and checked
+    writable at once, so that a read-only --out fails before any long computation (not at the first write).
 
     Raises:
-        SessionError: the folder cannot be created (field 'out').
+        SessionError: the folder cannot be created or written (field 'out').
     """
+    path, _ = _make_out_dir(out, stem)
+    return path
+
+
+def _make_out_dir(out: Optional[str], stem: str) -> tuple[Path, list[Path]]:
+    """`out_dir_for`, also returning the folders it created (deepest first) so that a failed run can remove them."""
     path = Path(out).expanduser() if out else DEFAULT_OUT_ROOT / stem
+    created = [p for p in (path, *path.parents) if not p.exists()]
     try:
         path.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise SessionError(str(path), "out", f"a folder that cannot be created ({exc.strerror})",
                            "a writable output folder (--out DIR)") from None
-    return path
+    try:                                   # a real write: os.access says yes to root on a read-only folder
+        with tempfile.TemporaryFile(dir=path):
+            pass
+    except OSError as exc:
+        _remove_empty(created)
+        raise SessionError(str(path), "out", f"a folder that cannot be written ({exc.strerror or exc})",
+                           "a writable output folder (--out DIR)") from None
+    return path, created
+
+
+def _remove_empty(folders: list[Path]) -> None:
+    """rmdir each folder (deepest first) that is empty; a folder holding anything stays."""
+    for folder in folders:
+        try:
+            folder.rmdir()
+        except OSError:
+            return
+
+
+@contextlib.contextmanager
+def output_folder(out: Optional[str], stem: str) -> Iterator[Path]:
+    """`out_dir_for` for the length of a command: the folder it created is removed again when the command
+    fails (any exception, Ctrl-C included) and nothing was written into it — no empty --out left behind.
+
+    Raises:
+        SessionError: the folder cannot be created or written (field 'out').
+    """
+    path, created = _make_out_dir(out, stem)
+    try:
+        yield path
+    except BaseException:
+        _remove_empty(created)
+        raise
 
 
 def load(path: Path, progress: Progress) -> Session:
@@ -107,11 +154,22 @@ class Scores:
         norm_after: RMS of |D⁻¹(b_mag − o)| − 1 (dimensionless; disturbance windows applied, field_norm_scores).
         orientation_rms_deg: RMS orientation error against the session's truth quat (best heading
             offset and time shift removed), degrees; None without truth.
+        reference: what the session's quat is (`reference_label`): "truth", or "reference [<source>]" for a
+            device's own orientation estimate (meta["quat_source"], e.g. an onboard AHRS).
+
+    A norm is NaN when it cannot be computed (no finite calibrated sample, e.g. a magnetometer that reads 0).
     """
 
     norm_before: float
     norm_after: float
     orientation_rms_deg: Optional[float]
+    reference: str = "truth"
+
+
+def reference_label(session: Session) -> str:
+    """"truth", or "reference [<meta quat_source>]" when the session's quat is a device's own estimate."""
+    source = (session.meta or {}).get("quat_source") if isinstance(session.meta, dict) else None
+    return f"reference [{source}]" if source else "truth"
 
 
 def field_norm_scores(session: Session, cal: Calibration) -> tuple[float, float]:
@@ -130,9 +188,20 @@ def field_norm_scores(session: Session, cal: Calibration) -> tuple[float, float]
     from imugraph.evaluate import field_norm_error
 
     valid = session.mag_valid
-    raw_scale = float(np.median(np.linalg.norm(session.mag[valid], axis=1)))
+    norms = np.linalg.norm(session.mag[valid], axis=1)
+    raw_scale = float(np.median(norms)) if norms.size else 0.0
     y = cal.corrected(session.t, session.mag) if cal.disturbances else session.mag
-    return (field_norm_error(session.mag / raw_scale, valid), field_norm_error(cal.apply(y), valid))
+    with np.errstate(divide="ignore", invalid="ignore"):       # a dead (all-zero) field: NaN, not a warning
+        raw = session.mag / raw_scale if raw_scale > 0 else np.full_like(session.mag, np.nan)
+        calibrated = cal.apply(y)
+    return _norm_error_or_nan(field_norm_error, raw, valid), _norm_error_or_nan(field_norm_error, calibrated, valid)
+
+
+def _norm_error_or_nan(field_norm_error, b_mag: np.ndarray, valid: np.ndarray) -> float:
+    """field_norm_error, NaN when no row is finite (the score is then printed as n/a, the outputs kept)."""
+    if not np.any(np.all(np.isfinite(b_mag), axis=1) & valid):
+        return float("nan")
+    return field_norm_error(b_mag, valid)
 
 
 def orientation_score(session: Session, quat: np.ndarray) -> Optional[float]:
@@ -150,7 +219,7 @@ def orientation_score(session: Session, quat: np.ndarray) -> Optional[float]:
 def score(session: Session, cal: Calibration, quat: np.ndarray) -> Scores:
     """Field-norm errors before/after and the orientation error of one result (see `Scores`)."""
     before, after = field_norm_scores(session, cal)
-    return Scores(before, after, orientation_score(session, quat))
+    return Scores(before, after, orientation_score(session, quat), reference_label(session))
 
 
 def write_orientation(out: Path, t: np.ndarray, quat: np.ndarray, progress: Progress) -> Path:
@@ -191,10 +260,17 @@ def write_estimate(out: Path, session: Session, estimate: "Estimate", progress: 
     paths = [write_calibration(out, cal, progress), write_orientation(out, estimate.t, estimate.quat, progress)]
     progress.say("drawing figures")
     png = out / "calibration.png"
-    plot_calibration(png, session.mag, cal.apply(session.mag), session.t, estimate.residuals, whitened=True,
-                     title=f"Magnetometer calibration: {session.name}")
+    # the calibrated field of the model, as the console's "after" score (field_norm_scores): with disturbance
+    # windows a modelled window's offset removed, an unexplained window's samples left out (Calibration.corrected)
+    y = cal.corrected(session.t, session.mag) if cal.disturbances else session.mag
+    velocity = (estimate.info or {}).get("velocity") if isinstance(estimate.info, dict) else None
+    plot_calibration(png, session.mag, cal.apply(y), session.t, estimate.residuals, whitened=True,
+                     title=f"Magnetometer calibration: {session.name}",
+                     not_in_cost=("acc",) if velocity is not None else ())
     heading = out / "heading.png"
-    plot_heading(heading, estimate.t, estimate.quat, session.quat, title=f"Heading: {session.name}")
+    # aligned (time shift, heading offset) over `movement` as the console's orientation score (orientation_score)
+    plot_heading(heading, estimate.t, estimate.quat, session.quat, title=f"Heading: {session.name}",
+                 align=True, mask=session.movement, reference_label=reference_label(session))
     paths += [png, heading]
     progress.say(f"wrote {png} and {heading}")
     return paths

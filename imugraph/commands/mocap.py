@@ -27,6 +27,7 @@ from __future__ import annotations
 import argparse
 import io
 import json
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -59,8 +60,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "the subject's dimensions in an Xsens MVN export; its motion is not used)")
 
 
-def hinge_segments(spec: str, skel) -> tuple:
+def hinge_segments(spec: str, skel, ignored: list | None = None) -> tuple:
     """Child segment names of the hinge joints in `spec` (module docstring).
+
+    ignored: when a list, a group name (knees, elbows) with no joint between sensed segments in this skeleton
+    (elbows on a lower body) is appended to it, so that the command can say it was ignored.
 
     Raises:
         SessionError: an unknown name, or a joint whose segments are not both sensed in the skeleton.
@@ -82,6 +86,8 @@ def hinge_segments(spec: str, skel) -> tuple:
                                    f"({', '.join(j for j in JOINTS if 'Knee' in j or 'Elbow' in j)}) or a segment")
             if child not in skel.sensed or skel.parents[skel.index(child)] < 0:
                 if item.lower() in HINGE_GROUPS:
+                    if ignored is not None and f"{item} ({name})" not in ignored:
+                        ignored.append(f"{item} ({name})")
                     continue                       # e.g. elbows on a lower-body skeleton: nothing to constrain
                 raise SessionError("--hinges", item, f"segment {child} not sensed in this skeleton",
                                    f"a joint between sensed segments of {list(skel.sensed)}")
@@ -140,7 +146,8 @@ def _solve(session, opts, lag, progress):
 def timing_summary(info: dict, duration_s: float) -> dict:
     """timing.json of an incremental run: updates, seconds, p50_ms, p99_ms, max_ms, realtime_factor (the
     solver's own figure when it reports one: streamed duration over update time, a batch bootstrap excluded),
-    and the bootstrap's details."""
+    realtime_factor_with_bootstrap (the whole duration over update time plus the bootstrap's solve time; equal to
+    the duration over update time without a bootstrap), and the bootstrap's details."""
     u = np.asarray(info.get("update_s", []), float)
     if u.size == 0:
         return {"updates": 0, "bootstrap": info.get("bootstrap")}
@@ -148,18 +155,21 @@ def timing_summary(info: dict, duration_s: float) -> dict:
     return {"updates": int(u.size), "seconds": float(u.sum()), "p50_ms": float(1e3 * np.percentile(u, 50)),
             "p99_ms": float(1e3 * np.percentile(u, 99)), "max_ms": float(1e3 * u.max()),
             "realtime_factor": float(rtf) if rtf is not None else float(duration_s / max(u.sum(), 1e-12)),
+            "realtime_factor_with_bootstrap": float(duration_s / max(u.sum() + _bootstrap_s(info), 1e-12)),
             "failed_updates": int(info.get("failed_updates", 0)), "bootstrap": info.get("bootstrap")}
+
+
+def _bootstrap_s(info: dict) -> float:
+    """Solve time of the incremental solver's batch bootstrap (info["bootstrap"]["seconds"]), 0 without one."""
+    boot = info.get("bootstrap")
+    return float(boot.get("seconds", 0.0)) if isinstance(boot, dict) else 0.0
 
 
 def run_mocap(args: argparse.Namespace) -> int:
     """mocap SESSION [--out DIR] [--lag S] [--mag|--no-mag] [--hinges LIST] [--skeleton SPEC] [--data-dir DIR]
     [--quiet]."""
-    from imugraph.body.angles import joint_angles, write_joint_angles_csv
     from imugraph.graphs.body_model import BodyOptions
-    from imugraph.io.body_figures import plot_joint_angles, plot_stick_figures
     from imugraph.io.body_session import read_body_session
-    from imugraph.io.bvh import write_bvh
-    from imugraph.io.writers import atomic_write_text, json_ready
 
     progress = common.Progress(args.quiet)
     path = common.resolve_session_path(args.session, args.data_dir)
@@ -172,9 +182,25 @@ def run_mocap(args: argparse.Namespace) -> int:
     skel = session.skeleton
     progress.say(f"{len(session.sensors)} sensors on {len(skel.names)} segments, {session.n} samples, "
                  f"{session.t[-1] - session.t[0]:.1f} s at {session.rate:.1f} Hz")
-    hinges = hinge_segments(args.hinges, skel)
+    ignored: list = []
+    hinges = hinge_segments(args.hinges, skel, ignored)
+    if ignored:        # a group with nothing to constrain here: said, not silently dropped
+        print(f"imugraph: warning: --hinges {', '.join(ignored)}: no such joint between sensed segments of this "
+              "skeleton; ignored", file=sys.stderr, flush=True)
     opts = BodyOptions(use_mag=bool(args.mag), hinges=hinges)
-    out = common.out_dir_for(args.out, session.name)
+    with common.output_folder(args.out, session.name) as out:     # no empty folder left by a failed run
+        return _mocap_into(out, args, path, session, opts, hinges, progress)
+
+
+def _mocap_into(out: Path, args: argparse.Namespace, path: Path, session, opts, hinges: tuple,
+                progress: common.Progress) -> int:
+    """run_mocap's body once the session and options are set: solve, write the outputs into `out`, print."""
+    from imugraph.body.angles import joint_angles, write_joint_angles_csv
+    from imugraph.io.body_figures import plot_joint_angles, plot_stick_figures
+    from imugraph.io.bvh import write_bvh
+    from imugraph.io.writers import atomic_write_text, json_ready
+
+    skel = session.skeleton
     with progress.library_output():
         result, solver = _solve(session, opts, args.lag, progress)
     written = [write_mocap_npz(out / "mocap.npz", result.t, result.names, result.n_quat, result.n_pos)]
@@ -215,7 +241,11 @@ def run_mocap(args: argparse.Namespace) -> int:
     print(f"mocap {session.name}: {session.n} samples, {len(result.names)} segments, {solver}"
           + (f", solved in {secs:.1f} s" if isinstance(secs, (int, float)) else "") + f" → {out}")
     if timing.get("updates"):
-        print(f"  {timing['updates']} updates, {timing['realtime_factor']:.1f}× real time, "
+        boot = timing.get("bootstrap") if isinstance(timing.get("bootstrap"), dict) else {}
+        rtf = (f"{timing['realtime_factor']:.1f}× real time after a {boot['seconds']:.1f} s bootstrap solve "
+               f"({timing['realtime_factor_with_bootstrap']:.1f}× including it)" if boot.get("seconds")
+               else f"{timing['realtime_factor']:.1f}× real time")
+        print(f"  {timing['updates']} updates, {rtf}, "
               f"update p50 {timing['p50_ms']:.1f} ms, p99 {timing['p99_ms']:.1f} ms")
     if scores is not None:
         worst = max(scores["joints"], key=lambda j: scores["joints"][j]["all"])

@@ -42,11 +42,18 @@ def _coverage_line(coverage: dict) -> Optional[str]:
     return _row("identifiable", text + (f" ({'; '.join(map(str, problems))})" if problems else ""))
 
 
+def _percent(value: float, fmt: str) -> str:
+    """A fraction as a percentage, or 'n/a' (same width) when it could not be computed (NaN)."""
+    return format(100 * value, fmt) + " %" if np.isfinite(value) else format("n/a", f">{fmt.split('.')[0]}") + "  "
+
+
 def score_lines(scores: Scores) -> list[str]:
-    """Field-norm errors before/after (percent) and the orientation error vs truth."""
-    lines = [_row("field norm RMS", f"before {100 * scores.norm_before:7.2f} %   after {100 * scores.norm_after:7.3f} %")]
+    """Field-norm errors before/after (percent; n/a when not computable) and the orientation error vs the
+    session's quat: "vs truth", or "vs reference (<source>)" when it is a device's own estimate (Scores.reference)."""
+    lines = [_row("field norm RMS", f"before {_percent(scores.norm_before, '7.2f')}   "
+                                    f"after {_percent(scores.norm_after, '7.3f')}")]
     if scores.orientation_rms_deg is not None:
-        lines.append(_row("orientation", f"RMS {scores.orientation_rms_deg:.2f}° vs truth "
+        lines.append(_row("orientation", f"RMS {scores.orientation_rms_deg:.2f}° vs {scores.reference} "
                           "(best heading offset and time shift removed)"))
     return lines
 

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 from pathlib import Path
 
 from imugraph.commands import common
@@ -61,20 +62,65 @@ def write_stream_figures(out: Path, session, result) -> list[str]:
     return names
 
 
-def run_stream(args: argparse.Namespace) -> int:
-    """stream SESSION [--out DIR] [--lag S] [--bootstrap-s S] [--calibration FILE] [--keyframe-hz HZ]."""
-    from imugraph.graphs.stream import StreamOptions
-    from imugraph.graphs.stream_run import stream_session
-    from imugraph.io.writers import atomic_write_text, json_ready, write_orientation_npz
+# StreamStats counters → words of the arrival line (those not listed print with their field name)
+ARRIVAL_WORDS = {"duplicates": "duplicate", "late_inserted": "late, inserted", "late_dropped": "late, dropped",
+                 "invalid": "invalid", "gaps": "gaps", "missing": "missing", "mag_dropped": "magnetometer dropped",
+                 "failed_updates": "failed updates", "marginal_steps": "marginal steps",
+                 "calib_refits": "calibration refits", "disturbances": "disturbance windows",
+                 "disturbed_keyframes": "disturbed keyframes", "disturbed_samples": "disturbed samples"}
 
+
+def arrival_line(counts: dict) -> str:
+    """The non-zero arrival counters as one readable line ("  arrival: 3 duplicate, 2 gaps"), or "" when none
+    (accepted and mag_samples are in the summary line already)."""
+    parts = [f"{v} {ARRIVAL_WORDS.get(k, k)}" for k, v in counts.items()
+             if v and k not in ("accepted", "mag_samples")]
+    return f"  arrival: {', '.join(parts)}" if parts else ""
+
+
+def ignored_flags(args: argparse.Namespace) -> list[str]:
+    """Flags given on the command line that this combination ignores (each a one-line reason): a warning on
+    stderr, the run unchanged (StreamOptions applies them only where stated)."""
+    given = lambda name: getattr(args, name, None) is True          # noqa: E731 — explicitly --name
+    lag = getattr(args, "lag", None) is not None
+    out = []
+    if given("calib_json_end_graph") and lag:
+        out.append("--calib-json-end-graph has no effect with --lag (the end-of-stream graph is full iSAM2's)")
+    if given("disturb_offsets") and (getattr(args, "calib_states", None) is False or getattr(args, "disturb", None) is False):
+        out.append("--disturb-offsets has no effect with --no-calib-states or --no-disturb (it needs both)")
+    if given("calib_states") and getattr(args, "fixed_calibration", False):
+        out.append("--calib-states has no effect with --fixed-calibration (no online calibration)")
+    if not lag and getattr(args, "lag_solver", "chain") not in (None, "chain"):
+        out.append(f"--lag-solver {args.lag_solver} has no effect without --lag")
+    return out
+
+
+def run_stream(args: argparse.Namespace) -> int:
+    """stream SESSION [--out DIR] [--lag S] [--bootstrap-s S] [--calibration FILE] [--keyframe-hz HZ].
+
+    Flags this combination ignores are named in one warning line each on stderr (`ignored_flags`)."""
     progress = common.Progress(args.quiet)
+    for reason in ignored_flags(args):
+        print(f"imugraph: warning: {reason}; ignored", file=sys.stderr, flush=True)
     cal = None
     if args.calibration:
         from imugraph.io.writers import read_calibration_json
         cal = read_calibration_json(Path(args.calibration).expanduser())
     path = common.resolve_session_path(args.session, args.data_dir)
     session = common.load(path, progress)
-    out = common.out_dir_for(args.out, Path(path).stem)
+    if cal is not None:              # a calibration of another sensor (median |D⁻¹(y − o)| far from 1): refused
+        from imugraph.io.validate import check_calibration_applies
+        check_calibration_applies(session, cal, args.calibration)
+    with common.output_folder(args.out, Path(path).stem) as out:     # no empty folder left by a failed run
+        return _stream_into(out, args, session, cal, progress)
+
+
+def _stream_into(out: Path, args: argparse.Namespace, session, cal, progress: common.Progress) -> int:
+    """The stream and its outputs in `out` (run_stream's body once the session is read)."""
+    from imugraph.graphs.stream import StreamOptions
+    from imugraph.graphs.stream_run import stream_session
+    from imugraph.io.writers import atomic_write_text, json_ready, write_orientation_npz
+
     lag_solver = getattr(args, "lag_solver", None) or StreamOptions.fixed_lag_solver   # `--lag-solver` if offered
     # --calib-states, --disturb, --weak-prior, --disturb-offsets when the parser offers them (cli.py; StreamOptions' defaults otherwise)
     options = StreamOptions(keyframe_hz=args.keyframe_hz, lag_s=args.lag, fixed_lag_solver=lag_solver,
@@ -94,17 +140,18 @@ def run_stream(args: argparse.Namespace) -> int:
     timing = dict(result.timing, bootstrap_samples=result.bootstrap_samples, counts=result.counts,
                   solver="isam2" if args.lag is None else f"fixed_lag {args.lag:g} s ({lag_solver})")
     atomic_write_text(out / "timing.json", json.dumps(timing, indent=2))
-    progress.say(f"wrote {out}/orientation.npz, orientation_filtered.npz, calibration.json, "
+    progress.say(f"wrote {out}/orientation.npz, orientation_filtered.npz, "      # calibration.json: said above
                  "calibration_history.json, timing.json")
     progress.say(f"drawing figures: {', '.join(write_stream_figures(out, session, result))}")
     tm = result.timing
     print(f"streamed {session.name}: {session.n} samples, {tm['updates']} updates, "
           f"{tm['realtime_factor']:.1f}× real time, update p50 {tm['p50_ms']:.2f} ms, p99 {tm['p99_ms']:.2f} ms → {out}")
+    reference = common.reference_label(session)          # "truth", or a device's own estimate (quat_source)
     for label, quat in (("filtered", result.filtered), ("smoothed", result.smoothed)):
         rms = common.orientation_score(session, quat)
         if rms is not None:
-            print(f"  {label} orientation error vs truth: {rms:.2f}° RMS")
-    dropped = {k: v for k, v in result.counts.items() if v and k not in ("accepted", "mag_samples")}
-    if dropped:
-        print(f"  arrival: {dropped}")
+            print(f"  {label} orientation error vs {reference}: {rms:.2f}° RMS")
+    line = arrival_line(result.counts)
+    if line:
+        print(line)
     return 0

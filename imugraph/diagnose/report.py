@@ -76,8 +76,14 @@ def plot_residuals(diag, path, channel: str | None = None) -> Path:
     return save_figure_atomic(fig, path)
 
 
+def _cell(text) -> str:
+    """A markdown table cell: '|' escaped (a size unit "fraction of |m|" or an error text split the row into
+    more cells than the header), newlines folded."""
+    return " ".join(str(text).split()).replace("|", "\\|")
+
+
 def markdown(diag, figures: dict) -> str:
-    """diagnosis.md text."""
+    """diagnosis.md text (every table row has as many cells as its header: free text goes through `_cell`)."""
     s = diag.real.session
     lines = [f"# Diagnosis of {s.name}", "",
              f"{s.n} samples, {s.t[-1] - s.t[0]:.1f} s at {s.rate:.1f} Hz ({s.source}).", "",
@@ -105,13 +111,13 @@ def markdown(diag, figures: dict) -> str:
     for i, r in enumerate(diag.effects, 1):
         win = "—" if r.t_start is None else f"{r.t_start:.1f}–{r.t_end:.1f}"
         if r.error:
-            lines.append(f"| {i} | {r.name} | {r.channel} | — | — | — | — | — | failed: {r.error} | | | | | |")
+            lines.append(f"| {i} | {r.name} | {r.channel} | — | — | — | — | — | failed: {_cell(r.error)} | | | | | |")
             continue
         sz = r.size or {}
         lines.append(f"| {i} | {r.name} | {r.channel} | {win} | {r.gap_before:.3f} | {r.gap_after:.3f} | "
                      f"{r.shrink:.2f} | {r.penalised:.2f} | {r.loglik_gain:+.4f} | {r.n_params} | "
                      f"{sz.get('value', float('nan')):.3g} / {sz.get('threshold', float('nan')):.3g} "
-                     f"{sz.get('unit', '')} | {'yes' if r.significant else 'no'} | "
+                     f"{_cell(sz.get('unit', ''))} | {'yes' if r.significant else 'no'} | "
                      f"{'yes' if r.relevant else 'no'} | {r.stage} |")
     lines += ["", f"![residuals]({figures['residuals']})", "",
               "Gap: 1-Wasserstein distance between real and simulated whitened residuals plus the mean "
