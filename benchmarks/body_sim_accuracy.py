@@ -12,7 +12,7 @@ Targets: ≤ 2° per joint, ≤ 2 cm.
         [--duration S] [--lower] [--mag both|off|on] [--lag S] [--tie] [--bias-walk SIGMA]
         [--hinges knees] [--axial shanks|thighs|legs] [--unsensed SIGMA_DEG[,SIGMA_DEG…]]
         [--unsensed-prior fixed|shared] [--unsensed-chains Head] [--unsensed-npose-sigma DEG]
-        [--unsensed-gain G]
+        [--unsensed-gain G] [--neck tie,bend,lever,bend+lever]
 
 --duration limits the BVH time used (after the Xsens export's T-pose frame); --lower simulates the 7-sensor
 lower body only (quick runs); --tie makes the truth's unsensed segments (spine links, neck, toes) follow
@@ -24,7 +24,13 @@ values, or "off" among them (the default model), each solve the same simulated s
 --unsensed-chains set BodyOptions.unsensed_prior and unsensed_chains (e.g. "Head": the neck only),
 --unsensed-npose-sigma BodyOptions.unsensed_npose_sigma_rad (in degrees), --unsensed-gain
 BodyOptions.unsensed_sigma_gain. With several seeds a second table gives, per motion
-and magnetometer setting, the worst joint and position over the seeds (`seed_summary`).
+and magnetometer setting, the worst joint and position over the seeds (`seed_summary`). --neck (session 21,
+imugraph.graphs.body_neck): comma-separated variants, each solving the same simulated session: "tie" (the
+default model), "bend" (BodyOptions.unsensed_bend=("Head",): the neck turned with T8 by the bend the graph's
+levers imply, N5), "lever" (lever_prior_frame="estimated": a second pass with the lever priors in the
+estimated sensor frames, N6), "bend+lever" (both), "bend+lumped" (N6 for the lumped joints' levers only),
+"bend+lumped5" (the same with lever_pass_lumped_sigma_m 5 mm), "bend+lumped1" (lever_pass_iterations 1);
+labels and the seed table carry the variant.
 Writes bench_out/body_sim_accuracy.json.
 """
 
@@ -61,9 +67,19 @@ def _solve(session, use_mag: bool, lag: float | None, opts_kw: dict | None = Non
     return solve_body_incremental(session, opts, lag_s=lag)
 
 
+# --neck variants (session 21): BodyOptions fields of imugraph.graphs.body_neck (N5), (N6)
+NECK_VARIANTS = {"tie": {}, "bend": {"unsensed_bend": ("Head",)}, "lever": {"lever_prior_frame": "estimated"},
+                 "bend+lever": {"unsensed_bend": ("Head",), "lever_prior_frame": "estimated"},
+                 "bend+lumped": {"unsensed_bend": ("Head",), "lever_prior_frame": "lumped"},
+                 "bend+lumped5": {"unsensed_bend": ("Head",), "lever_prior_frame": "lumped",
+                                  "lever_pass_lumped_sigma_m": 0.005},
+                 "bend+lumped1": {"unsensed_bend": ("Head",), "lever_prior_frame": "lumped",
+                                  "lever_pass_iterations": 1}}
+
+
 def run_case(name: str, seed: int, duration: float | None, lower: bool, mags: list[bool],
              lags: list, tie: bool = False, bias_walk: float = 0.0, opts_kw: dict | None = None,
-             unsensed: tuple = (None,)) -> list[dict]:
+             unsensed: tuple = (None,), necks: tuple = ("tie",)) -> list[dict]:
     """Simulate one motion once, solve it with and/or without magnetometers, score; one record per solve
     (opts_kw: extra BodyOptions fields, e.g. hinges and axial_segments; unsensed: values of
     BodyOptions.unsensed_sigma_rad in degrees, None = the default lumped model, one solve each)."""
@@ -71,10 +87,11 @@ def run_case(name: str, seed: int, duration: float | None, lower: bool, mags: li
 
     skel, session, mask = simulated_session(name, seed, duration, lower, tie=tie, bias_walk=bias_walk)
     out = []
-    for use_mag, lag, uns in ((m, g, u) for m in mags for g in lags for u in unsensed):
+    for use_mag, lag, uns, neck in ((m, g, u, v) for m in mags for g in lags for u in unsensed for v in necks):
         label = (f"{name} s{seed} {'mag' if use_mag else 'no-mag'}" + ("" if lag is None else f" lag {lag:g}")
-                 + ("" if uns is None else f" uns{uns:g}"))
+                 + ("" if uns is None else f" uns{uns:g}") + ("" if neck == "tie" else f" {neck}"))
         kw = dict(opts_kw or {}, **({} if uns is None else {"unsensed_sigma_rad": float(np.deg2rad(uns))}))
+        kw.update(NECK_VARIANTS[neck])
         t0 = time.perf_counter()
         try:
             result = _solve(session, use_mag, lag, kw)
@@ -84,6 +101,7 @@ def run_case(name: str, seed: int, duration: float | None, lower: bool, mags: li
         secs = time.perf_counter() - t0
         scores = score_against_truth(result, session.truth, skel, mask)
         out.append({"label": label, "motion": name, "seed": seed, "use_mag": use_mag, "lag_s": lag, "unsensed_deg": uns,
+                    "neck": neck,
                     "realtime_factor": result.info.get("realtime_factor"), "samples": int(session.n),
                     "duration_s": float(session.t[-1]), "sensors": len(session.sensors), "seconds": secs,
                     "iterations": [p.get("iterations") for p in result.info.get("passes", [])],
@@ -99,16 +117,17 @@ def seed_summary(records: list[dict]) -> list[list]:
     joint), median of the per-seed worst joint, position RMS (max, median), worst single segment, targets met."""
     groups: dict = {}
     for r in records:
-        groups.setdefault((r["motion"], r["use_mag"], r["lag_s"], r.get("unsensed_deg")), []).append(r)
+        groups.setdefault((r["motion"], r["use_mag"], r["lag_s"], r.get("unsensed_deg"), r.get("neck", "tie")),
+                          []).append(r)
     rows = []
-    for (motion, mag, lag, uns), rs in groups.items():
+    for (motion, mag, lag, uns, neck), rs in groups.items():
         jm = [r["row"]["joint_max_deg"] for r in rs]
         pr = [r["row"]["pos_rms_cm"] for r in rs]
         pw = [r["row"]["pos_worst_cm"] for r in rs]
         w = int(np.argmax(jm))
         ok = max(jm) <= 2.0 and max(pr) <= 2.0
         rows.append([f"{motion} {'mag' if mag else 'no-mag'}" + ("" if lag is None else f" lag {lag:g}")
-                     + ("" if uns is None else f" uns{uns:g}"), len(rs),
+                     + ("" if uns is None else f" uns{uns:g}") + ("" if neck == "tie" else f" {neck}"), len(rs),
                      max(jm), f"s{rs[w]['seed']} {rs[w]['row']['worst_joint']}", float(np.median(jm)), max(pr),
                      float(np.median(pr)), f"{max(pw):.2f} {rs[int(np.argmax(pw))]['row']['worst_segment']}",
                      "yes" if ok else "NO"])
@@ -138,6 +157,8 @@ def main(argv=None) -> int:
     ap.add_argument("--unsensed-chains", default="", help="comma-separated distal segments (BodyOptions.unsensed_chains)")
     ap.add_argument("--unsensed-npose-sigma", type=float, default=None, help="unsensed_npose_sigma_rad in degrees")
     ap.add_argument("--unsensed-gain", type=float, default=None, help="BodyOptions.unsensed_sigma_gain (rad per rad)")
+    ap.add_argument("--neck", default="tie", help="comma-separated of " + ", ".join(NECK_VARIANTS)
+                    + " (session 21, imugraph.graphs.body_neck)")
     ap.add_argument("--out", default="body_sim_accuracy.json", help="file name in bench_out/")
     a = ap.parse_args(argv)
     legs = {"thighs": ("RightUpperLeg", "LeftUpperLeg"), "shanks": ("RightLowerLeg", "LeftLowerLeg"),
@@ -162,7 +183,7 @@ def main(argv=None) -> int:
             continue
         for seed in (int(s) for s in a.seeds.split(",")):
             records += run_case(name, seed, a.duration, a.lower, mags, [None] + ([a.lag] if a.lag else []), a.tie,
-                                a.bias_walk, opts_kw, unsensed)
+                                a.bias_walk, opts_kw, unsensed, tuple(a.neck.split(",")))
     if not records:
         print("no motion data found")
         return 1

@@ -22,6 +22,7 @@ knee and hip.
 
     .venv/bin/python benchmarks/gaittoolbox_walk.py [--mag] [--hinges knees] [--axial thighs|shanks|legs|SEGS]
                                                    [--lag S] [--ablation] [--figure] [--skeleton SPEC] [--subsample]
+                                                   [--knee-gain thighs|left|SEGS --knee-gain-tau S|none]
 
 --skeleton bvh:mvn reads the session onto the subject's skeleton, from the HIERARCHY (OFFSETs only, never the
 motion) of the trial's MVN BVH; also 'height:H' or 'bvh:PATH' (imugraph.body.skeleton.skeleton_from_spec).
@@ -29,6 +30,16 @@ Measured 2026-11-23: no change (≤ 0.02° per joint): the lever arms sensor →
 skeleton-derived priors (σ 7 cm) do not bind (an ad-hoc check of the estimated hip–knee distances, not in
 this script, found them equal on either skeleton).
 --subsample also scores both systems at their best fractional shift (integer ±5 + 0.1-sample slerp steps).
+
+--knee-gain thighs|left|right|SEGS (session 21, helper H; imugraph.factors.knee_sta, BodyOptions.knee_gain_*): each
+thigh sensor turns about the femur's long axis by c_k + g·κ_k (κ the knee flexion, one gain g per thigh from the IMU
+data through the knee). --knee-gain-mode graph (needs --hinges knees; c_k, g in the hinge pass) or two-stage (no
+hinge pass: least squares on the output's knees); --knee-gain-turn hinge|cardan, --knee-gain-apply gain|offset+gain,
+--knee-gain-tau S|none (τ of the slow offset c_k), --knee-gain-screw-home C, --knee-gain-hinge IE,AbAd. Batch only
+(the fixed-lag run ignores it). Measured 2026-11-24 (docs/results_issue4.md, session 21 helper H): the best
+variant (two-stage, cardan, gain, τ 2 s) gives L hip 5.70° (< MVN 5.83) but the result moves from 5.57° to 6.70°
+with τ, and the same estimator on the simulated MVN walk (no soft tissue) finds larger gains and raises its worst
+joint from 0.62° to 1.91° (hinge turn: 2.70°, fails 4a): not a default.
 
 --lag S also runs the fixed-lag smoother (imugraph.graphs.body_incremental) and scores it the same way;
 --ablation also runs ours without the joint factors and without the lever-arm priors (issue 4c on real data).
@@ -65,17 +76,19 @@ JOINTS = ("RightHip", "LeftHip", "RightKnee", "LeftKnee", "RightAnkle", "LeftAnk
 
 
 def ours(root: Path, use_mag: bool, hinges: tuple, lag: float | None = None, variant: str = "full", axial: tuple = (),
-         skeleton: str | None = None):
+         skeleton: str | None = None, extra: dict | None = None):
     """({segment: (N, 4)}, info) of our batch (or, with lag, fixed-lag) estimate on the rawimu recording;
     variant: an ablation of benchmarks/body_bench.ablation_options ('full', 'no_joints', 'no_levers'); axial:
     BodyOptions.axial_segments (soft axial sensor-to-segment rotations, seen through the hinges); skeleton: the
-    reader's skeleton spec (None: lower_body(1.75); 'bvh:PATH': the subject's, from a BVH hierarchy)."""
+    reader's skeleton spec (None: lower_body(1.75); 'bvh:PATH': the subject's, from a BVH hierarchy); extra: more
+    BodyOptions fields (e.g. the knee-gain thigh model, imugraph.factors.knee_sta)."""
     from benchmarks.body_bench import ablation_options
     from imugraph.graphs.body import solve_body_batch
     from imugraph.io.gaittoolbox import read_gaittoolbox
 
     session = read_gaittoolbox(root / "rawimu", skeleton=skeleton)
-    opts, _ = ablation_options(variant, use_mag=use_mag, hinges=hinges, **({"axial_segments": axial} if axial else {}))
+    opts, _ = ablation_options(variant, use_mag=use_mag, hinges=hinges, **({"axial_segments": axial} if axial else {}),
+                               **(extra or {}))
     t0 = time.perf_counter()
     if lag is None:
         res = solve_body_batch(session, opts)
@@ -86,7 +99,8 @@ def ours(root: Path, use_mag: bool, hinges: tuple, lag: float | None = None, var
     info = {"seconds": secs, "samples": int(session.n), "npose": res.info.get("npose"),
             "realtime_factor": res.info.get("realtime_factor"),
             "iterations": [p.get("iterations") for p in res.info.get("passes", [])],
-            "mag_sigmas": res.info.get("mag_sigmas"), "skeleton": session.meta.get("skeleton")}
+            "mag_sigmas": res.info.get("mag_sigmas"), "skeleton": session.meta.get("skeleton"),
+            "knee_gain": res.info.get("knee_gain")}
     return {n: res.n_quat[:, i] for i, n in enumerate(res.names)}, info
 
 
@@ -186,6 +200,18 @@ def main(argv=None) -> int:
                     "motion unused)")
     ap.add_argument("--subsample", action="store_true", help="also score both systems at their best fractional "
                     "shift (0.1-sample slerp steps on top of the integer search)")
+    ap.add_argument("--knee-gain", default="", help="thighs whose sensor turns about the long axis by c_k + g·κ_k "
+                    "(imugraph.factors.knee_sta; comma-separated, 'thighs' or 'left'); needs --hinges knees")
+    ap.add_argument("--knee-gain-tau", default="2", help="τ_c of the offset c_k, s, or 'none' (one constant)")
+    ap.add_argument("--knee-gain-sigma", type=float, default=0.5, help="prior σ of the gain g, rad/rad")
+    ap.add_argument("--knee-gain-mode", choices=("graph", "two-stage"), default="graph",
+                    help="BodyOptions.knee_gain_mode (two-stage needs no --hinges)")
+    ap.add_argument("--knee-gain-apply", choices=("offset+gain", "gain"), default="offset+gain",
+                    help="BodyOptions.knee_gain_apply")
+    ap.add_argument("--knee-gain-screw-home", type=float, default=0.0, help="BodyOptions.knee_gain_screw_home, rad/rad")
+    ap.add_argument("--knee-gain-turn", choices=("hinge", "cardan"), default="hinge", help="BodyOptions.knee_gain_turn")
+    ap.add_argument("--knee-gain-hinge", default="", help="σ of that knee's hinge (S3), 'IE,AbAd' rad (default: "
+                    "BodyOptions.axial_hinge_sigmas_rad)")
     ap.add_argument("--figure", action="store_true")
     ap.add_argument("--out", default="gaittoolbox_walk.json", help="file name in bench_out/")
     a = ap.parse_args(argv)
@@ -196,14 +222,25 @@ def main(argv=None) -> int:
     hinges = ("RightLowerLeg", "LeftLowerLeg") if a.hinges == "knees" else tuple(h for h in a.hinges.split(",") if h)
     axial = AXIAL_SETS.get(a.axial, tuple(x for x in a.axial.split(",") if x))
     skeleton = f"bvh:{root / 'xsens' / 'S02-Trial-Walk-1.bvh'}" if a.skeleton == "bvh:mvn" else a.skeleton
-    q_ours, info = ours(root, a.mag, hinges, axial=axial, skeleton=skeleton)
+    kg = {"thighs": ("RightUpperLeg", "LeftUpperLeg"), "left": ("LeftUpperLeg",), "right": ("RightUpperLeg",)}.get(
+        a.knee_gain, tuple(x for x in a.knee_gain.split(",") if x))
+    kg_opts = {"knee_gain_segments": kg, "knee_gain_sigma": a.knee_gain_sigma,
+             "knee_gain_offset_tau_s": None if a.knee_gain_tau == "none" else float(a.knee_gain_tau),
+             "knee_gain_mode": a.knee_gain_mode, "knee_gain_apply": a.knee_gain_apply,
+             "knee_gain_screw_home": a.knee_gain_screw_home, "knee_gain_turn": a.knee_gain_turn,
+             "knee_gain_hinge_sigmas_rad": tuple(float(v) for v in a.knee_gain_hinge.split(",")) if a.knee_gain_hinge
+             else None} if kg else {}
+    q_ours, info = ours(root, a.mag, hinges, axial=axial, skeleton=skeleton, extra=kg_opts)
+    if info.get("knee_gain"):
+        print("knee gain: " + ", ".join(f"{n} g {v['gain']:+.3f}, offset sd {np.rad2deg(v['offset_std_rad']):.2f}°"
+                                        for n, v in info["knee_gain"].items()))
     info["skeleton_stated"] = ("subject's, from the MVN BVH hierarchy" if a.skeleton == "bvh:mvn" else info["skeleton"])
     print(f"skeleton: {info['skeleton_stated']}")
     print(f"ours: {info['samples']} samples solved in {info['seconds']:.1f} s (npose {info['npose']}, "
           f"LM iterations {info['iterations']})")
     systems = {"ours": q_ours, "Xsens MVN": xsens_mvn(root)}
     for variant in (("no_joints", "no_levers") if a.ablation else ()):
-        systems[f"ours {variant}"], info[variant] = ours(root, a.mag, hinges, None, variant, axial, skeleton)
+        systems[f"ours {variant}"], info[variant] = ours(root, a.mag, hinges, None, variant, axial, skeleton, kg_opts)
         print(f"ours {variant}: {info[variant]['seconds']:.1f} s")
     if a.lag is not None:
         try:
@@ -244,7 +281,9 @@ def main(argv=None) -> int:
         shifts = {n: results["offset"][n]["shift_samples"] for n in shown}
         figure(OUT_DIR / "gaittoolbox_walk.png", vicon, shown, shifts)
     payload = {"issue": "4b", "use_mag": a.mag, "skeleton": skeleton or "nominal",
-               "hinges": list(hinges), "axial_segments": list(axial), "ours": info, "handlings": HANDLINGS,
+               "hinges": list(hinges), "axial_segments": list(axial), "knee_gain": {k: list(v) if isinstance(v, tuple)
+                                                                                       else v for k, v in kg_opts.items()},
+               "ours": info, "handlings": HANDLINGS,
                "results": results, "peak_memory_mb": peak_memory_mb(),
                "command": "benchmarks/gaittoolbox_walk.py " + " ".join(sys.argv[1:] if argv is None else argv)}
     print(f"\nwrote {write_json(a.out, payload)}")

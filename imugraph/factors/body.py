@@ -57,8 +57,8 @@ def lever_key(i: int) -> int:
 
 def key_dim(key: int) -> int:
     """Tangent dimension of a body-graph key (from its character; a, o: imugraph.factors.body_axial; u, q, n:
-    imugraph.graphs.body_chain)."""
-    dims = {"x": 6, "v": 3, "b": 6, "j": 3, "l": 3, "a": 1, "o": 1, "u": 6, "q": 3, "n": 3}
+    imugraph.graphs.body_chain; h, g: imugraph.factors.knee_sta)."""
+    dims = {"x": 6, "v": 3, "b": 6, "j": 3, "l": 3, "a": 1, "o": 1, "u": 6, "q": 3, "n": 3, "h": 1, "g": 1}
     return dims[chr(gtsam.Symbol(key).chr())]
 
 

@@ -63,7 +63,8 @@ import numpy as np
 
 from imugraph.errors import SessionError
 from imugraph.factors import body as bf
-from imugraph.graphs import body_axial, body_chain
+from imugraph.factors import knee_sta
+from imugraph.graphs import body_axial, body_chain, body_neck
 from imugraph.graphs.body_init import initial_orientations, initial_values, nominal_levers
 from imugraph.graphs.body_model import (BodyJoint, BodyOptions, bias_segments, body_joints,  # noqa: F401
                                         check_session, keyframes, npose_samples, sample_turn, sensor_setup)
@@ -239,8 +240,9 @@ def factors_at(pb: BodyProblem, k: int) -> gtsam.NonlinearFactorGraph:
     if pb.bRs_fixed is not None:
         hm = gtsam.noiseModel.Isotropic.Sigma(2, o.hinge_sigma_rad)
         g.push_back(body_axial.axial_factors_at(pb, k))       # soft axial rotations (S2), their hinges (S3)
+        g.push_back(knee_sta.factors_at(pb, k))               # thigh turn ∝ knee flexion (G1)-(G3), off by default
         for jt in pb.joints:
-            if jt.child in o.hinges and not body_axial.axial_joint(pb, jt):
+            if jt.child in o.hinges and not body_axial.axial_joint(pb, jt) and not knee_sta.handles(pb, jt):
                 P, C = pb.names.index(jt.parent), pb.names.index(jt.child)
                 g.add(bf.hinge_factor(hm, bf.pose_key(P, k), bf.pose_key(C, k),
                                       pb.bRs_fixed[jt.parent].T, pb.bRs_fixed[jt.child].T))
@@ -370,16 +372,24 @@ def solve_body_batch(session, opts: BodyOptions = BodyOptions()) -> BodyResult:
     pb = build_problem(session, opts)
     t_build = time.perf_counter() - t0
     x, passes, graph = optimize_with_mag_noise(pb)
+    if opts.lever_prior_frame in ("estimated", "lumped"):    # lever priors in the estimated frames (body_neck N6)
+        x, info2 = body_neck.lever_pass(pb, x, graph)
+        passes.append(info2)
     if opts.unsensed_sigma_rad is not None and any(jt.lumped for jt in pb.joints):
         x, info2, graph = chain_pass(pb, x)
         passes.append(info2)
     if opts.hinges:
         pb.bRs_fixed = {n: p[0] for n, p in estimate_placements(pb, x)[0].items()}
+        if opts.knee_gain_segments:
+            knee_sta.prepare(pb, x)                           # κ_k from the hinge-free pass (G1)
         graph = full_graph(pb)
-        x, info2 = optimize(pb, graph, body_axial.insert_initial(pb, x))
+        x, info2 = optimize(pb, graph, knee_sta.insert_initial(pb, body_axial.insert_initial(pb, x)))
         passes.append(info2)
     info = {"build_s": t_build, "passes": passes, "keyframes": pb.K, "npose": pb.npose_method,
             "factors": int(graph.size()), "solve_s": sum(p["seconds"] for p in passes)}
     if pb.mag_sigmas:
         info["mag_sigmas"] = dict(pb.mag_sigmas)
-    return make_result(pb, x, info)
+    res = make_result(pb, x, info)
+    if opts.knee_gain_segments:
+        knee_sta.apply_to_result(pb, x, res)                  # nRb = nRs bRsᵀ Exp(−θ â), θ = c + g κ (G1)
+    return res

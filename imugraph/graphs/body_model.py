@@ -80,6 +80,20 @@ class BodyOptions:
             at small flexion the internal/external rotation and the ab/adduction of the joint. Knee in
             walking, biplane radiography of 39 knees on a treadmill (PMC7477710): range of motion IE 11.5°,
             AbAd 3.7°; a sinusoid of peak-to-peak r has σ = r/(2√2): 4.1° → 0.07 rad, 1.3° → 0.023 rad.
+        knee_gain_segments: thighs whose sensor turns about the long axis by c_k + g·κ_k, κ the knee flexion
+            (imugraph.factors.knee_sta (G1)–(G3), one gain g per thigh estimated by the graph), seen through the
+            knee hinge: the knee (the thigh's child) must be in `hinges`; () = rigid sensors (today's behaviour).
+        knee_gain_sigma: prior σ of g (G2), rad/rad.
+        knee_gain_offset_tau_s: correlation time τ_c of the offset c_k (G2), s; None: one constant offset.
+        knee_gain_offset_sigma_rad: σ_c of the offset (G2).
+        knee_gain_hinge_sigmas_rad: σ of the hinge (S3) of such a knee; None: axial_hinge_sigmas_rad.
+        knee_gain_mode: "graph" (c_k, g unknowns of the hinge pass, with the poses) or "two-stage" (no hinge pass:
+            c_k, g by least squares (G4) on the output's knees, the poses held fixed).
+        knee_gain_apply: "offset+gain" (the output thigh turned by c + g κ) or "gain" (by g κ only).
+        knee_gain_screw_home: "two-stage" only: the knee's own internal rotation per flexion (rad/rad, G5) that
+            the hinge-implied turn is first reduced by; 0: a pure hinge.
+        knee_gain_turn: "two-stage" only: "hinge" (the turn the hinge (S3) asks for) or "cardan" (minus the part the
+            knee's own flexion × ab/adduction explains, G6).
         unsensed_sigma_rad: unsensed links between two sensed segments (neck, lumbar spine) as estimated
             segments, the relative rotation shared among the chain's joints with this σ per joint
             (imugraph.graphs.body_chain (C1)–(C4), a second batch pass); None: lumped joints and the ties (K2).
@@ -93,6 +107,15 @@ class BodyOptions:
         unsensed_sigma_gain: with "fixed", σ of (C4') grows with the chain's bend θ_k between its sensed ends
             (first pass): σ_k = unsensed_sigma_rad + gain·θ_k (C6: a straight chain stays on the tie, a bent one
             may share its bend differently); None: constant σ.
+        lever_prior_frame: "nominal" (the lever priors (B3) in the sensor frame of the nominal placement
+            rotation) or "estimated" (a second LM pass, warm-started, with each lever prior's mean turned into the
+            sensor frame of the N-pose estimate bRs: imugraph.graphs.body_neck (N6); batch only); "lumped": the
+            same for the levers of the lumped joints only.
+        lever_pass_lumped_sigma_m: σ of the lumped joints in that second pass (None: lumped_joint_sigma_m).
+        lever_pass_iterations: LM iterations of that second pass (None: max_iterations).
+        unsensed_bend: distal sensed segments (e.g. ("Head",): the neck) whose single unsensed link the output
+            turns with its upper neighbour A by the constant bend the solved lumped joint's levers imply
+            (body_neck (N5)) instead of the ties (K2); (): the ties for all.
     """
 
     keyframe_every: int = 6
@@ -131,12 +154,25 @@ class BodyOptions:
     axial_tau_s: float = 0.1
     axial_offset_sigma_rad: float = 0.17
     axial_hinge_sigmas_rad: tuple = (0.07, 0.023)
+    knee_gain_segments: tuple = ()
+    knee_gain_sigma: float = 0.5
+    knee_gain_offset_tau_s: float | None = 2.0
+    knee_gain_offset_sigma_rad: float = 0.17
+    knee_gain_hinge_sigmas_rad: tuple | None = None
+    knee_gain_mode: str = "graph"
+    knee_gain_apply: str = "offset+gain"
+    knee_gain_screw_home: float = 0.0
+    knee_gain_turn: str = "hinge"
     unsensed_sigma_rad: float | None = None
     chain_offset_sigma_m: float = 0.01
     unsensed_prior: str = "shared"
     unsensed_chains: tuple = ()
     unsensed_npose_sigma_rad: float | None = None
     unsensed_sigma_gain: float | None = None
+    lever_prior_frame: str = "nominal"
+    lever_pass_lumped_sigma_m: float | None = None
+    lever_pass_iterations: int | None = None
+    unsensed_bend: tuple = ()
 
 
 # σ of the sensor's turn about the segment's long axis (soft-tissue artefact, rigid part), by segment-name

@@ -8,7 +8,9 @@
 3. Per sample between keyframes a and b: the gyro (minus the estimated bias) integrated forward from a and
    backward from b, blended by slerp with u = (i − a)/(b − a) (continuous at both keyframes).
 4. Segments: nRb = nRs bRsᵀ; unsensed ones via imugraph.body.skeleton.fill_unsensed (non-strict: where no
-   tie applies, the nearest sensed ancestor's orientation); root origin = p_s + nRs (sRb (0 − b_pos)) with
+   tie applies, the nearest sensed ancestor's orientation), or (BodyOptions.unsensed_bend) a single
+   unsensed link turned with its upper neighbour by the bend the graph's levers imply (body_neck (N5));
+   root origin = p_s + nRs (sRb (0 − b_pos)) with
    p_s Hermite-interpolated from keyframe positions and velocities; the other origins by forward kinematics
    with the skeleton's offsets.
 5. Output frame: the graph's frame is fixed by the gauge (root sensor heading from its nominal placement),
@@ -26,7 +28,7 @@ import numpy as np
 from imugraph.factors import body as bf
 from imugraph.geometry import quat_conj, quat_mul, quat_slerp, quat_to_rotmat, rotmat_to_quat, rotvec_to_quat
 from imugraph.factors.body_axial import long_axis
-from imugraph.graphs import body_chain
+from imugraph.graphs import body_chain, body_neck
 from imugraph.graphs.body_axial import axial_angles
 from imugraph.graphs.body_init import rz
 
@@ -175,6 +177,8 @@ def make_result(pb, x: gtsam.Values, info: dict) -> BodyResult:
         if s == 0:
             root_q = q_s
     q_seg.update(body_chain.link_orientations(pb, x, q_seg))           # estimated unsensed links (C1)–(C4)
+    if not body_chain.active(pb):
+        q_seg.update(body_neck.link_orientations(pb, x, q_seg))        # the graph's constant bend (N5), opt-in
     n_quat = fill_segments(pb.skel, q_seg)
     nRg = rz(np.deg2rad(pb.opts.npose_heading_deg) - psi)                    # graph frame → output frame (step 5)
     q_out = rotmat_to_quat(nRg)

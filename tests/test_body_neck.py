@@ -1,0 +1,104 @@
+"""The unsensed link's bend from the solved graph (imugraph.graphs.body_neck, BodyOptions.unsensed_bend,
+lever_prior_frame).
+
+Synthetic chain (tests/body_synth.py, truth computed there) with the spine: Pelvis → L5 (unsensed) → T8
+(sensed). Its L5 is replaced here by a link that keeps a CONSTANT bend relative to the pelvis once the motion
+starts (0 in the N-pose, blended in), while T8 turns freely on top of it — the situation of the CMU neck
+(stays bent with T8 while the head nods). The ties (K2) put L5 half way between Pelvis and T8 and move T8's
+origin; the graph's bend (N5) must hold it (here A is the root: the (N5) branch that takes A's sensor origin
+from its other joints; the neck's branch, A = T8 below the root, is measured by benchmarks/body_sim_accuracy.py
+--neck). Measured when written: L5 error 13.7° (ties) vs 2.7° (N5 + N6), T8 origin 5.8 vs 1.4 cm.
+"""
+
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from imugraph.geometry import expmap, quat_to_rotmat
+from imugraph.graphs import body_neck
+from imugraph.graphs.body import solve_body_batch
+from imugraph.graphs.body_model import BodyOptions
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import body_synth  # noqa: E402
+
+BEND = np.deg2rad(np.array([0.0, 20.0, 0.0]))        # L5 bent 20° forward about y during the motion
+
+
+@pytest.fixture
+def bent_link_session(monkeypatch):
+    """chain_session(with_spine) whose L5 = Pelvis · Exp(env · BEND), T8 = L5 · (its own random turn)."""
+    orig = body_synth._poses
+
+    def poses(t, skel, env, seed, amp_deg, hinge_knee=False, root_move=True):
+        R, p = orig(t, skel, env, seed, amp_deg, hinge_knee, root_move)
+        iP, iL, iT = skel.index("Pelvis"), skel.index("L5"), skel.index("T8")
+        R_LT = np.swapaxes(R[:, iL], 1, 2) @ R[:, iT]                 # T8's own turn relative to L5, kept
+        R[:, iL] = R[:, iP] @ expmap(env[:, None] * BEND)
+        R[:, iT] = R[:, iL] @ R_LT
+        p[:, iL] = p[:, iP] + np.einsum("tij,j->ti", R[:, iP], skel.offsets[iL])
+        p[:, iT] = p[:, iL] + np.einsum("tij,j->ti", R[:, iL], skel.offsets[iT])
+        for i, par in enumerate(skel.parents):                        # nothing hangs below T8 or L5 here
+            assert par not in (iL, iT) or i in (iT,)
+        return R, p
+
+    monkeypatch.setattr(body_synth, "_poses", poses)
+    return body_synth.chain_session(duration_s=10.0, seed=5, with_spine=True)
+
+
+def _link_error_deg(sess, res, link="L5", parent="Pelvis") -> float:
+    """RMS over the motion of the angle between estimated and true parent-relative link rotations, deg."""
+    tr = sess.truth
+    m = sess.t > 3.0
+    Rt = quat_to_rotmat(np.asarray(tr["n_quat"])[m])
+    Re = quat_to_rotmat(res.n_quat[m])
+    names, rn = list(tr["names"]), list(res.names)
+    rel_t = np.swapaxes(Rt[:, names.index(parent)], 1, 2) @ Rt[:, names.index(link)]
+    rel_e = np.swapaxes(Re[:, rn.index(parent)], 1, 2) @ Re[:, rn.index(link)]
+    d = np.swapaxes(rel_t, 1, 2) @ rel_e
+    # only the bend moves positions: the angle between the link's z axes (its direction along the spine)
+    c = np.clip(np.einsum("ti,ti->t", (rel_t @ np.array([0, 0, 1.0])), rel_e @ np.array([0, 0, 1.0])), -1, 1)
+    assert d.shape[0] > 100
+    return float(np.rad2deg(np.sqrt(np.mean(np.arccos(c) ** 2))))
+
+
+def _t8_origin_error_cm(sess, res) -> float:
+    """RMS over the motion of |(p_T8 − p_Pelvis)_est − (…)_true| after the best constant heading, cm."""
+    from imugraph.body.evaluate import relative_position_error
+    tr = sess.truth
+    names = list(res.names)
+    p_ref = np.asarray(tr["n_pos"])[:, [list(tr["names"]).index(n) for n in names]]
+    return 100 * relative_position_error(names, res.n_pos, p_ref, "Pelvis", sess.t > 3.0)["per_segment"]["T8"]
+
+
+def test_graph_bend_holds_a_constant_link_bend_the_ties_miss(bent_link_session):
+    sess = bent_link_session
+    tie = solve_body_batch(sess, BodyOptions())
+    bend = solve_body_batch(sess, BodyOptions(unsensed_bend=("T8",), lever_prior_frame="lumped"))
+    e_tie, e_bend = _link_error_deg(sess, tie), _link_error_deg(sess, bend)
+    assert e_tie > 8.0                      # the tie turns L5 by half of T8's turn, not by the constant 20°
+    assert e_bend < 5.0 and e_bend < 0.5 * e_tie
+    assert _t8_origin_error_cm(sess, bend) < 0.5 * _t8_origin_error_cm(sess, tie)
+    assert len(bend.info["passes"]) == len(tie.info["passes"]) + 1          # (N6): one more LM pass
+
+
+def test_default_output_is_unchanged_by_the_module():
+    """Without the options the output is the ties': L5 exactly half way between Pelvis and T8."""
+    sess = body_synth.chain_session(duration_s=6.0, seed=2, with_spine=True)
+    res = solve_body_batch(sess, BodyOptions())
+    from imugraph.geometry import quat_slerp
+    rn = list(res.names)
+    q = res.n_quat
+    half = quat_slerp(q[:, rn.index("Pelvis")], q[:, rn.index("T8")], np.full(q.shape[0], 0.5))
+    assert np.allclose(np.abs(np.sum(half * q[:, rn.index("L5")], axis=1)), 1.0, atol=1e-9)
+
+
+def test_rot_between_turns_a_onto_b():
+    rng = np.random.default_rng(0)
+    for _ in range(5):
+        a, b = rng.standard_normal(3), rng.standard_normal(3)
+        R = body_neck._rot_between(a, b)
+        assert np.allclose(R @ R.T, np.eye(3), atol=1e-12)
+        assert np.allclose(R @ (a / np.linalg.norm(a)), b / np.linalg.norm(b), atol=1e-12)
