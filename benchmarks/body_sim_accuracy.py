@@ -25,8 +25,8 @@ values, or "off" among them (the default model), each solve the same simulated s
 --unsensed-npose-sigma BodyOptions.unsensed_npose_sigma_rad (in degrees), --unsensed-gain
 BodyOptions.unsensed_sigma_gain. With several seeds a second table gives, per motion
 and magnetometer setting, the worst joint and position over the seeds (`seed_summary`). --neck (session 21,
-imugraph.graphs.body_neck): comma-separated variants, each solving the same simulated session: "tie" (the
-default model), "bend" (BodyOptions.unsensed_bend=("Head",): the neck turned with T8 by the bend the graph's
+imugraph.graphs.body_neck): comma-separated variants, each solving the same simulated session: "default" (the
+default model, since session 21 = "bend+lumped1"), "tie" (the default before session 21: (K2) ties), "bend" (BodyOptions.unsensed_bend=("Head",): the neck turned with T8 by the bend the graph's
 levers imply, N5), "lever" (lever_prior_frame="estimated": a second pass with the lever priors in the
 estimated sensor frames, N6), "bend+lever" (both), "bend+lumped" (N6 for the lumped joints' levers only),
 "bend+lumped5" (the same with lever_pass_lumped_sigma_m 5 mm), "bend+lumped1" (lever_pass_iterations 1);
@@ -68,10 +68,13 @@ def _solve(session, use_mag: bool, lag: float | None, opts_kw: dict | None = Non
 
 
 # --neck variants (session 21): BodyOptions fields of imugraph.graphs.body_neck (N5), (N6)
-NECK_VARIANTS = {"tie": {}, "bend": {"unsensed_bend": ("Head",)}, "lever": {"lever_prior_frame": "estimated"},
-                 "bend+lever": {"unsensed_bend": ("Head",), "lever_prior_frame": "estimated"},
-                 "bend+lumped": {"unsensed_bend": ("Head",), "lever_prior_frame": "lumped"},
-                 "bend+lumped5": {"unsensed_bend": ("Head",), "lever_prior_frame": "lumped",
+_TIES = {"unsensed_bend": (), "lever_prior_frame": "nominal", "lever_pass_iterations": None}
+NECK_VARIANTS = {"default": {},                                         # session 21 default = "bend+lumped1"
+                 "tie": _TIES,                                          # the default before session 21
+                 "bend": {**_TIES, "unsensed_bend": ("Head",)}, "lever": {**_TIES, "lever_prior_frame": "estimated"},
+                 "bend+lever": {**_TIES, "unsensed_bend": ("Head",), "lever_prior_frame": "estimated"},
+                 "bend+lumped": {**_TIES, "unsensed_bend": ("Head",), "lever_prior_frame": "lumped"},
+                 "bend+lumped5": {**_TIES, "unsensed_bend": ("Head",), "lever_prior_frame": "lumped",
                                   "lever_pass_lumped_sigma_m": 0.005},
                  "bend+lumped1": {"unsensed_bend": ("Head",), "lever_prior_frame": "lumped",
                                   "lever_pass_iterations": 1}}
@@ -79,7 +82,7 @@ NECK_VARIANTS = {"tie": {}, "bend": {"unsensed_bend": ("Head",)}, "lever": {"lev
 
 def run_case(name: str, seed: int, duration: float | None, lower: bool, mags: list[bool],
              lags: list, tie: bool = False, bias_walk: float = 0.0, opts_kw: dict | None = None,
-             unsensed: tuple = (None,), necks: tuple = ("tie",)) -> list[dict]:
+             unsensed: tuple = (None,), necks: tuple = ("default",)) -> list[dict]:
     """Simulate one motion once, solve it with and/or without magnetometers, score; one record per solve
     (opts_kw: extra BodyOptions fields, e.g. hinges and axial_segments; unsensed: values of
     BodyOptions.unsensed_sigma_rad in degrees, None = the default lumped model, one solve each)."""
@@ -89,7 +92,7 @@ def run_case(name: str, seed: int, duration: float | None, lower: bool, mags: li
     out = []
     for use_mag, lag, uns, neck in ((m, g, u, v) for m in mags for g in lags for u in unsensed for v in necks):
         label = (f"{name} s{seed} {'mag' if use_mag else 'no-mag'}" + ("" if lag is None else f" lag {lag:g}")
-                 + ("" if uns is None else f" uns{uns:g}") + ("" if neck == "tie" else f" {neck}"))
+                 + ("" if uns is None else f" uns{uns:g}") + ("" if neck == "default" else f" {neck}"))
         kw = dict(opts_kw or {}, **({} if uns is None else {"unsensed_sigma_rad": float(np.deg2rad(uns))}))
         kw.update(NECK_VARIANTS[neck])
         t0 = time.perf_counter()
@@ -117,7 +120,7 @@ def seed_summary(records: list[dict]) -> list[list]:
     joint), median of the per-seed worst joint, position RMS (max, median), worst single segment, targets met."""
     groups: dict = {}
     for r in records:
-        groups.setdefault((r["motion"], r["use_mag"], r["lag_s"], r.get("unsensed_deg"), r.get("neck", "tie")),
+        groups.setdefault((r["motion"], r["use_mag"], r["lag_s"], r.get("unsensed_deg"), r.get("neck", "default")),
                           []).append(r)
     rows = []
     for (motion, mag, lag, uns, neck), rs in groups.items():
@@ -127,7 +130,7 @@ def seed_summary(records: list[dict]) -> list[list]:
         w = int(np.argmax(jm))
         ok = max(jm) <= 2.0 and max(pr) <= 2.0
         rows.append([f"{motion} {'mag' if mag else 'no-mag'}" + ("" if lag is None else f" lag {lag:g}")
-                     + ("" if uns is None else f" uns{uns:g}") + ("" if neck == "tie" else f" {neck}"), len(rs),
+                     + ("" if uns is None else f" uns{uns:g}") + ("" if neck == "default" else f" {neck}"), len(rs),
                      max(jm), f"s{rs[w]['seed']} {rs[w]['row']['worst_joint']}", float(np.median(jm)), max(pr),
                      float(np.median(pr)), f"{max(pw):.2f} {rs[int(np.argmax(pw))]['row']['worst_segment']}",
                      "yes" if ok else "NO"])
@@ -157,7 +160,7 @@ def main(argv=None) -> int:
     ap.add_argument("--unsensed-chains", default="", help="comma-separated distal segments (BodyOptions.unsensed_chains)")
     ap.add_argument("--unsensed-npose-sigma", type=float, default=None, help="unsensed_npose_sigma_rad in degrees")
     ap.add_argument("--unsensed-gain", type=float, default=None, help="BodyOptions.unsensed_sigma_gain (rad per rad)")
-    ap.add_argument("--neck", default="tie", help="comma-separated of " + ", ".join(NECK_VARIANTS)
+    ap.add_argument("--neck", default="default", help="comma-separated of " + ", ".join(NECK_VARIANTS)
                     + " (session 21, imugraph.graphs.body_neck)")
     ap.add_argument("--out", default="body_sim_accuracy.json", help="file name in bench_out/")
     a = ap.parse_args(argv)

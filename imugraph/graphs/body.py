@@ -372,12 +372,13 @@ def solve_body_batch(session, opts: BodyOptions = BodyOptions()) -> BodyResult:
     pb = build_problem(session, opts)
     t_build = time.perf_counter() - t0
     x, passes, graph = optimize_with_mag_noise(pb)
-    if opts.lever_prior_frame in ("estimated", "lumped"):    # lever priors in the estimated frames (body_neck N6)
-        x, info2 = body_neck.lever_pass(pb, x, graph)
-        passes.append(info2)
     if opts.unsensed_sigma_rad is not None and any(jt.lumped for jt in pb.joints):
-        x, info2, graph = chain_pass(pb, x)
+        x, info2, graph = chain_pass(pb, x)                # the unsensed links as estimated segments (C1)–(C6)
         passes.append(info2)
+    elif opts.lever_prior_frame in ("estimated", "lumped"):  # lever priors in the estimated frames (body_neck N6)
+        x, info2 = body_neck.lever_pass(pb, x, graph)
+        if info2 is not None:
+            passes.append(info2)
     if opts.hinges:
         pb.bRs_fixed = {n: p[0] for n, p in estimate_placements(pb, x)[0].items()}
         if opts.knee_gain_segments:

@@ -56,6 +56,7 @@ from imugraph.errors import SessionError
 from imugraph.factors import body as bf
 from imugraph.graphs.body import BodyProblem, build_problem, factors_at, optimize_with_mag_noise
 from imugraph.graphs.body_bootstrap import motion_bootstrap_s
+from imugraph.graphs import body_neck
 from imugraph.graphs.body_model import BodyOptions
 from imugraph.geometry import expmap, rotmat_to_quat
 from imugraph.graphs.body_init import rz
@@ -149,6 +150,7 @@ def solve_body_incremental(session, opts: BodyOptions = BodyOptions(), lag_s: fl
             accelerated enough (imugraph.graphs.body_bootstrap, A1). None: incremental from the first sample.
     """
     t_start = time.perf_counter()
+    opts = body_neck.single_pass_options(opts)          # no (N6) pass here: the neck keeps the ties (K2)
     pb = build_problem(session, opts)
     kf_t = pb.kf_t
     span = float(np.median(np.diff(kf_t))) * max(1, int(update_every)) if pb.K > 1 else 0.0

@@ -169,10 +169,10 @@ class BodyOptions:
     unsensed_chains: tuple = ()
     unsensed_npose_sigma_rad: float | None = None
     unsensed_sigma_gain: float | None = None
-    lever_prior_frame: str = "nominal"
+    lever_prior_frame: str = "lumped"          # session 21 default (was "nominal"): (N6) for the lumped joints
     lever_pass_lumped_sigma_m: float | None = None
-    lever_pass_iterations: int | None = None
-    unsensed_bend: tuple = ()
+    lever_pass_iterations: int | None = 1      # session 21 default: one LM step (same heads as a full pass, +16 % CPU)
+    unsensed_bend: tuple = ("Head",)           # session 21 default (was ()): the neck by (N5); single-pass solves keep (K2)
 
 
 # σ of the sensor's turn about the segment's long axis (soft-tissue artefact, rigid part), by segment-name

@@ -64,15 +64,26 @@ from imugraph.factors import body as bf
 from imugraph.geometry import quat_mul, quat_slerp, quat_to_rotmat, rotmat_to_quat
 
 
+def single_pass_options(opts):
+    """`opts` for a path that solves the graph once (the fixed lag, the diagnosis' base fit): (N5) reads the lumped
+    joint's levers, which only (N6)'s second batch pass puts under priors in the estimated sensor frame — with the
+    nominal-frame priors alone the bend follows the prior's error (Xsens walk head 1.9 → 5.9 cm, session 21) — so
+    without that pass the neck keeps the ties (K2). Unchanged when lever_prior_frame is "nominal" (N5 alone, as asked)."""
+    if opts.lever_prior_frame == "nominal" or not opts.unsensed_bend:
+        return opts
+    return dataclasses.replace(opts, unsensed_bend=())
+
+
 def lever_pass(pb, x, graph=None):
     """(N6): (x, info) of a second LM pass from `x` with the lever priors' means in the estimated sensor frames
+    (info None and `x` unchanged when "lumped" finds no lumped joint)
     (pb.levers replaced; magnetometer σ as the first pass left them). `graph`: the first pass's graph, whose
     lever priors are swapped in place (no rebuild); None, or lever_pass_lumped_sigma_m set: rebuilt."""
     from imugraph.graphs.body import full_graph, optimize
     from imugraph.graphs.body_output import estimate_placements
     o = pb.opts
     if o.lever_prior_frame == "lumped" and not any(jt.lumped for jt in pb.joints):
-        return x, {"iterations": 0, "seconds": 0.0, "lever_prior_frame": "lumped"}     # nothing to move
+        return x, None                                     # no lumped joint: nothing to move, no pass
     place = estimate_placements(pb, x)[0]
     new, moved = [], {}
     for i, (seg, j, l_nom) in enumerate(pb.levers):

@@ -187,8 +187,9 @@ def fit_body(session, opts=None) -> BodyFit:
     """The base fit (module doc): the body graph's batch LM with `opts` (default: BodyOptions())."""
     from imugraph.graphs.body import build_problem, full_graph, optimize
     from imugraph.graphs.body_model import BodyOptions
+    from imugraph.graphs.body_neck import single_pass_options
 
-    opts = BodyOptions() if opts is None else opts
+    opts = single_pass_options(BodyOptions() if opts is None else opts)       # one pass: the neck by the ties (K2)
     if getattr(session, "skeleton", None) is None or not getattr(session, "sensors", None):
         raise SessionError(getattr(session, "source", "<memory>"), "skeleton",
                            "a session without skeleton or sensors", "a body session (imugraph.io.body_session)")
