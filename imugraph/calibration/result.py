@@ -79,6 +79,11 @@ class Calibration:
         """Calibrated field D⁻¹(b_mag − o): unit norm, in the inertial sensor axes. (N, 3) → (N, 3)."""
         return np.linalg.solve(self.D, (np.asarray(b_mag, float) - self.o).T).T
 
+    def calibrated_field(self, t: np.ndarray, b_mag: np.ndarray) -> np.ndarray:
+        """The model's calibrated field D⁻¹(y − o), (N, 3) → (N, 3): y = `corrected(t, b_mag)` when there are
+        disturbance windows, else b_mag itself: the field the "after" field-norm score and calibration.png show."""
+        return self.apply(self.corrected(t, b_mag) if self.disturbances else b_mag)
+
     def corrected(self, t: np.ndarray, b_mag: np.ndarray) -> np.ndarray:
         """The raw field on the gyro's time base with the disturbance windows applied: the lag removed,
         modelled offsets subtracted, unexplained windows and a modelled window's left_out runs set to NaN (no

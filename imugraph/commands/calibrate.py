@@ -128,13 +128,6 @@ def run_calibrate(args: argparse.Namespace) -> int:
     return 0
 
 
-def _read_calibration(path: str) -> Calibration:
-    """Calibration from a calibration.json (path as given on the command line)."""
-    from imugraph.io.writers import read_calibration_json
-
-    return read_calibration_json(Path(path).expanduser())
-
-
 def run_smooth(args: argparse.Namespace) -> int:
     """smooth SESSION [--calibration FILE] [--out DIR] [--keyframe-hz HZ] [--data-dir DIR] [--quiet].
 
@@ -145,13 +138,7 @@ def run_smooth(args: argparse.Namespace) -> int:
     if getattr(args, "no_field", False) and not args.calibration:
         from imugraph.errors import ImugraphError
         raise ImugraphError("--no-field: found without --calibration; expected together with --calibration FILE")
-    # read the calibration first: a bad --calibration fails before any long work
-    cal = _read_calibration(args.calibration) if args.calibration else None
-    path = common.resolve_session_path(args.session, args.data_dir)
-    session = common.load(path, progress)
-    if cal is not None:              # a calibration of another sensor (median |D⁻¹(y − o)| far from 1): refused
-        from imugraph.io.validate import check_calibration_applies
-        check_calibration_applies(session, cal, args.calibration)
+    path, session, cal = common.load_with_calibration(args, progress)      # a bad --calibration fails first
     with common.output_folder(args.out, Path(path).stem) as out:     # no empty folder left by a failed run
         return _smooth_into(out, args, session, cal, progress)
 

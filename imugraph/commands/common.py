@@ -75,6 +75,26 @@ def resolve_session_path(session: str, data_dir: Optional[str], strict: bool = T
         return Path(session).expanduser()
 
 
+def load_with_calibration(args, progress: Progress) -> tuple[Path, Session, Optional[Calibration]]:
+    """smooth's and stream's start: --calibration FILE read first (a bad file fails before any long work), the
+    session resolved and loaded, then the calibration refused if it belongs to another sensor (median
+    |D⁻¹(y − o)| far from 1, `imugraph.io.validate.check_calibration_applies`).
+
+    Returns:
+        (session path, session, Calibration or None without --calibration).
+    """
+    cal = None
+    if args.calibration:
+        from imugraph.io.writers import read_calibration_json
+        cal = read_calibration_json(Path(args.calibration).expanduser())
+    path = resolve_session_path(args.session, args.data_dir)
+    session = load(path, progress)
+    if cal is not None:
+        from imugraph.io.validate import check_calibration_applies
+        check_calibration_applies(session, cal, args.calibration)
+    return path, session, cal
+
+
 def out_dir_for(out: Optional[str], stem: str) -> Path:
     """Output folder: --out when given, else imugraph_out/<stem>; created (with parents) if missing and checked
     writable at once, so that a read-only --out fails before any long computation (not at the first write).
@@ -190,10 +210,9 @@ def field_norm_scores(session: Session, cal: Calibration) -> tuple[float, float]
     valid = session.mag_valid
     norms = np.linalg.norm(session.mag[valid], axis=1)
     raw_scale = float(np.median(norms)) if norms.size else 0.0
-    y = cal.corrected(session.t, session.mag) if cal.disturbances else session.mag
     with np.errstate(divide="ignore", invalid="ignore"):       # a dead (all-zero) field: NaN, not a warning
         raw = session.mag / raw_scale if raw_scale > 0 else np.full_like(session.mag, np.nan)
-        calibrated = cal.apply(y)
+        calibrated = cal.calibrated_field(session.t, session.mag)
     return _norm_error_or_nan(field_norm_error, raw, valid), _norm_error_or_nan(field_norm_error, calibrated, valid)
 
 
@@ -262,10 +281,9 @@ def write_estimate(out: Path, session: Session, estimate: "Estimate", progress: 
     png = out / "calibration.png"
     # the calibrated field of the model, as the console's "after" score (field_norm_scores): with disturbance
     # windows a modelled window's offset removed, an unexplained window's samples left out (Calibration.corrected)
-    y = cal.corrected(session.t, session.mag) if cal.disturbances else session.mag
     velocity = (estimate.info or {}).get("velocity") if isinstance(estimate.info, dict) else None
-    plot_calibration(png, session.mag, cal.apply(y), session.t, estimate.residuals, whitened=True,
-                     title=f"Magnetometer calibration: {session.name}",
+    plot_calibration(png, session.mag, cal.calibrated_field(session.t, session.mag), session.t, estimate.residuals,
+                     whitened=True, title=f"Magnetometer calibration: {session.name}",
                      not_in_cost=("acc",) if velocity is not None else ())
     heading = out / "heading.png"
     # aligned (time shift, heading offset) over `movement` as the console's orientation score (orientation_score)

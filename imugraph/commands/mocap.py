@@ -241,9 +241,9 @@ def _mocap_into(out: Path, args: argparse.Namespace, path: Path, session, opts, 
     print(f"mocap {session.name}: {session.n} samples, {len(result.names)} segments, {solver}"
           + (f", solved in {secs:.1f} s" if isinstance(secs, (int, float)) else "") + f" → {out}")
     if timing.get("updates"):
-        boot = timing.get("bootstrap") if isinstance(timing.get("bootstrap"), dict) else {}
-        rtf = (f"{timing['realtime_factor']:.1f}× real time after a {boot['seconds']:.1f} s bootstrap solve "
-               f"({timing['realtime_factor_with_bootstrap']:.1f}× including it)" if boot.get("seconds")
+        boot_s = _bootstrap_s(timing)            # timing["bootstrap"] is the solver's info["bootstrap"]
+        rtf = (f"{timing['realtime_factor']:.1f}× real time after a {boot_s:.1f} s bootstrap solve "
+               f"({timing['realtime_factor_with_bootstrap']:.1f}× including it)" if boot_s
                else f"{timing['realtime_factor']:.1f}× real time")
         print(f"  {timing['updates']} updates, {rtf}, "
               f"update p50 {timing['p50_ms']:.1f} ms, p99 {timing['p99_ms']:.1f} ms")

@@ -37,15 +37,20 @@ def save_npz_atomic(path: Path, arrays: dict) -> Path:
     Raises:
         SessionError: the location cannot be written (field 'out').
     """
-    from imugraph.io.writers import atomic_write_bytes
-
     buffer = io.BytesIO()
     np.savez_compressed(buffer, **arrays)
+    return _write_atomic(path, buffer.getvalue(), "FILE.npz")
+
+
+def _write_atomic(path: Path, data: bytes, kind: str) -> Path:
+    """`imugraph.io.writers.atomic_write_bytes`, an OSError as SessionError field 'out' (kind: "FILE.npz", ...)."""
+    from imugraph.io.writers import atomic_write_bytes
+
     try:
-        return atomic_write_bytes(path, buffer.getvalue())
+        return atomic_write_bytes(path, data)
     except OSError as exc:
         raise SessionError(str(path), "out", f"a location that cannot be written ({exc.strerror or exc})",
-                           "a writable file path (--out FILE.npz)") from None
+                           f"a writable file path (--out {kind})") from None
 
 
 CSV_COLUMNS = ("t", "gyr_x", "gyr_y", "gyr_z", "acc_x", "acc_y", "acc_z", "mag_x", "mag_y", "mag_z",
@@ -59,16 +64,10 @@ def save_csv_atomic(path: Path, session) -> Path:
     Raises:
         SessionError: the location cannot be written (field 'out').
     """
-    from imugraph.io.writers import atomic_write_text
-
     table = np.column_stack([session.t, session.gyr, session.acc, session.mag, session.quat])
     buffer = io.StringIO()
     np.savetxt(buffer, table, fmt="%.17g", delimiter=",", header=",".join(CSV_COLUMNS), comments="")
-    try:
-        return atomic_write_text(path, buffer.getvalue())
-    except OSError as exc:
-        raise SessionError(str(path), "out", f"a location that cannot be written ({exc.strerror or exc})",
-                           "a writable file path (--out FILE.csv)") from None
+    return _write_atomic(path, buffer.getvalue().encode("utf-8"), "FILE.csv")
 
 
 def effect_names(values) -> list[str]:
@@ -107,6 +106,7 @@ def run_simulate(args: argparse.Namespace) -> int:
     Returns:
         0 on success (errors are raised as ImugraphError and reported by `imugraph.cli.main`).
     """
+    from imugraph.io.writers import json_ready
     from imugraph.sim.scenario import distorted_session
 
     import json
@@ -129,7 +129,7 @@ def run_simulate(args: argparse.Namespace) -> int:
     if suffix == ".csv":
         save_csv_atomic(out, session)
     else:
-        extra = {"effects": np.array(json.dumps(_plain(injected)))} if injected else {}
+        extra = {"effects": np.array(json.dumps(json_ready(injected)))} if injected else {}
         save_npz_atomic(out, {
             "gyr": session.gyr, "acc": session.acc, "mag": session.mag, "t": session.t, "quat": session.quat,
             "true_D": truth.D, "true_o": truth.o, "true_dip_deg": np.float64(truth.dip_deg),
@@ -138,10 +138,3 @@ def run_simulate(args: argparse.Namespace) -> int:
     print(f"wrote {out}: {session.n} samples, {args.duration:g} s at {args.rate:g} Hz, seed {args.seed}, "
           f"dip {truth.dip_deg:.2f}°" + (f", effects {', '.join(names)}" if names else ""))
     return 0
-
-
-def _plain(value):
-    """JSON-ready copy (numpy scalars and arrays → Python numbers and lists)."""
-    from imugraph.io.writers import json_ready
-
-    return json_ready(value)

@@ -102,15 +102,7 @@ def run_stream(args: argparse.Namespace) -> int:
     progress = common.Progress(args.quiet)
     for reason in ignored_flags(args):
         print(f"imugraph: warning: {reason}; ignored", file=sys.stderr, flush=True)
-    cal = None
-    if args.calibration:
-        from imugraph.io.writers import read_calibration_json
-        cal = read_calibration_json(Path(args.calibration).expanduser())
-    path = common.resolve_session_path(args.session, args.data_dir)
-    session = common.load(path, progress)
-    if cal is not None:              # a calibration of another sensor (median |D⁻¹(y − o)| far from 1): refused
-        from imugraph.io.validate import check_calibration_applies
-        check_calibration_applies(session, cal, args.calibration)
+    path, session, cal = common.load_with_calibration(args, progress)      # a bad --calibration fails first
     with common.output_folder(args.out, Path(path).stem) as out:     # no empty folder left by a failed run
         return _stream_into(out, args, session, cal, progress)
 

@@ -247,7 +247,7 @@ def plot_heading(
             raise SessionError(str(path), "quat_ref", f"shape {q_ref.shape}", f"{q_est.shape}")
         if align:
             q_est, note = _aligned_estimate(q_est, q_ref, mask)
-    axes[0].plot(t, _break_wraps(_heading_or_nan(q_est)), color="tab:blue", lw=1,
+    axes[0].plot(t, _break_wraps(heading_deg(q_est)), color="tab:blue", lw=1,
                  label="estimate" + (" (aligned)" if note else ""))
     if quat_ref is not None:
         known = np.all(np.isfinite(q_ref), axis=1)
@@ -266,14 +266,6 @@ def plot_heading(
     axes[-1].set_xlabel("time [s]")
     save_figure_atomic(fig, path)
     return fig
-
-
-def _heading_or_nan(quat: np.ndarray) -> np.ndarray:
-    """heading_deg, NaN on rows that are not finite (an aligned estimate's shifted-out ends)."""
-    out = np.full(quat.shape[0], np.nan)
-    ok = np.all(np.isfinite(quat), axis=1)
-    out[ok] = heading_deg(quat[ok])
-    return out
 
 
 def _aligned_estimate(q_est: np.ndarray, q_ref: np.ndarray, mask: Optional[np.ndarray]) -> tuple[np.ndarray, str]:
@@ -311,6 +303,5 @@ def _plot_heading_error(ax: Axes, t: np.ndarray, q_est: np.ndarray, q_ref: np.nd
     ax.plot(t, total, color="tab:gray", lw=1, label=f"total orientation error (RMS {rms_total:.2f}°{where})")
     ax.axhline(0.0, color="k", lw=0.8)
     ax.set_ylabel("error [deg]")
-    ax.set_title("Error against the reference")
     ax.grid(alpha=0.3)
     ax.legend(loc="upper right", fontsize=8)
