@@ -80,6 +80,12 @@ NECK_VARIANTS = {"default": {},                                         # sessio
                                   "lever_pass_iterations": 1}}
 
 
+def _label(head: str, use_mag: bool, lag, uns, neck: str) -> str:
+    """A solve's label: head (motion, and seed), magnetometer, lag, unsensed σ and --neck variant when not default."""
+    return (f"{head} {'mag' if use_mag else 'no-mag'}" + ("" if lag is None else f" lag {lag:g}")
+            + ("" if uns is None else f" uns{uns:g}") + ("" if neck == "default" else f" {neck}"))
+
+
 def run_case(name: str, seed: int, duration: float | None, lower: bool, mags: list[bool],
              lags: list, tie: bool = False, bias_walk: float = 0.0, opts_kw: dict | None = None,
              unsensed: tuple = (None,), necks: tuple = ("default",)) -> list[dict]:
@@ -91,8 +97,7 @@ def run_case(name: str, seed: int, duration: float | None, lower: bool, mags: li
     skel, session, mask = simulated_session(name, seed, duration, lower, tie=tie, bias_walk=bias_walk)
     out = []
     for use_mag, lag, uns, neck in ((m, g, u, v) for m in mags for g in lags for u in unsensed for v in necks):
-        label = (f"{name} s{seed} {'mag' if use_mag else 'no-mag'}" + ("" if lag is None else f" lag {lag:g}")
-                 + ("" if uns is None else f" uns{uns:g}") + ("" if neck == "default" else f" {neck}"))
+        label = _label(f"{name} s{seed}", use_mag, lag, uns, neck)
         kw = dict(opts_kw or {}, **({} if uns is None else {"unsensed_sigma_rad": float(np.deg2rad(uns))}))
         kw.update(NECK_VARIANTS[neck])
         t0 = time.perf_counter()
@@ -108,7 +113,8 @@ def run_case(name: str, seed: int, duration: float | None, lower: bool, mags: li
                     "realtime_factor": result.info.get("realtime_factor"), "samples": int(session.n),
                     "duration_s": float(session.t[-1]), "sensors": len(session.sensors), "seconds": secs,
                     "iterations": [p.get("iterations") for p in result.info.get("passes", [])],
-                    "npose": result.info.get("npose"), "scores": scores, "row": summary_row(label, scores, secs)})
+                    "npose": result.info.get("npose"), "scores": scores, "row": summary_row(label, scores, secs),
+                    **({"knee_gain": result.info["knee_gain"]} if "knee_gain" in result.info else {})})
         print(f"  {label}: {session.n} samples, {len(session.sensors)} IMUs, {secs:.1f} s, joint max "
               f"{out[-1]['row']['joint_max_deg']:.2f}° ({out[-1]['row']['worst_joint']}), position RMS "
               f"{out[-1]['row']['pos_rms_cm']:.2f} cm", flush=True)
@@ -129,8 +135,7 @@ def seed_summary(records: list[dict]) -> list[list]:
         pw = [r["row"]["pos_worst_cm"] for r in rs]
         w = int(np.argmax(jm))
         ok = max(jm) <= 2.0 and max(pr) <= 2.0
-        rows.append([f"{motion} {'mag' if mag else 'no-mag'}" + ("" if lag is None else f" lag {lag:g}")
-                     + ("" if uns is None else f" uns{uns:g}") + ("" if neck == "default" else f" {neck}"), len(rs),
+        rows.append([_label(motion, mag, lag, uns, neck), len(rs),
                      max(jm), f"s{rs[w]['seed']} {rs[w]['row']['worst_joint']}", float(np.median(jm)), max(pr),
                      float(np.median(pr)), f"{max(pw):.2f} {rs[int(np.argmax(pw))]['row']['worst_segment']}",
                      "yes" if ok else "NO"])

@@ -222,7 +222,7 @@ def main(argv=None) -> int:
     hinges = ("RightLowerLeg", "LeftLowerLeg") if a.hinges == "knees" else tuple(h for h in a.hinges.split(",") if h)
     axial = AXIAL_SETS.get(a.axial, tuple(x for x in a.axial.split(",") if x))
     skeleton = f"bvh:{root / 'xsens' / 'S02-Trial-Walk-1.bvh'}" if a.skeleton == "bvh:mvn" else a.skeleton
-    kg = {"thighs": ("RightUpperLeg", "LeftUpperLeg"), "left": ("LeftUpperLeg",), "right": ("RightUpperLeg",)}.get(
+    kg = {"thighs": AXIAL_SETS["thighs"], "left": ("LeftUpperLeg",), "right": ("RightUpperLeg",)}.get(
         a.knee_gain, tuple(x for x in a.knee_gain.split(",") if x))
     kg_opts = {"knee_gain_segments": kg, "knee_gain_sigma": a.knee_gain_sigma,
              "knee_gain_offset_tau_s": None if a.knee_gain_tau == "none" else float(a.knee_gain_tau),
@@ -281,8 +281,7 @@ def main(argv=None) -> int:
         shifts = {n: results["offset"][n]["shift_samples"] for n in shown}
         figure(OUT_DIR / "gaittoolbox_walk.png", vicon, shown, shifts)
     payload = {"issue": "4b", "use_mag": a.mag, "skeleton": skeleton or "nominal",
-               "hinges": list(hinges), "axial_segments": list(axial), "knee_gain": {k: list(v) if isinstance(v, tuple)
-                                                                                       else v for k, v in kg_opts.items()},
+               "hinges": list(hinges), "axial_segments": list(axial), "knee_gain": kg_opts,   # tuples: json_ready
                "ours": info, "handlings": HANDLINGS,
                "results": results, "peak_memory_mb": peak_memory_mb(),
                "command": "benchmarks/gaittoolbox_walk.py " + " ".join(sys.argv[1:] if argv is None else argv)}

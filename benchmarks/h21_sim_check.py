@@ -24,20 +24,9 @@ from pathlib import Path  # noqa: E402
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks.body_bench import MOTIONS  # noqa: E402
-import benchmarks.body_sim_accuracy as bsa  # noqa: E402
 from benchmarks.body_sim_accuracy import SEED_COLUMNS, run_case, seed_summary  # noqa: E402
 from benchmarks.common import print_table  # noqa: E402
 from benchmarks.output import write_json  # noqa: E402
-
-
-GAINS: list = []           # res.info["knee_gain"] of every solve, in run_case's order
-_solve0 = bsa._solve
-
-
-def _solve_keep(*args, **kwargs):
-    res = _solve0(*args, **kwargs)
-    GAINS.append(res.info.get("knee_gain"))
-    return res
 
 
 def main(argv=None) -> int:
@@ -59,16 +48,14 @@ def main(argv=None) -> int:
     if a.mode == "graph":
         kg["hinges"] = ("RightLowerLeg", "LeftLowerLeg")
     variants = {"default": {}, "knee-gain": kg}
-    bsa._solve = _solve_keep
     records = {v: [] for v in variants}
     for name in a.motions.split(","):
         for seed in (int(s) for s in a.seeds.split(",")):
             for v, kw in variants.items():
                 print(f"{v}:", flush=True)
-                n0 = len(GAINS)
                 recs = run_case(name, seed, None, False, mags, [None], opts_kw=kw)
-                for r, gi in zip(recs, GAINS[n0:]):
-                    r["knee_gain"] = gi
+                for r in recs:
+                    gi = r.setdefault("knee_gain", None)        # res.info["knee_gain"] (run_case)
                     if gi:
                         print("    gains " + ", ".join(f"{n} {d['gain']:+.3f}" for n, d in gi.items()))
                 records[v] += recs
@@ -77,7 +64,7 @@ def main(argv=None) -> int:
         tables[v] = seed_summary(recs)
         print(f"\n{v}")
         print_table(tables[v], SEED_COLUMNS)
-    payload = {"options": {k: list(x) if isinstance(x, tuple) else x for k, x in kg.items()},
+    payload = {"options": kg,                                          # tuples → lists in write_json (json_ready)
                "over_seeds": {v: [dict(zip(SEED_COLUMNS, r)) for r in t] for v, t in tables.items()},
                "records": {v: [{k: r[k] for k in ("label", "seed", "use_mag", "row", "seconds", "knee_gain")} for r in recs]
                            for v, recs in records.items()},

@@ -143,9 +143,10 @@ def main(argv=None) -> int:
             print(f"  {name:5s} {b:18s} {v}")
     print("2. gain g (H2) of the knee-implied thigh turn φ* on the knee flexion, from our estimate after the N-pose")
     use = np.arange(res.n_quat.shape[0]) >= npose
+    phi_all = {s: knee_turn(q, f"{s}UpperLeg", f"{s}LowerLeg") for s in ("Left", "Right")}     # φ* every sample
     gains = {}
     for s in ("Left", "Right"):
-        phi = knee_turn(q, f"{s}UpperLeg", f"{s}LowerLeg")
+        phi = phi_all[s]
         gains[s] = slope(kappa[s][use], phi[use])
         print(f"  {s}: g = {gains[s]:+.3f} deg/deg (φ* RMS {phi[use].std():.2f}°, knee flexion RMS {kappa[s][use].std():.2f}°)")
     out["gains"] = gains
@@ -158,7 +159,7 @@ def main(argv=None) -> int:
     wins += [(f"{i0}-{i0 + 200}", i0, i0 + 200) for i0 in range(npose, len(yaw) - 199, 200)]
     for name, i0, i1 in wins:
         sl = slice(i0, i1)
-        row = {s: slope(kappa[s][sl], knee_turn(q, f"{s}UpperLeg", f"{s}LowerLeg")[sl]) for s in ("Left", "Right")}
+        row = {s: slope(kappa[s][sl], phi_all[s][sl]) for s in ("Left", "Right")}
         row |= {"knee_rms": float(kappa["Left"][sl].std()), "pelvis_yaw_change": float(yaw[i1 - 1] - yaw[i0])}
         out["gain_windows"][name] = row
         print(f"  {name:28s} g left {row['Left']:+.3f} right {row['Right']:+.3f}  (left knee flexion RMS "
@@ -166,7 +167,7 @@ def main(argv=None) -> int:
     # (H2') the slope free of the offset c: on the rates (H2 of the first differences, 5-sample moving average),
     # and on the high-passed series (1 s moving average removed): standing still no longer pulls on g
     fs = 1.0 / float(np.median(np.diff(session.t)))
-    phis = {s: knee_turn(q, f"{s}UpperLeg", f"{s}LowerLeg")[use] for s in ("Left", "Right")}
+    phis = {s: phi_all[s][use] for s in ("Left", "Right")}
     smooth = lambda x, n: np.convolve(x, np.ones(n) / n, "same")          # noqa: E731
     g_rate = {s: slope(smooth(np.diff(kappa[s][use]), 5), smooth(np.diff(phis[s]), 5)) for s in phis}
     g_hp = {s: slope(kappa[s][use] - smooth(kappa[s][use], int(fs)), phis[s] - smooth(phis[s], int(fs))) for s in phis}

@@ -27,11 +27,11 @@ import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from benchmarks.body_sim_accuracy import NECK_VARIANTS  # noqa: E402
 from benchmarks.output import write_json  # noqa: E402
 
-NECK = {"unsensed_bend": ("Head",), "lever_prior_frame": "lumped"}
-NECK5 = dict(NECK, lever_pass_lumped_sigma_m=0.005)
-NECK1 = dict(NECK, lever_pass_iterations=1)
+TIES, NECK = NECK_VARIANTS["tie"], NECK_VARIANTS["bend+lumped"]     # explicit: the defaults are bend+lumped1 since a3049c8
+NECK5, NECK1 = NECK_VARIANTS["bend+lumped5"], NECK_VARIANTS["bend+lumped1"]
 
 
 def walk_check() -> dict:
@@ -42,7 +42,7 @@ def walk_check() -> dict:
     root = found[0]
     out = {}
     for use_mag in (False, True):
-        q0, i0 = ours(root, use_mag, ())
+        q0, i0 = ours(root, use_mag, (), extra=TIES)
         q1, i1 = ours(root, use_mag, (), extra=NECK)
         diff = max(float(np.max(np.abs(np.abs(np.sum(q0[n] * q1[n], axis=1)) - 1.0))) for n in q0)
         out["mag" if use_mag else "no-mag"] = {"max_1_minus_abs_dot": diff, "iterations_default": i0["iterations"],
@@ -59,7 +59,7 @@ def speed_check(duration: float) -> dict:
 
     sess, skel, nom, psi0 = make_session(duration)
     out = {}
-    for name, kw in (("default", {}), ("neck", NECK), ("neck_1it", NECK1), ("neck5", NECK5)):
+    for name, kw in (("default", TIES), ("neck", NECK), ("neck_1it", NECK1), ("neck5", NECK5)):
         opts = BodyOptions(placements=nom, npose_heading_deg=psi0, **kw)
         c0 = time.process_time()
         res = solve_body_batch(sess, opts)

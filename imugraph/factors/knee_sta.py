@@ -42,11 +42,12 @@ from __future__ import annotations
 import gtsam
 import numpy as np
 
-from imugraph.factors.body import _STRIDE
+from imugraph.body.angles import FLEXION_SIGN
+from imugraph.factors.body import _STRIDE, pose_key
 from imugraph.factors.body_axial import axial_hinge_residual, gauss_markov_link, long_axis, scalar_prior
 from imugraph.geometry import quat_mul, quat_to_rotmat, rotvec_to_quat
 
-KNEE_FLEXION_SIGN = 1.0          # imugraph.body.angles.FLEXION_SIGN["Knee"]
+KNEE_FLEXION_SIGN = FLEXION_SIGN["Knee"]
 
 
 def offset_key(s: int, k: int) -> int:
@@ -117,20 +118,21 @@ def prepare(pb, x: gtsam.Values) -> None:
         if jt is None or name not in pb.names or jt.child not in pb.names:
             continue
         P, C = pb.names.index(name), pb.names.index(jt.child)
-        from imugraph.factors.body import pose_key
         RP = np.stack([x.atPose3(pose_key(P, k)).rotation().matrix() for k in range(pb.K)]) @ pb.bRs_fixed[name].T
         RC = np.stack([x.atPose3(pose_key(C, k)).rotation().matrix() for k in range(pb.K)]) @ pb.bRs_fixed[jt.child].T
         pb.knee_kappa[name] = knee_flexion(np.swapaxes(RP, -1, -2) @ RC)
 
 
+def _hinge_sigmas(o) -> tuple:
+    """σ (IE, AbAd) of a modelled knee's hinge (S3): knee_gain_hinge_sigmas_rad, else axial_hinge_sigmas_rad."""
+    return o.knee_gain_hinge_sigmas_rad if o.knee_gain_hinge_sigmas_rad is not None else o.axial_hinge_sigmas_rad
+
+
 def factors_at(pb, k: int) -> gtsam.NonlinearFactorGraph:
     """Keyframe k: the priors (G2) and the hinge (S3)+(G1) of each modelled knee."""
-    from imugraph.factors.body import pose_key
-
     g = gtsam.NonlinearFactorGraph()
     o = pb.opts
-    hs = o.knee_gain_hinge_sigmas_rad if o.knee_gain_hinge_sigmas_rad is not None else o.axial_hinge_sigmas_rad
-    model = gtsam.noiseModel.Diagonal.Sigmas(np.asarray(hs, float))
+    model = gtsam.noiseModel.Diagonal.Sigmas(np.asarray(_hinge_sigmas(o), float))
     for jt in pb.joints:
         if not handles(pb, jt):
             continue
@@ -188,7 +190,7 @@ def two_stage(pb, res) -> dict:
     from scipy.sparse.linalg import spsolve
 
     o, out, names = pb.opts, {}, list(res.names)
-    hs = o.knee_gain_hinge_sigmas_rad if o.knee_gain_hinge_sigmas_rad is not None else o.axial_hinge_sigmas_rad
+    hs = _hinge_sigmas(o)
     n = res.n_quat.shape[0]
     for name in o.knee_gain_segments:
         jt = knee_joint(pb, name)
@@ -196,8 +198,8 @@ def two_stage(pb, res) -> dict:
             continue
         RP, RC = quat_to_rotmat(res.n_quat[:, names.index(name)]), quat_to_rotmat(res.n_quat[:, names.index(jt.child)])
         pRd = np.swapaxes(RP, -1, -2) @ RC
-        kappa, th = knee_flexion(pRd), knee_turn(pRd, long_axis(pb.skel, name))
         a_P, left = long_axis(pb.skel, name), name.startswith("Left")
+        kappa, th = knee_flexion(pRd), knee_turn(pRd, a_P)
         if o.knee_gain_turn == "cardan":                # (G6): minus what the knee's own flexion, ab/adduction (and
             th = th - knee_turn(screw_home_knee(pRd, o.knee_gain_screw_home, left), a_P)    # screw-home) explain
         elif o.knee_gain_screw_home:                    # (G5): minus the screw-home increment only
@@ -227,16 +229,19 @@ def two_stage(pb, res) -> dict:
     return out
 
 
+def _turn_thigh(pb, res, name: str, gain: float, c: np.ndarray, kappa: np.ndarray) -> dict:
+    """(G1) on `res` in place: thigh `name` turned by θ = c + g κ (or g κ, knee_gain_apply "gain"); its info."""
+    theta = gain * kappa + (c if pb.opts.knee_gain_apply == "offset+gain" else 0.0)
+    i = list(res.names).index(name)
+    res.n_quat[:, i] = quat_mul(res.n_quat[:, i], rotvec_to_quat(-theta[:, None] * long_axis(pb.skel, name)))
+    return {"gain": gain, "offset_mean_rad": float(np.mean(c)), "offset_std_rad": float(np.std(c)),
+            "theta_rms_rad": float(np.sqrt(np.mean(theta ** 2)))}
+
+
 def apply_two_stage(pb, res) -> None:
     """(G4) then (G1) on `res` in place (knee_gain_mode "two-stage"); res.info["knee_gain"]."""
-    info = {}
-    names = list(res.names)
-    for name, (gain, c, kappa) in two_stage(pb, res).items():
-        theta = gain * kappa + (c if pb.opts.knee_gain_apply == "offset+gain" else 0.0)
-        i = names.index(name)
-        res.n_quat[:, i] = quat_mul(res.n_quat[:, i], rotvec_to_quat(-theta[:, None] * long_axis(pb.skel, name)))
-        info[name] = {"gain": gain, "offset_mean_rad": float(np.mean(c)), "offset_std_rad": float(np.std(c)),
-                      "theta_rms_rad": float(np.sqrt(np.mean(theta ** 2))), "mode": "two-stage"}
+    info = {name: dict(_turn_thigh(pb, res, name, gain, c, kappa), mode="two-stage")
+            for name, (gain, c, kappa) in two_stage(pb, res).items()}
     if info:
         res.info["knee_gain"] = info
 
@@ -258,11 +263,7 @@ def apply_to_result(pb, x: gtsam.Values, res) -> None:
             c = np.interp(np.arange(res.n_quat.shape[0]), pb.kf, [x.atVector(offset_key(s, k))[0] for k in range(pb.K)])
         else:
             c = np.full(res.n_quat.shape[0], float(x.atVector(offset_key(s, 0))[0]))
-        iP, iC = names.index(jt.parent), names.index(jt.child)
-        RP, RC = quat_to_rotmat(res.n_quat[:, iP]), quat_to_rotmat(res.n_quat[:, iC])
-        theta = gain * knee_flexion(np.swapaxes(RP, -1, -2) @ RC) + (c if pb.opts.knee_gain_apply == "offset+gain" else 0.0)
-        res.n_quat[:, iP] = quat_mul(res.n_quat[:, iP], rotvec_to_quat(-theta[:, None] * long_axis(pb.skel, jt.parent)))
-        out[jt.parent] = {"gain": gain, "offset_mean_rad": float(np.mean(c)), "offset_std_rad": float(np.std(c)),
-                          "theta_rms_rad": float(np.sqrt(np.mean(theta ** 2)))}
+        RP, RC = quat_to_rotmat(res.n_quat[:, names.index(jt.parent)]), quat_to_rotmat(res.n_quat[:, names.index(jt.child)])
+        out[jt.parent] = _turn_thigh(pb, res, jt.parent, gain, c, knee_flexion(np.swapaxes(RP, -1, -2) @ RC))
     if out:
         res.info["knee_gain"] = out
