@@ -25,12 +25,13 @@ def run_diagnose(args: argparse.Namespace) -> int:
     if _is_body_session(Path(path)):                      # multi-IMU: imugraph.diagnose.body (issue 5, G1)
         return _run_body(args, Path(path), progress)
     session = common.load(path, progress)
-    out = common.out_dir_for(getattr(args, "out", None), Path(path).stem)
     options = DiagnoseOptions(keyframe_hz=float(getattr(args, "keyframe_hz", 5.0) or 5.0),
                               seed=int(getattr(args, "seed", 0) or 0), effects=_effect_names(args))
-    with progress.library_output():
-        diag = diagnose(session, options, progress=progress.say)
-    return _report(diag, out, progress, write_report, summary_table)
+    # --out created and write-checked before the computation, removed again if a failed run left it empty
+    with common.output_folder(getattr(args, "out", None), Path(path).stem) as out:
+        with progress.library_output():
+            diag = diagnose(session, options, progress=progress.say)
+        return _report(diag, out, progress, write_report, summary_table)
 
 
 def _effect_names(args: argparse.Namespace) -> tuple | None:
@@ -49,9 +50,11 @@ def _report(diag, out: Path, progress, write_report, summary_table) -> int:
 
 def _is_body_session(path: Path) -> bool:
     """A multi-IMU session (imugraph.io.body_session.read_body_session): own folder with session.json, a
-    gaittoolbox Xsens MTw folder, or an .mvnx file."""
+    gaittoolbox Xsens MTw folder, a folder of x-IMU3 export folders, or an .mvnx file."""
+    from imugraph.io.xio_body import is_ximu3_body_folder
+
     if path.is_dir():
-        return (path / "session.json").exists() or any(path.glob("*_00B4*.txt"))
+        return (path / "session.json").exists() or any(path.glob("*_00B4*.txt")) or is_ximu3_body_folder(path)
     return path.suffix.lower() == ".mvnx"
 
 
@@ -65,7 +68,7 @@ def _run_body(args: argparse.Namespace, path: Path, progress) -> int:
     session = read_body_session(path)
     progress.say(f"{len(session.sensors)} sensors, {session.n} samples, {session.t[-1] - session.t[0]:.1f} s")
     options = BodyDiagnoseOptions(seed=int(getattr(args, "seed", 0) or 0), effects=_effect_names(args))
-    out = common.out_dir_for(getattr(args, "out", None), path.stem)
-    with progress.library_output():
-        diag = diagnose_body(session, options, progress=progress.say)
-    return _report(diag, out, progress, write_report, summary_table)
+    with common.output_folder(getattr(args, "out", None), path.stem) as out:     # no empty folder left on failure
+        with progress.library_output():
+            diag = diagnose_body(session, options, progress=progress.say)
+        return _report(diag, out, progress, write_report, summary_table)

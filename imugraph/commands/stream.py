@@ -50,7 +50,8 @@ def write_stream_figures(out: Path, session, result) -> list[str]:
     title = f"Filtered and smoothed orientation: {session.name}"
     try:
         plot_stream_orientation(out / "stream_orientation.png", result.t, result.filtered, result.smoothed,
-                                session.quat, session.movement, title=title)
+                                session.quat, session.movement, title=title,
+                                reference_label=common.reference_label(session))
     except ImugraphError:            # a reference that cannot be scored (all NaN, too short): the two estimates
         plot_stream_orientation(out / "stream_orientation.png", result.t, result.filtered, result.smoothed,
                                 title=title)

@@ -12,7 +12,8 @@ Own format (a folder):
 
 All sensors share the sample times t. Every file is written atomically; session.json last, so a
 folder without it is incomplete. Other formats read into the same `BodySession`: the gaittoolbox
-Xsens MTw export (`imugraph.io.gaittoolbox`) and MVNX (`imugraph.io.mvnx`).
+Xsens MTw export (`imugraph.io.gaittoolbox`), MVNX (`imugraph.io.mvnx`) and a folder of x-IMU3 export folders
+(`imugraph.io.xio_body`).
 """
 
 from __future__ import annotations
@@ -208,7 +209,8 @@ def default_skeleton(src: str, sensors: dict) -> Skeleton:
 
 
 def read_body_session(path: PathLike) -> BodySession:
-    """Any multi-IMU session: own folder (session.json), gaittoolbox MTw folder (*_<id>.txt), or .mvnx.
+    """Any multi-IMU session: own folder (session.json), gaittoolbox MTw folder (*_<id>.txt), .mvnx, or a folder
+    of x-IMU3 export folders (`imugraph.io.xio_body.read_ximu3_body`).
 
     Raises:
         SessionError: a path that is none of these.
@@ -222,8 +224,12 @@ def read_body_session(path: PathLike) -> BodySession:
     if p.is_file() and p.suffix.lower() == ".mvnx":
         from imugraph.io.mvnx import read_mvnx
         return read_mvnx(p)
-    raise SessionError(str(p), "path", "not a body-session folder, an Xsens MTw folder or an .mvnx file",
-                       "a folder with session.json, a gaittoolbox rawimu folder, or an .mvnx file")
+    from imugraph.io.xio_body import is_ximu3_body_folder, read_ximu3_body
+    if is_ximu3_body_folder(p):                       # one x-IMU3 export folder per sensor
+        return read_ximu3_body(p)
+    raise SessionError(str(p), "path", "not a body-session folder, an Xsens MTw folder, a folder of x-IMU3 folders "
+                       "or an .mvnx file", "a folder with session.json, a gaittoolbox rawimu folder, a folder of "
+                       "x-IMU3 export folders, or an .mvnx file")
 
 
 def read_gaittoolbox(folder: PathLike) -> BodySession:

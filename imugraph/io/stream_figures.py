@@ -101,10 +101,14 @@ def plot_stream_calibration(path: str | os.PathLike, history: Sequence[dict], en
 
 def plot_stream_orientation(path: str | os.PathLike, t: np.ndarray, filtered: np.ndarray, smoothed: np.ndarray,
                             reference: Optional[np.ndarray] = None, mask: Optional[np.ndarray] = None, *,
-                            title: str = "Orientation") -> Figure:
+                            title: str = "Orientation", reference_label: str = "reference") -> Figure:
     """Error angle over time of the filtered and the smoothed orientation against `reference` (eq. (1) of
     imugraph.evaluate at its best shift and heading offset, over `mask`), or without a reference the angle between
     the filtered and the smoothed estimate. The RMS of each is in the legend.
+
+    reference_label: what the reference is, in the legend ("filtered vs <label>"): pass
+    `imugraph.commands.common.reference_label(session)` — "truth", or "reference [<meta quat_source>]" when the
+    session's quat is a device's own estimate (an onboard AHRS is no truth), as the console score and heading.png say.
 
     Raises:
         SessionError: arrays whose shapes do not match t.
@@ -124,7 +128,7 @@ def plot_stream_orientation(path: str | os.PathLike, t: np.ndarray, filtered: np
         for name, q, c in (("filtered", filtered, "tab:orange"), ("smoothed", smoothed, "tab:blue")):
             idx, err = orientation_error_series(np.asarray(q, float), np.asarray(reference, float), mask)
             ax.plot(t[idx], err, color=c, lw=0.8,
-                    label=f"{name} vs reference, RMS {np.sqrt(np.mean(err ** 2)):.2f}°")
+                    label=f"{name} vs {reference_label}, RMS {np.sqrt(np.mean(err ** 2)):.2f}°")
         ax.set_ylabel("error angle [deg]")
     else:
         d = np.rad2deg(quat_angle(np.asarray(filtered, float), np.asarray(smoothed, float)))

@@ -28,6 +28,11 @@ The checks, in order (the first failing one is reported):
 7. magnetometer: not all NaN, no ±inf, and not constant on any axis over its samples (a dead or
    disconnected magnetometer reads all zeros or one frozen value: no rotation can be seen in it, and the
    solvers fail on it with a singular system);  quat: unit norm where finite.
+8. gyroscope (check 'gyr'): not constant on any axis over its finite samples, the dead magnetometer's rule. A
+   gyroscope at rest reads its noise, never one value on every sample; all zeros or one frozen value is a dead
+   or disconnected sensor, whose "no rotation" the solvers would believe. Run after the saturation check (a
+   constant non-zero axis is reported as saturated there) and skipped with it: noise-free simulations hold exact
+   constant rates.
 
 Validation never modifies its input: it returns the same Session when nothing was repaired, else
 a new one with repaired copies and an updated meta.
@@ -58,7 +63,7 @@ MIN_RATE_HZ = 5.0            # an IMU session sampled slower than 5 Hz is a time
 MAX_RATE_HZ = 10000.0        # ... and faster than 10 kHz too (s read as ms would give 0.29 MHz)
 MAX_DURATION_S = 86400.0     # one day
 
-CHECKS = ("shapes", "length", "time", "nan", "units", "saturation", "mag", "quat")
+CHECKS = ("shapes", "length", "time", "nan", "units", "saturation", "mag", "quat", "gyr")
 
 
 def as_array(source: str, field: str, value, ncols: Optional[int], n: Optional[int] = None) -> np.ndarray:
@@ -285,6 +290,19 @@ def _check_mag(s: Session) -> None:
                            "disconnected magnetometer", "a field that varies as the sensor turns")
 
 
+def _check_gyr(s: Session, gyr: np.ndarray) -> None:
+    """Check 8 (module docstring): gyr (finite rows) constant on an axis → SessionError field 'gyr'."""
+    if gyr.shape[0] < 2:
+        return
+    const = [a for j, a in enumerate("xyz") if np.all(gyr[:, j] == gyr[0, j])]
+    if const:
+        what = "all zero" if not np.any(gyr) else ("constant " + ("on every axis" if len(const) == 3 else
+                                                                  f"on axis {', '.join(const)}"))
+        value = ", ".join(f"{a} = {gyr[0, 'xyz'.index(a)]:.6g}" for a in const)
+        raise SessionError(s.source, "gyr", f"{what} over all {gyr.shape[0]} samples ({value}): a dead or "
+                           "disconnected gyroscope", "a rate that carries the sensor's noise, even at rest")
+
+
 def _check_quat(s: Session) -> None:
     if s.quat is None:
         return
@@ -367,6 +385,8 @@ def validate_session(session: Session, *, skip: Iterable[str] = ()) -> Session:
         _check_mag(session)
     if "quat" not in skip:
         _check_quat(session)
+    if "gyr" not in skip and "saturation" not in skip:     # noise-free simulations skip both (exact plateaus)
+        _check_gyr(session, gyr[finite])
     repaired = {k: v for k, v in repaired.items() if v}
     if not repaired:
         return session

@@ -38,6 +38,10 @@ _TO_SI = {("gyr", "deg/s"): (np.pi / 180.0, "gyr: deg/s->rad/s"), ("gyr", "rad/s
 def read_csv_table(path: Path) -> tuple[list, np.ndarray]:
     """Read a comma-separated table with one header line; empty fields become NaN.
 
+    A header line without a comma but with tabs or semicolons (a spreadsheet's export) names the separator, as in
+    the Xsens reader (`imugraph.io.xsens.column_delimiter` and `to_commas`: a decimal comma is then read as a
+    decimal point); a header holding a comma keeps the comma, so comma files read exactly as before.
+
     Args:
         path: file to read.
     Returns:
@@ -54,8 +58,11 @@ def read_csv_table(path: Path) -> tuple[list, np.ndarray]:
     lines = text.splitlines()
     if not lines or not lines[0].strip():
         raise SessionError(src, "file", "an empty file", "a CSV header line and data rows")
-    cols = [c.strip() for c in lines[0].split(",")]
-    return cols, parse_csv_lines(src, cols, lines[1:], first_line=2)
+    from imugraph.io.xsens import column_delimiter, to_commas      # (xsens imports this module: not at the top)
+
+    delim = "," if "," in lines[0] else column_delimiter(lines[0])
+    cols = [c.strip() for c in lines[0].split(delim)]
+    return cols, parse_csv_lines(src, cols, to_commas(lines[1:], delim), first_line=2)
 
 
 def parse_csv_lines(src: str, cols: list, lines: list, first_line: int = 2) -> np.ndarray:
