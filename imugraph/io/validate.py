@@ -281,26 +281,26 @@ def _check_mag(s: Session) -> None:
     rows = mag[valid]
     if rows.shape[0] < 2:
         return
+    _refuse_dead_axes(s, "mag", rows, "magnetometer", "a field that varies as the sensor turns")
+
+
+def _refuse_dead_axes(s: Session, field: str, rows: np.ndarray, sensor: str, expected: str) -> None:
+    """SessionError naming `field` when `rows` (finite (N, 3), N ≥ 2) hold one value on some axis: a dead or
+    disconnected sensor reads all zeros or one frozen value."""
     const = [a for j, a in enumerate("xyz") if np.all(rows[:, j] == rows[0, j])]
     if const:
         what = "all zero" if not np.any(rows) else ("constant " + ("on every axis" if len(const) == 3 else
                                                                    f"on axis {', '.join(const)}"))
         value = ", ".join(f"{a} = {rows[0, 'xyz'.index(a)]:.6g}" for a in const)
-        raise SessionError(s.source, "mag", f"{what} over all {rows.shape[0]} samples ({value}): a dead or "
-                           "disconnected magnetometer", "a field that varies as the sensor turns")
+        raise SessionError(s.source, field, f"{what} over all {rows.shape[0]} samples ({value}): a dead or "
+                           f"disconnected {sensor}", expected)
 
 
 def _check_gyr(s: Session, gyr: np.ndarray) -> None:
     """Check 8 (module docstring): gyr (finite rows) constant on an axis → SessionError field 'gyr'."""
     if gyr.shape[0] < 2:
         return
-    const = [a for j, a in enumerate("xyz") if np.all(gyr[:, j] == gyr[0, j])]
-    if const:
-        what = "all zero" if not np.any(gyr) else ("constant " + ("on every axis" if len(const) == 3 else
-                                                                  f"on axis {', '.join(const)}"))
-        value = ", ".join(f"{a} = {gyr[0, 'xyz'.index(a)]:.6g}" for a in const)
-        raise SessionError(s.source, "gyr", f"{what} over all {gyr.shape[0]} samples ({value}): a dead or "
-                           "disconnected gyroscope", "a rate that carries the sensor's noise, even at rest")
+    _refuse_dead_axes(s, "gyr", gyr, "gyroscope", "a rate that carries the sensor's noise, even at rest")
 
 
 def _check_quat(s: Session) -> None:
