@@ -30,6 +30,11 @@ default model, since session 21 = "bend+lumped1"), "tie" (the default before ses
 levers imply, N5), "lever" (lever_prior_frame="estimated": a second pass with the lever priors in the
 estimated sensor frames, N6), "bend+lever" (both), "bend+lumped" (N6 for the lumped joints' levers only),
 "bend+lumped5" (the same with lever_pass_lumped_sigma_m 5 mm), "bend+lumped1" (lever_pass_iterations 1);
+helper N21b: "len" (the default + BodyOptions.unsensed_bend_length_sigma_m 5 mm, body_neck (N7)), "lumped10" /
+"lumped7" / "lumped5" (the default with lumped_joint_sigma_m 10 / 7.5 / 5 mm in both passes), "neck5" / "neck7"
+(BodyOptions.lever_pass_bend_sigma_m 5 / 7.5 mm: only the neck's lumped joint, only in the (N6) pass, body_neck
+(N8), that pass run to convergence), "mf" / "neck5mf" (BodyOptions.unsensed_bend_mag_free, body_neck (N9): with
+magnetometers the bend read from the (N6) graph solved without them; alone / with neck5), "neck3mf" (N8 3 mm + N9);
 labels and the seed table carry the variant.
 Writes bench_out/body_sim_accuracy.json.
 """
@@ -77,7 +82,21 @@ NECK_VARIANTS = {"default": {},                                         # sessio
                  "bend+lumped5": {**_TIES, "unsensed_bend": ("Head",), "lever_prior_frame": "lumped",
                                   "lever_pass_lumped_sigma_m": 0.005},
                  "bend+lumped1": {"unsensed_bend": ("Head",), "lever_prior_frame": "lumped",
-                                  "lever_pass_iterations": 1}}
+                                  "lever_pass_iterations": 1},
+                 # session 21, helper N21b (on top of the default): (N7) the neck-length factor in the (N6) pass;
+                 # the lumped joints' σ (both passes) 10 / 7.5 mm instead of 20 mm
+                 "len": {"unsensed_bend_length_sigma_m": 0.005},
+                 "lumped10": {"lumped_joint_sigma_m": 0.01}, "lumped7": {"lumped_joint_sigma_m": 0.0075},
+                 "lumped5": {"lumped_joint_sigma_m": 0.005},
+                 # (N8): only the neck's lumped joint tighter, in the (N6) pass (LM to convergence there)
+                 "neck5": {"lever_pass_bend_sigma_m": 0.005, "lever_pass_iterations": None},
+                 "neck7": {"lever_pass_bend_sigma_m": 0.0075, "lever_pass_iterations": None},
+                 # (N9): with magnetometers, the bend read from the (N6) graph without them (on top of neck5 / alone)
+                 "neck5mf": {"lever_pass_bend_sigma_m": 0.005, "lever_pass_iterations": None,
+                             "unsensed_bend_mag_free": True},
+                 "mf": {"unsensed_bend_mag_free": True},
+                 "neck3mf": {"lever_pass_bend_sigma_m": 0.003, "lever_pass_iterations": None,
+                             "unsensed_bend_mag_free": True}}
 
 
 def _label(head: str, use_mag: bool, lag, uns, neck: str) -> str:

@@ -30,6 +30,16 @@ BEND = np.deg2rad(np.array([0.0, 20.0, 0.0]))        # L5 bent 20° forward abou
 @pytest.fixture
 def bent_link_session(monkeypatch):
     """chain_session(with_spine) whose L5 = Pelvis · Exp(env · BEND), T8 = L5 · (its own random turn)."""
+    return _bent_link_session(monkeypatch, mag=False)
+
+
+@pytest.fixture
+def bent_link_session_mag(monkeypatch):
+    """The same with magnetometers."""
+    return _bent_link_session(monkeypatch, mag=True)
+
+
+def _bent_link_session(monkeypatch, mag: bool):
     orig = body_synth._poses
 
     def poses(t, skel, env, seed, amp_deg, hinge_knee=False, root_move=True):
@@ -45,7 +55,7 @@ def bent_link_session(monkeypatch):
         return R, p
 
     monkeypatch.setattr(body_synth, "_poses", poses)
-    return body_synth.chain_session(duration_s=10.0, seed=5, with_spine=True)
+    return body_synth.chain_session(duration_s=10.0, seed=5, with_spine=True, mag=mag)
 
 
 def _link_error_deg(sess, res, link="L5", parent="Pelvis") -> float:
@@ -103,3 +113,111 @@ def test_rot_between_turns_a_onto_b():
         R = body_neck._rot_between(a, b)
         assert np.allclose(R @ R.T, np.eye(3), atol=1e-12)
         assert np.allclose(R @ (a / np.linalg.norm(a)), b / np.linalg.norm(b), atol=1e-12)
+
+
+def _neck_problem():
+    """A minimal problem for (N7): Pelvis → T8 (sensed) → Neck (unsensed) → Head (sensed); levers on T8's sensor."""
+    from types import SimpleNamespace
+    offsets = np.array([[0, 0, 0], [0, 0, 0.25], [0.01, 0, 0.2], [0, 0.01, 0.09]], float)
+    names = ["Pelvis", "T8", "Neck", "Head"]
+    skel = SimpleNamespace(names=names, parents=[-1, 0, 1, 2], offsets=offsets, index=names.index)
+    joints = [SimpleNamespace(name="Pelvis-T8", parent="Pelvis", child="T8", lumped=False),
+              SimpleNamespace(name="T8-Head", parent="T8", child="Head", lumped=True)]
+    levers = [("T8", 0, np.zeros(3)), ("T8", 1, np.zeros(3)), ("Head", 1, np.zeros(3))]
+    return SimpleNamespace(skel=skel, joints=joints, levers=levers)
+
+
+def test_length_factor_error_and_jacobians():
+    """(N7): e = |bRs (l_D − l_up) − o_Neck| − |o_Head| (numpy here), Jacobians against central differences."""
+    import gtsam
+    from imugraph.factors import body as bf
+    pb = _neck_problem()
+    bRs = expmap(np.array([0.2, -0.4, 0.3]))
+    g = body_neck.length_factors(pb, {"T8": (bRs, np.zeros(3))}, ("Head",), 0.005)
+    assert g.size() == 1
+    l_up, l_D = np.array([0.01, -0.02, -0.1]), np.array([0.05, 0.03, 0.22])
+    vals = gtsam.Values()
+    vals.insert(bf.lever_key(0), l_up)
+    vals.insert(bf.lever_key(1), l_D)
+    e_ref = np.linalg.norm(bRs @ (l_D - l_up) - pb.skel.offsets[2]) - np.linalg.norm(pb.skel.offsets[3])
+    assert np.isclose(g.error(vals), 0.5 * (e_ref / 0.005) ** 2, rtol=1e-9)
+    lin = g.at(0).linearize(vals).jacobian()[0] * 0.005    # whitened by 1/σ; columns: the factor's keys in order
+    keys = list(g.at(0).keys())
+    for c, key in enumerate(keys):
+        for i in range(3):
+            num = []
+            for h in (1e-6, -1e-6):
+                v2 = gtsam.Values(vals)
+                p = np.asarray(vals.atPoint3(key), float).copy()
+                p[i] += h
+                v2.update(key, p)
+                num.append(np.sqrt(2 * g.error(v2)) * 0.005 * np.sign(e_ref))
+            assert abs(lin[0, 3 * c + i] - (num[0] - num[1]) / 2e-6) < 1e-5
+
+
+def test_length_factor_skips_the_root():
+    """A lumped joint whose upper neighbour A is the root has no proximal lever: no (N7) factor."""
+    pb = _neck_problem()
+    pb.joints = [pb.joints[1]]
+    pb.joints[0].parent = "T8"
+    pb.skel.parents = [-1, -1, 1, 2]                 # T8 is a root here
+    pb.levers = [("T8", 0, np.zeros(3)), ("Head", 0, np.zeros(3))]
+    g = body_neck.length_factors(pb, {"T8": (np.eye(3), np.zeros(3))}, ("Head",), 0.005)
+    assert g.size() == 0
+
+
+def test_bend_joint_sigma_only_touches_the_chosen_lumped_joint():
+    """(N8): the joint factors of the lumped joint above `only` get the new σ (both sides, every keyframe), the
+    rest of the graph keeps its models."""
+    import gtsam
+    from imugraph.factors import body as bf
+    from imugraph.graphs.body import build_problem, full_graph
+    sess = body_synth.chain_session(duration_s=4.0, seed=1, with_spine=True)
+    pb = build_problem(sess, BodyOptions())
+    g = full_graph(pb)
+    before = [g.at(i).noiseModel().sigmas().copy() if isinstance(g.at(i), gtsam.NoiseModelFactor) else None
+              for i in range(g.size())]
+    j_lumped = [j for j, jt in enumerate(pb.joints) if jt.lumped and jt.child == "T8"]
+    assert len(j_lumped) == 1
+    n = body_neck.bend_joint_sigma(pb, g, ("T8",), 0.005)
+    assert n == 2 * pb.K
+    hit = {bf.joint_key(j_lumped[0], k) for k in range(pb.K)}
+    changed = 0
+    for i in range(g.size()):
+        f = g.at(i)
+        if before[i] is None:
+            continue
+        s = f.noiseModel().sigmas()
+        if len(f.keys()) == 3 and f.keys()[2] in hit:
+            assert np.allclose(s, 0.005)
+            assert np.allclose(before[i], BodyOptions().lumped_joint_sigma_m)
+            changed += 1
+        else:
+            assert np.allclose(s, before[i])
+    assert changed == n
+
+
+def test_mag_free_bend_reads_the_levers_without_magnetometers(bent_link_session_mag, monkeypatch):
+    """(N9): with use_mag the bend comes from the (N6) graph solved once more without magnetometer factors
+    (pb.mag_active False during that solve, restored after); without magnetometers the option changes nothing."""
+    from imugraph.graphs import body as body_mod
+    seen = []
+    orig = body_mod.factors_at
+
+    def spy(pb, k):
+        if k == 0:
+            seen.append(pb.mag_active)
+        return orig(pb, k)
+
+    monkeypatch.setattr(body_mod, "factors_at", spy)
+    sess = bent_link_session_mag
+    kw = dict(unsensed_bend=("T8",), lever_prior_frame="lumped", lever_pass_iterations=None)
+    off = solve_body_batch(sess, BodyOptions(**kw))
+    off_mf = solve_body_batch(sess, BodyOptions(unsensed_bend_mag_free=True, **kw))
+    assert np.array_equal(off.n_quat, off_mf.n_quat)                  # use_mag False: untouched
+    assert "mag_free_iterations" not in off_mf.info["passes"][-1]
+    seen.clear()
+    res = solve_body_batch(sess, BodyOptions(use_mag=True, unsensed_bend_mag_free=True, **kw))
+    assert seen[-1] is False and True in seen                        # the last graph built: without magnetometers
+    assert res.info["passes"][-1]["mag_free_iterations"] >= 1
+    assert _link_error_deg(sess, res) < 5.0

@@ -116,6 +116,13 @@ class BodyOptions:
         unsensed_bend: distal sensed segments (e.g. ("Head",): the neck) whose single unsensed link the output
             turns with its upper neighbour A by the constant bend the solved lumped joint's levers imply
             (body_neck (N5)) instead of the ties (K2); (): the ties for all.
+        unsensed_bend_length_sigma_m: σ of (N7), imugraph.graphs.body_neck: in the (N6) pass, for each lumped joint of
+            `unsensed_bend`, the graph's distal point must lie the skeleton's |o_D| from the link's base (a rigid link
+            of known length, the constant bend its only freedom); None: no such factor (today's behaviour).
+        lever_pass_bend_sigma_m: σ of the lumped joints of `unsensed_bend` (the neck) in the (N6) pass only, the other
+            lumped joints (the lumbar spine) keep theirs (body_neck (N8)); None: lumped_joint_sigma_m (today's behaviour).
+        unsensed_bend_mag_free: with use_mag, (N5) reads the bend from the (N6) graph solved once more without the
+            magnetometer factors (body_neck (N9)); the orientations stay the magnetometer solution's. False: today's.
     """
 
     keyframe_every: int = 6
@@ -173,6 +180,9 @@ class BodyOptions:
     lever_pass_lumped_sigma_m: float | None = None
     lever_pass_iterations: int | None = 1      # session 21 default: one LM step (same heads as a full pass, +16 % CPU)
     unsensed_bend: tuple = ("Head",)           # session 21 default (was ()): the neck by (N5); single-pass solves keep (K2)
+    unsensed_bend_length_sigma_m: float | None = None   # (N7) neck-length factor in the (N6) pass; None: none
+    lever_pass_bend_sigma_m: float | None = None        # (N8) σ of unsensed_bend's lumped joints in the (N6) pass
+    unsensed_bend_mag_free: bool = False                # (N9) the bend from the (N6) graph without magnetometers
 
 
 # σ of the sensor's turn about the segment's long axis (soft-tissue artefact, rigid part), by segment-name

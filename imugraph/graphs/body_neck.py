@@ -38,6 +38,30 @@ Measured (docs/results_issue4.md, session 21; benchmarks/body_sim_accuracy.py --
 without/with magnetometers, ties → N5 + N6 "lumped": CMU 131_01 2.61/2.59 → 1.50/1.45 cm, 131_02 8.21/8.20 →
 2.25/3.38 cm, Xsens walk 1.88/1.93 → 1.38/1.42 cm; N5 alone leaves the Xsens walk's head at 5.9 cm.
 
+(N8) `bend_joint_sigma`, lever_pass_bend_sigma_m (helper N21b; off by default): in the (N6) pass the lumped joint of
+the neck alone gets this σ (5 mm instead of 20), the lumbar one keeps its own, LM run to convergence there
+(2–3 steps). Why (benchmarks/n21b_bend_parts.py, truth used only there): the bend's error on CMU 131_02 is a
+lever error on T8's side, not of the head sensor nor of T8's placement rotation: d̂ − d splits into bRs_A's part
+(≤ 0.1 cm), T8's head lever (+1.8 … +2.3 cm forward on every seed, both magnetometer settings) and T8's own
+origin lever l_A,up (−1.5 … +1.0 cm, seed-dependent, +1.1 cm more with magnetometers on seed 1); the head's
+lever error carried into T8's frame is ≤ 0.3 cm forward. The forward offset is neither the N-pose keyframes
+(lumped σ ×100 before 3 s: unchanged), nor the lever prior (σ 0.5 m: unchanged), nor LM convergence
+(relative_tol 1e-5: unchanged); a tighter neck joint lowers it (+1.6 … +1.8 cm), a tighter lumbar joint spoils
+the Xsens walk's head (all lumped joints 7.5 mm: 1.40 → 1.84 cm). Measured (body_sim_accuracy --neck
+default,neck5, 5 seeds, worst head without/with magnetometers): CMU 131_02 2.26/3.38 → 1.89/3.04 cm, 131_01
+1.50/1.45 → 1.39/1.39, Xsens 1.40/1.42 → 1.36/1.44; no segment worse by > 0.07 cm, joints ≤ +0.66°.
+(N9) `mag_free_levers`, unsensed_bend_mag_free (helper N21b; off by default): with magnetometers the T8 sensor's
+lever to its own lumped (lumbar) joint moves (131_02 seed 1: +0.95 cm forward against −0.20 without), and the
+bend with it; the head's orientation relative to T8 is as good as without (mean error ≤ 0.8°, and its field σ
+is not the cause: mag_sigma_ml 0 gives the same heads). So (N5) may read the levers of the (N6) graph solved
+once more WITHOUT the magnetometer factors, the orientations staying the magnetometer solution's. With (N8)
+("neck5mf"): worst head 131_02 2.26/3.38 → 1.89/1.98 cm, 131_01 1.50/1.45 → 1.39/1.40, Xsens 1.40/1.42 →
+1.36/1.42; other segments ≤ +0.03 cm, the head itself up to +0.31 cm on a good seed (131_02 s0 mag 1.06 →
+1.37); batch +40 % wall with magnetometers (one more LM solve).
+(N7) `length_factors`, unsensed_bend_length_sigma_m (helper N21b; off, not recommended): the head point of T8's
+levers held at the skeleton's neck length, |bRs_A (l_A,D − l_A,up) − o_u| = |o_D| — fixes the length error
+(≈ +1.4 cm) but not the direction (131_02 worst head 2.29/3.46 cm): the bend's error is across the neck.
+
 (N1)–(N4) `choose_split` (hypothesis tested, not an option): the split s chosen from the graph's keyframe
 states by the best lever fit,
 
@@ -111,13 +135,89 @@ def lever_pass(pb, x, graph=None):
                 graph.replace(i, gtsam.PriorFactorPoint3(keys[0], todo.pop(keys[0]), model))
                 if not todo:
                     break
+    if o.lever_pass_bend_sigma_m is not None and o.unsensed_bend:
+        bend_joint_sigma(pb, graph, tuple(o.unsensed_bend), o.lever_pass_bend_sigma_m)                  # (N8)
+    if o.unsensed_bend_length_sigma_m is not None and o.unsensed_bend:
+        graph.push_back(length_factors(pb, place, tuple(o.unsensed_bend), o.unsensed_bend_length_sigma_m))   # (N7)
     if o.lever_pass_iterations is not None:
         pb.opts = dataclasses.replace(o, max_iterations=o.lever_pass_iterations)
     try:
         x, info = optimize(pb, graph, x)
+        pb.opts = o
+        if o.unsensed_bend_mag_free and o.use_mag and o.unsensed_bend:
+            pb.bend_values, info["mag_free_iterations"] = mag_free_levers(pb, x, place)             # (N9)
     finally:
         pb.opts = o
     return x, dict(info, lever_prior_frame=o.lever_prior_frame)
+
+
+def mag_free_levers(pb, x, place: dict):
+    """(N9): (values, LM iterations) of the same (N6) graph without the magnetometer factors, from `x`; (N5) reads
+    the neck's bend from these (pb.bend_values), the output's orientations stay those of `x`. Measured reason
+    (benchmarks/n21b_bend_parts.py): with magnetometers the T8 sensor's lever to its own (lumped, lumbar) joint
+    moves (131_02 seed 1: +1.1 cm forward), and the bend with it, while the head's orientation relative to T8 is
+    as good as without (its field σ is not the cause: mag_sigma_ml 0 gives the same heads)."""
+    from imugraph.graphs.body import full_graph, optimize
+    o, active = pb.opts, pb.mag_active
+    pb.mag_active = False
+    try:
+        graph = full_graph(pb)                                   # pb.levers: (N6)'s priors already
+        if o.lever_pass_bend_sigma_m is not None:
+            bend_joint_sigma(pb, graph, tuple(o.unsensed_bend), o.lever_pass_bend_sigma_m)                 # (N8)
+        if o.unsensed_bend_length_sigma_m is not None:
+            graph.push_back(length_factors(pb, place, tuple(o.unsensed_bend), o.unsensed_bend_length_sigma_m))
+        x_nm, info = optimize(pb, graph, x)
+    finally:
+        pb.mag_active = active
+    return x_nm, info["iterations"]
+
+
+def bend_joint_sigma(pb, graph, only: tuple, sigma_m: float) -> int:
+    """(N8): in `graph` (in place) the joint factors (B2) of the lumped joints of `split_chains(pb, only)` (the
+    neck) get σ = sigma_m, the other lumped joints (the lumbar spine) keep lumped_joint_sigma_m; returns how many
+    factors were replaced. Measured reason (benchmarks/n21b_bend_parts.py): a tighter neck joint moves the graph's
+    head point towards the truth's on CMU 131_02, a tighter lumbar joint spoils the Xsens walk's head."""
+    keys = {bf.joint_key(j, k) for j, *_ in split_chains(pb, only) for k in range(pb.K)}
+    model, n = gtsam.noiseModel.Isotropic.Sigma(3, sigma_m), 0
+    for i in range(graph.size()):
+        f = graph.at(i)
+        ks = f.keys() if f is not None else []
+        if len(ks) == 3 and ks[2] in keys:                  # ReferenceFrameFactorPoint3Pose3(lever, pose, J)
+            graph.replace(i, gtsam.ReferenceFrameFactorPoint3Pose3(ks[0], ks[1], ks[2], model))
+            n += 1
+    return n
+
+
+def length_factors(pb, place: dict, only: tuple, sigma_m: float) -> gtsam.NonlinearFactorGraph:
+    """(N7): per lumped joint j of `split_chains(pb, only)` with A not the root, one factor on A's two levers
+
+        e = |bRs_A (l_A,D − l_A,up) − o_u| − |o_D|,   e ~ N(0, σ²)                                     (N7)
+
+    (the graph's distal point d of (N5) on the sphere of the skeleton's link length |o_D| about the link's base
+    o_u, so the lumped joint is a rigid link of known length whose only freedom is its constant bend; bRs_A the
+    first pass's N-pose placement, held fixed). Jacobians: ∂e/∂l_A,D = ûᵀ bRs_A = −∂e/∂l_A,up, û = unit(d − o_u)."""
+    skel, g = pb.skel, gtsam.NonlinearFactorGraph()
+    lev = {(seg, jj): i for i, (seg, jj, _) in enumerate(pb.levers)}
+    model = gtsam.noiseModel.Isotropic.Sigma(1, sigma_m)
+    for j, A, link, D in split_chains(pb, only):
+        up = next((jj for jj, jt in enumerate(pb.joints) if jt.child == A), None)
+        if up is None:
+            continue                                           # the root: no proximal lever to measure from
+        bRs = np.asarray(place[A][0], float)
+        o_u = np.asarray(skel.offsets[skel.index(link)], float)
+        length = float(np.linalg.norm(skel.offsets[skel.index(D)]))
+        kD, kup = bf.lever_key(lev[(A, j)]), bf.lever_key(lev[(A, up)])
+
+        def error(this, values, H, bRs=bRs, o_u=o_u, length=length, kD=kD, kup=kup):
+            v = bRs @ (np.asarray(values.atPoint3(kD)) - np.asarray(values.atPoint3(kup))) - o_u
+            n = float(np.linalg.norm(v))
+            if H is not None:
+                J = ((v / max(n, 1e-9)) @ bRs).reshape(1, 3)
+                H[0], H[1] = J, -J
+            return np.array([n - length])                                                          # (N7)
+
+        g.add(gtsam.CustomFactor(model, [kD, kup], error))
+    return g
 
 
 def split_chains(pb, only: tuple = ()) -> list:
@@ -233,6 +333,7 @@ def link_orientations(pb, x, q_seg: dict) -> dict:
     if not pb.opts.unsensed_bend:
         return {}
     out = {}
-    for link, (A, R) in graph_bend(pb, x, tuple(pb.opts.unsensed_bend)).items():
+    x_bend = x if getattr(pb, "bend_values", None) is None else pb.bend_values                     # (N9): the magnetometer-free levers
+    for link, (A, R) in graph_bend(pb, x_bend, tuple(pb.opts.unsensed_bend)).items():
         out[link] = quat_mul(q_seg[A], np.broadcast_to(rotmat_to_quat(R), q_seg[A].shape))
     return out
