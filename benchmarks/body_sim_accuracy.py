@@ -73,29 +73,31 @@ def _solve(session, use_mag: bool, lag: float | None, opts_kw: dict | None = Non
 
 
 # --neck variants (session 21): BodyOptions fields of imugraph.graphs.body_neck (N5), (N6)
-_TIES = {"unsensed_bend": (), "lever_prior_frame": "nominal", "lever_pass_iterations": None}
-NECK_VARIANTS = {"default": {},                                         # session 21 default = "bend+lumped1"
-                 "tie": _TIES,                                          # the default before session 21
+_TIES = {"unsensed_bend": (), "lever_prior_frame": "nominal", "lever_pass_iterations": None,
+         "lever_pass_bend_sigma_m": None, "unsensed_bend_mag_free": False}
+_S21A = {"unsensed_bend": ("Head",), "lever_prior_frame": "lumped", "lever_pass_iterations": 1,     # the default
+         "lever_pass_bend_sigma_m": None, "unsensed_bend_mag_free": False}                           # of a3049c8
+NECK_VARIANTS = {"default": {},                                  # since session 21's second flip = "neck5mf"
+                 "tie": _TIES,                                   # the default before session 21
                  "bend": {**_TIES, "unsensed_bend": ("Head",)}, "lever": {**_TIES, "lever_prior_frame": "estimated"},
                  "bend+lever": {**_TIES, "unsensed_bend": ("Head",), "lever_prior_frame": "estimated"},
                  "bend+lumped": {**_TIES, "unsensed_bend": ("Head",), "lever_prior_frame": "lumped"},
                  "bend+lumped5": {**_TIES, "unsensed_bend": ("Head",), "lever_prior_frame": "lumped",
                                   "lever_pass_lumped_sigma_m": 0.005},
-                 "bend+lumped1": {"unsensed_bend": ("Head",), "lever_prior_frame": "lumped",
-                                  "lever_pass_iterations": 1},
-                 # session 21, helper N21b (on top of the default): (N7) the neck-length factor in the (N6) pass;
-                 # the lumped joints' σ (both passes) 10 / 7.5 mm instead of 20 mm
-                 "len": {"unsensed_bend_length_sigma_m": 0.005},
-                 "lumped10": {"lumped_joint_sigma_m": 0.01}, "lumped7": {"lumped_joint_sigma_m": 0.0075},
-                 "lumped5": {"lumped_joint_sigma_m": 0.005},
+                 "bend+lumped1": _S21A,
+                 # session 21, helper N21b (on top of bend+lumped1, the default then): (N7) the neck-length factor in
+                 # the (N6) pass; the lumped joints' σ (both passes) 10 / 7.5 mm instead of 20 mm
+                 "len": {**_S21A, "unsensed_bend_length_sigma_m": 0.005},
+                 "lumped10": {**_S21A, "lumped_joint_sigma_m": 0.01}, "lumped7": {**_S21A, "lumped_joint_sigma_m": 0.0075},
+                 "lumped5": {**_S21A, "lumped_joint_sigma_m": 0.005},
                  # (N8): only the neck's lumped joint tighter, in the (N6) pass (LM to convergence there)
-                 "neck5": {"lever_pass_bend_sigma_m": 0.005, "lever_pass_iterations": None},
-                 "neck7": {"lever_pass_bend_sigma_m": 0.0075, "lever_pass_iterations": None},
+                 "neck5": {**_S21A, "lever_pass_bend_sigma_m": 0.005, "lever_pass_iterations": None},
+                 "neck7": {**_S21A, "lever_pass_bend_sigma_m": 0.0075, "lever_pass_iterations": None},
                  # (N9): with magnetometers, the bend read from the (N6) graph without them (on top of neck5 / alone)
-                 "neck5mf": {"lever_pass_bend_sigma_m": 0.005, "lever_pass_iterations": None,
+                 "neck5mf": {**_S21A, "lever_pass_bend_sigma_m": 0.005, "lever_pass_iterations": None,
                              "unsensed_bend_mag_free": True},
-                 "mf": {"unsensed_bend_mag_free": True},
-                 "neck3mf": {"lever_pass_bend_sigma_m": 0.003, "lever_pass_iterations": None,
+                 "mf": {**_S21A, "unsensed_bend_mag_free": True},
+                 "neck3mf": {**_S21A, "lever_pass_bend_sigma_m": 0.003, "lever_pass_iterations": None,
                              "unsensed_bend_mag_free": True}}
 
 

@@ -120,9 +120,10 @@ class BodyOptions:
             `unsensed_bend`, the graph's distal point must lie the skeleton's |o_D| from the link's base (a rigid link
             of known length, the constant bend its only freedom); None: no such factor (today's behaviour).
         lever_pass_bend_sigma_m: σ of the lumped joints of `unsensed_bend` (the neck) in the (N6) pass only, the other
-            lumped joints (the lumbar spine) keep theirs (body_neck (N8)); None: lumped_joint_sigma_m (today's behaviour).
+            lumped joints (the lumbar spine) keep theirs (body_neck (N8)); None: lumped_joint_sigma_m. Default 5 mm since session 21
+            (chosen on seeds 0–4, checked on held-out seeds 5–9: docs/results_issue4.md).
         unsensed_bend_mag_free: with use_mag, (N5) reads the bend from the (N6) graph solved once more without the
-            magnetometer factors (body_neck (N9)); the orientations stay the magnetometer solution's. False: today's.
+            magnetometer factors (body_neck (N9)); the orientations stay the magnetometer solution's. Default True since session 21.
     """
 
     keyframe_every: int = 6
@@ -178,11 +179,11 @@ class BodyOptions:
     unsensed_sigma_gain: float | None = None
     lever_prior_frame: str = "lumped"          # session 21 default (was "nominal"): (N6) for the lumped joints
     lever_pass_lumped_sigma_m: float | None = None
-    lever_pass_iterations: int | None = 1      # session 21 default: one LM step (same heads as a full pass, +16 % CPU)
+    lever_pass_iterations: int | None = None   # session 21: the (N6) pass to convergence (2–3 steps; (N8) needs it)
     unsensed_bend: tuple = ("Head",)           # session 21 default (was ()): the neck by (N5); single-pass solves keep (K2)
     unsensed_bend_length_sigma_m: float | None = None   # (N7) neck-length factor in the (N6) pass; None: none
-    lever_pass_bend_sigma_m: float | None = None        # (N8) σ of unsensed_bend's lumped joints in the (N6) pass
-    unsensed_bend_mag_free: bool = False                # (N9) the bend from the (N6) graph without magnetometers
+    lever_pass_bend_sigma_m: float | None = 0.005       # (N8) σ of unsensed_bend's lumped joints in the (N6) pass (session 21 default; was None)
+    unsensed_bend_mag_free: bool = True                 # (N9) the bend from the (N6) graph without magnetometers (session 21 default)
 
 
 # σ of the sensor's turn about the segment's long axis (soft-tissue artefact, rigid part), by segment-name
