@@ -51,11 +51,9 @@ def _report(diag, out: Path, progress, write_report, summary_table) -> int:
 def _is_body_session(path: Path) -> bool:
     """A multi-IMU session (imugraph.io.body_session.read_body_session): own folder with session.json, a
     gaittoolbox Xsens MTw folder, a folder of x-IMU3 export folders, or an .mvnx file."""
-    from imugraph.io.xio_body import is_ximu3_body_folder
+    from imugraph.io.body_session import is_body_session
 
-    if path.is_dir():
-        return (path / "session.json").exists() or any(path.glob("*_00B4*.txt")) or is_ximu3_body_folder(path)
-    return path.suffix.lower() == ".mvnx"
+    return is_body_session(path)
 
 
 def _run_body(args: argparse.Namespace, path: Path, progress) -> int:

@@ -95,6 +95,7 @@ class BodyProblem:
     chain_place: dict | None = None    # first-pass placements {seg: (bRs, b_pos)} the chain factors use
     chain_targets: dict | None = None  # first-pass ties per link (body_chain.tie_targets, unsensed_prior "fixed")
     chain_angles: dict | None = None   # first-pass bend θ_k per link (body_chain.tie_angles, unsensed_sigma_gain)
+    bend_values: gtsam.Values | None = None  # (N9) body_neck.mag_free_levers' solution the bend is read from; None: x
 
     def bkey(self, s: int, k: int) -> int:
         """Bias key of sensor s used by the ImuFactor from keyframe k to k+1."""

@@ -135,10 +135,7 @@ def lever_pass(pb, x, graph=None):
                 graph.replace(i, gtsam.PriorFactorPoint3(keys[0], todo.pop(keys[0]), model))
                 if not todo:
                     break
-    if o.lever_pass_bend_sigma_m is not None and o.unsensed_bend:
-        bend_joint_sigma(pb, graph, tuple(o.unsensed_bend), o.lever_pass_bend_sigma_m)                  # (N8)
-    if o.unsensed_bend_length_sigma_m is not None and o.unsensed_bend:
-        graph.push_back(length_factors(pb, place, tuple(o.unsensed_bend), o.unsensed_bend_length_sigma_m))   # (N7)
+    bend_pass_factors(pb, graph, place)                                                            # (N8), (N7)
     if o.lever_pass_iterations is not None:
         pb.opts = dataclasses.replace(o, max_iterations=o.lever_pass_iterations)
     try:
@@ -158,18 +155,27 @@ def mag_free_levers(pb, x, place: dict):
     moves (131_02 seed 1: +1.1 cm forward), and the bend with it, while the head's orientation relative to T8 is
     as good as without (its field σ is not the cause: mag_sigma_ml 0 gives the same heads)."""
     from imugraph.graphs.body import full_graph, optimize
-    o, active = pb.opts, pb.mag_active
+    active = pb.mag_active
     pb.mag_active = False
     try:
         graph = full_graph(pb)                                   # pb.levers: (N6)'s priors already
-        if o.lever_pass_bend_sigma_m is not None:
-            bend_joint_sigma(pb, graph, tuple(o.unsensed_bend), o.lever_pass_bend_sigma_m)                 # (N8)
-        if o.unsensed_bend_length_sigma_m is not None:
-            graph.push_back(length_factors(pb, place, tuple(o.unsensed_bend), o.unsensed_bend_length_sigma_m))
+        bend_pass_factors(pb, graph, place)                                                        # (N8), (N7)
         x_nm, info = optimize(pb, graph, x)
     finally:
         pb.mag_active = active
     return x_nm, info["iterations"]
+
+
+def bend_pass_factors(pb, graph, place: dict) -> None:
+    """The (N6) pass's own changes to `graph` (in place) for the lumped joints of pb.opts.unsensed_bend: (N8) their
+    σ lever_pass_bend_sigma_m, (N7) the length factors with unsensed_bend_length_sigma_m (each when not None)."""
+    o = pb.opts
+    if not o.unsensed_bend:
+        return
+    if o.lever_pass_bend_sigma_m is not None:
+        bend_joint_sigma(pb, graph, tuple(o.unsensed_bend), o.lever_pass_bend_sigma_m)                 # (N8)
+    if o.unsensed_bend_length_sigma_m is not None:
+        graph.push_back(length_factors(pb, place, tuple(o.unsensed_bend), o.unsensed_bend_length_sigma_m))   # (N7)
 
 
 def bend_joint_sigma(pb, graph, only: tuple, sigma_m: float) -> int:
@@ -333,7 +339,7 @@ def link_orientations(pb, x, q_seg: dict) -> dict:
     if not pb.opts.unsensed_bend:
         return {}
     out = {}
-    x_bend = x if getattr(pb, "bend_values", None) is None else pb.bend_values                     # (N9): the magnetometer-free levers
+    x_bend = x if pb.bend_values is None else pb.bend_values                     # (N9): the magnetometer-free levers
     for link, (A, R) in graph_bend(pb, x_bend, tuple(pb.opts.unsensed_bend)).items():
         out[link] = quat_mul(q_seg[A], np.broadcast_to(rotmat_to_quat(R), q_seg[A].shape))
     return out

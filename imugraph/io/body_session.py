@@ -208,6 +208,16 @@ def default_skeleton(src: str, sensors: dict) -> Skeleton:
                        "a skeleton, or exactly the 17 full-body or 7 lower-body MVN segments")
 
 
+def is_body_session(path: PathLike) -> bool:
+    """A path `read_body_session` is meant for (an .mvnx path by its suffix alone)."""
+    from imugraph.io.xio_body import is_ximu3_body_folder
+
+    p = Path(path)
+    if p.is_dir():
+        return (p / "session.json").exists() or any(p.glob("*_00B4*.txt")) or is_ximu3_body_folder(p)
+    return p.suffix.lower() == ".mvnx"
+
+
 def read_body_session(path: PathLike) -> BodySession:
     """Any multi-IMU session: own folder (session.json), gaittoolbox MTw folder (*_<id>.txt), .mvnx, or a folder
     of x-IMU3 export folders (`imugraph.io.xio_body.read_ximu3_body`).

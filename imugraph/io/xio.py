@@ -230,6 +230,9 @@ def _place_mag(t: np.ndarray, t_mag: np.ndarray, mag: np.ndarray) -> tuple[np.nd
     return out, int(t_mag.size - first.size)
 
 
+QUAT_SOURCE = "x-IMU3 onboard AHRS (estimate, not ground truth)"
+
+
 def read_ximu3_folder(path: Path) -> Session:
     """Session from an x-IMU3 export folder (Inertial.csv + Magnetometer.csv, optional Quaternion.csv).
 
@@ -242,6 +245,27 @@ def read_ximu3_folder(path: Path) -> Session:
     Raises:
         SessionError: missing files or columns, unsorted time stamps.
     """
+    src = str(path)
+    ts, gyr, acc, tm, mag_raw, held, converted, mag_unit = read_ximu3_tables(path)
+    t0 = ts[0] if ts.size else 0.0
+    t, tm = ts - t0, tm - t0
+    meta = {"format": "x-imu3", "converted": converted, "mag_unit": mag_unit, "mag_held": held}
+    if t.size >= 2 and np.all(np.diff(t) > 0):
+        keep = np.all(np.isfinite(mag_raw), axis=1)
+        mag, unplaced = _place_mag(t, tm[keep], mag_raw[keep])
+        meta["dropouts"], meta["gaps"] = _dropouts(t)
+        meta["mag_unplaced"] = unplaced
+    else:
+        mag = np.full((t.size, 3), np.nan)   # validation reports the time stamps
+    quat = _onboard_quat(path, ts)
+    if quat is not None:
+        meta["quat_source"] = QUAT_SOURCE
+    return Session(t=t, gyr=gyr, acc=acc, mag=mag, quat=quat, source=src, name=path.name, meta=meta)
+
+
+def read_ximu3_tables(path: Path) -> tuple:
+    """(inertial stamps s, gyr, acc, magnetometer stamps s, magnetometer with held rows NaN, held rows, converted,
+    magnetometer unit) of an x-IMU3 folder, stamps absolute (the device clock), SI units (`read_ximu3_folder`)."""
     src = str(path)
     for name in ("Inertial.csv", "Magnetometer.csv"):
         if not (path / name).is_file():
@@ -260,20 +284,7 @@ def read_ximu3_folder(path: Path) -> Session:
         raise SessionError(str(path / "Magnetometer.csv"), "Timestamp", "column missing", "'Timestamp (us)'")
     tm = mdata[:, mspec["t"][0]] * _TIME_SCALE[mspec["t"][1]]
     mag_raw, held = drop_held_rows(_block(str(path / "Magnetometer.csv"), mspec, mdata, "mag", converted))
-    t0 = ts[0] if ts.size else 0.0
-    t, tm = ts - t0, tm - t0
-    meta = {"format": "x-imu3", "converted": converted, "mag_unit": mspec[("mag", "x")][1], "mag_held": held}
-    if t.size >= 2 and np.all(np.diff(t) > 0):
-        keep = np.all(np.isfinite(mag_raw), axis=1)
-        mag, unplaced = _place_mag(t, tm[keep], mag_raw[keep])
-        meta["dropouts"], meta["gaps"] = _dropouts(t)
-        meta["mag_unplaced"] = unplaced
-    else:
-        mag = np.full((t.size, 3), np.nan)   # validation reports the time stamps
-    quat = _onboard_quat(path, ts)
-    if quat is not None:
-        meta["quat_source"] = "x-IMU3 onboard AHRS (estimate, not ground truth)"
-    return Session(t=t, gyr=gyr, acc=acc, mag=mag, quat=quat, source=src, name=path.name, meta=meta)
+    return ts, gyr, acc, tm, mag_raw, held, converted, mspec[("mag", "x")][1]
 
 
 def _onboard_quat(path: Path, ts: np.ndarray) -> Optional[np.ndarray]:

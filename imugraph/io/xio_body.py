@@ -43,15 +43,14 @@ import numpy as np
 
 from imugraph.body.skeleton import FULL_BODY_SENSED, LOWER_BODY
 from imugraph.errors import SessionError
+from imugraph.factors.gaps import gap_steps
 from imugraph.io.body_session import BodySession, default_skeleton
 from imugraph.io.session import Session
-from imugraph.io.xio import (_TIME_SCALE, _block, _place_mag, drop_held_rows, parse_xio_header, read_csv_table,
-                             read_ximu3_folder)
+from imugraph.io.xio import QUAT_SOURCE, _onboard_quat, _place_mag, read_ximu3_tables
 
 PathLike = Union[str, Path]
 SEGMENTS = tuple(dict.fromkeys(LOWER_BODY + FULL_BODY_SENSED))
 MAX_GAP_SAMPLES = 3               # missing samples one dropout may hold and still be bridged by (X1)
-GAP_STEP = 1.5                    # a stamp step over 1.5 median steps holds missing samples (factors.gaps)
 _FOLDER = re.compile(r"^(?P<name>.*?)(?:\s+(?P<serial>[0-9A-Fa-f]{8}))?(?:\s*\((?P<iface>[^)]*)\))?\s*$")
 
 
@@ -78,22 +77,13 @@ def is_ximu3_body_folder(path: PathLike) -> bool:
     return p.is_dir() and not (p / "Inertial.csv").is_file() and bool(sensor_folders(p))
 
 
-def _table_time(path: Path, quantity=None) -> tuple:
-    """(absolute stamps in s, spec, columns, data) of one x-IMU3 CSV."""
-    cols, data = read_csv_table(path)
-    spec = parse_xio_header(cols, quantity=quantity)
-    if "t" not in spec:
-        raise SessionError(str(path), "Timestamp", "column missing", "'Timestamp (us)'")
-    return data[:, spec["t"][0]] * _TIME_SCALE[spec["t"][1]], spec, data
-
-
 def _gaps(src: str, seg: str, ts: np.ndarray, t_a: float, t_b: float, grid: np.ndarray,
           max_gap: int) -> dict:
-    """Dropouts of one sensor inside [t_a, t_b] (steps > GAP_STEP median steps): counted, or refused when longer
+    """Dropouts of one sensor inside [t_a, t_b] (`gap_steps` over the median step): counted, or refused when longer
     than max_gap missing samples; grid samples strictly inside a dropout are counted as bridged."""
     dt = np.diff(ts)
     med = float(np.median(dt))
-    idx = np.flatnonzero((dt > GAP_STEP * med) & (ts[1:] > t_a) & (ts[:-1] < t_b))
+    idx = np.flatnonzero(gap_steps(dt, med) & (ts[1:] > t_a) & (ts[:-1] < t_b))
     missing = np.round(dt[idx] / med).astype(int) - 1
     if idx.size and int(missing.max()) > max_gap:
         k = int(np.argmax(missing))
@@ -163,8 +153,9 @@ def read_ximu3_body(folder: PathLike, max_gap_samples: int = MAX_GAP_SAMPLES, in
         if seg in raw:
             raise SessionError(str(sub), "folder name", f"a second folder for {seg} (first: {raw[seg][0].name})",
                                "one x-IMU3 folder per segment")
-        s = read_ximu3_folder(sub)
-        ts, _, _ = _table_time(sub / "Inertial.csv")
+        s = read_ximu3_tables(sub)                 # (ts, gyr, acc, tm, mag_raw, held, converted, mag_unit)
+        ts = s[0]
+        s += (_onboard_quat(sub, ts),)              # + the onboard AHRS quaternion or None
         if ts.size < 2 or not np.all(np.diff(ts) > 0):
             raise SessionError(str(sub / "Inertial.csv"), "Timestamp", "fewer than 2 or unsorted stamps",
                                "strictly increasing time stamps")
@@ -182,13 +173,14 @@ def read_ximu3_body(folder: PathLike, max_gap_samples: int = MAX_GAP_SAMPLES, in
     sensors, dropouts, per_sensor = {}, {}, {}
     for seg, (sub, s, ts) in raw.items():
         dropouts[seg] = _gaps(str(sub / "Inertial.csv"), seg, ts, t_a, t_b, grid, max_gap_samples)
-        gyr, acc = _resample(ts, s.gyr, grid, interp), _resample(ts, s.acc, grid, interp)
-        quat = None if s.quat is None else _resample_quat(ts, np.asarray(s.quat, float), grid)
-        tm, mspec, mdata = _table_time(sub / "Magnetometer.csv", quantity="mag")
-        mag_raw, _ = drop_held_rows(_block(str(sub / "Magnetometer.csv"), mspec, mdata, "mag", []))
+        _, s_gyr, s_acc, tm, mag_raw, held, converted, mag_unit, q_own = s
+        gyr, acc = _resample(ts, s_gyr, grid, interp), _resample(ts, s_acc, grid, interp)
+        quat = None if q_own is None else _resample_quat(ts, np.asarray(q_own, float), grid)
         keep = np.all(np.isfinite(mag_raw), axis=1)
         mag, unplaced = _place_mag(grid, tm[keep], mag_raw[keep])
-        meta = {k: s.meta[k] for k in ("converted", "mag_unit", "mag_held", "quat_source") if k in s.meta}
+        meta = {"converted": converted, "mag_unit": mag_unit, "mag_held": held}
+        if q_own is not None:
+            meta["quat_source"] = QUAT_SOURCE
         meta.update(format="x-imu3", folder=sub.name, serial=serials[seg], rate_hz=1.0 / steps[seg],
                     mag_outside_grid=unplaced, resampled=f"{interp} onto the common grid; quat slerp")
         sensors[seg] = validate_session(Session(t, gyr, acc, mag, quat, None, str(sub), seg, meta))
