@@ -17,7 +17,8 @@ Targets: ≤ 2° per joint, ≤ 2 cm.
 --duration limits the BVH time used (after the Xsens export's T-pose frame); --lower simulates the 7-sensor
 lower body only (quick runs); --tie makes the truth's unsensed segments (spine links, neck, toes) follow
 the estimator's ties instead of the BVH (isolates the estimator from that model error); --lag S also runs
-the fixed-lag smoother (imugraph.graphs.body_incremental); --unsensed σ models the unsensed links between two
+the fixed-lag smoother (imugraph.graphs.body_incremental; --lag-bootstrap S: its batch bootstrap in s instead of
+"auto"; --neck lagboot: BodyOptions.lag_neck_from_bootstrap, the neck's bend (N5) from that bootstrap); --unsensed σ models the unsensed links between two
 sensed segments (neck, lumbar spine) as estimated segments with σ (degrees) per joint on their shared relative
 rotation (BodyOptions.unsensed_sigma_rad, imugraph.graphs.body_chain; batch only); several comma-separated
 values, or "off" among them (the default model), each solve the same simulated session; --unsensed-prior and
@@ -69,7 +70,10 @@ def _solve(session, use_mag: bool, lag: float | None, opts_kw: dict | None = Non
     if lag is None:
         return solve_body_batch(session, opts)
     from imugraph.graphs.body_incremental import solve_body_incremental
-    return solve_body_incremental(session, opts, lag_s=lag)
+    return solve_body_incremental(session, opts, lag_s=lag, **_LAG_KW)
+
+
+_LAG_KW: dict = {}          # --lag-bootstrap S (helper L21): solve_body_incremental's bootstrap_s; {}: its "auto"
 
 
 # --neck variants (session 21): BodyOptions fields of imugraph.graphs.body_neck (N5), (N6)
@@ -98,7 +102,9 @@ NECK_VARIANTS = {"default": {},                                  # since session
                              "unsensed_bend_mag_free": True},
                  "mf": {**_S21A, "unsensed_bend_mag_free": True},
                  "neck3mf": {**_S21A, "lever_pass_bend_sigma_m": 0.003, "lever_pass_iterations": None,
-                             "unsensed_bend_mag_free": True}}
+                             "unsensed_bend_mag_free": True},
+                 # helper L21: the fixed lag's neck by (N5) with the bend of its bootstrap's (N6) pass (batch: = default)
+                 "lagboot": {"lag_neck_from_bootstrap": True}}
 
 
 def _label(head: str, use_mag: bool, lag, uns, neck: str) -> str:
@@ -188,6 +194,8 @@ def main(argv=None) -> int:
     ap.add_argument("--unsensed-gain", type=float, default=None, help="BodyOptions.unsensed_sigma_gain (rad per rad)")
     ap.add_argument("--neck", default="default", help="comma-separated of " + ", ".join(NECK_VARIANTS)
                     + " (session 21, imugraph.graphs.body_neck)")
+    ap.add_argument("--lag-bootstrap", type=float, default=None, metavar="S",
+                    help="the fixed lag's batch bootstrap in s (solve_body_incremental bootstrap_s; default: auto)")
     ap.add_argument("--out", default="body_sim_accuracy.json", help="file name in bench_out/")
     a = ap.parse_args(argv)
     legs = {"thighs": ("RightUpperLeg", "LeftUpperLeg"), "shanks": ("RightLowerLeg", "LeftLowerLeg"),
@@ -196,6 +204,8 @@ def main(argv=None) -> int:
     opts_kw = {k: legs.get(v, tuple(x for x in v.split(",") if x)) for k, v in
                (("hinges", a.hinges), ("axial_segments", a.axial)) if v}
     mags = {"both": [False, True], "off": [False], "on": [True]}[a.mag]
+    if a.lag_bootstrap is not None:
+        _LAG_KW["bootstrap_s"] = a.lag_bootstrap
     unsensed = tuple(None if v == "off" else float(v) for v in a.unsensed.split(","))
     if a.unsensed_prior:
         opts_kw["unsensed_prior"] = a.unsensed_prior

@@ -37,6 +37,10 @@ its preintegrated IMU (x_k = pim.predict(x_{k−1}, b̂)), joint centres J = nTs
   keyframes it brings, so fewer updates are cheaper; 17 IMUs, 20 s walk, keyframes at 5 Hz, lag 1 s, one
   LM iteration: 0.94× real time (benchmarks/body_speed.py).
 
+- The unsensed neck: the stream keeps the ties (K2) (body_neck.single_pass_options); with
+  BodyOptions.lag_neck_from_bootstrap (off by default) the bootstrap runs the (N6) pass and the output turns the
+  neck by the constant bend (N5) read there (body_neck.bootstrap_bend), for the whole stream.
+
 Output: the final estimate (iSAM2: its last full estimate; fixed lag: each keyframe's estimate as it leaves
 the window, i.e. smoothed with lag_s) as a `BodyResult`, and in `info["filtered"]` the same built from the
 estimate of each keyframe right after its own update (causal at keyframes; samples between keyframes are
@@ -150,7 +154,8 @@ def solve_body_incremental(session, opts: BodyOptions = BodyOptions(), lag_s: fl
             accelerated enough (imugraph.graphs.body_bootstrap, A1). None: incremental from the first sample.
     """
     t_start = time.perf_counter()
-    opts = body_neck.single_pass_options(opts)          # no (N6) pass here: the neck keeps the ties (K2)
+    neck_opts = opts if opts.lag_neck_from_bootstrap and bootstrap_s is not None else None
+    opts = body_neck.single_pass_options(opts)          # no (N6) pass in the stream: ties (K2), or the bootstrap's bend
     pb = build_problem(session, opts)
     kf_t = pb.kf_t
     span = float(np.median(np.diff(kf_t))) * max(1, int(update_every)) if pb.K > 1 else 0.0
@@ -163,7 +168,7 @@ def solve_body_incremental(session, opts: BodyOptions = BodyOptions(), lag_s: fl
     records = []                                  # per keyframe: (sensor nRs (n,3,3), p, v of root, bRs, ψ)
     lagged: dict = {}                             # fixed lag: the record of each keyframe as it leaves the window
     update_s, failures, first_failure = [], 0, None
-    est, fixed_place, k_first, boot = None, None, 0, {}
+    est, fixed_place, k_first, boot, bend = None, None, 0, {}, {}
     anchor, anchor_vals = gtsam.NonlinearFactorGraph(), gtsam.Values()
     auto = {}
     if isinstance(bootstrap_s, str):
@@ -177,7 +182,7 @@ def solve_body_incremental(session, opts: BodyOptions = BodyOptions(), lag_s: fl
     solver = _make_solver(lag_s, smoother, factorization, relinearize_threshold, lag_iterations)
     regularize = factorization.upper() == "CHOLESKY"
     if bootstrap_s is not None:
-        k_first, x_b, fixed_place, boot = _bootstrap(session, pb, opts, bootstrap_s)
+        k_first, x_b, fixed_place, boot, bend = _bootstrap(session, pb, opts, bootstrap_s, neck_opts)
         boot.update(auto)
         for k in range(k_first):
             records.append(_record(pb, x_b, k, fixed_place))
@@ -246,12 +251,12 @@ def solve_body_incremental(session, opts: BodyOptions = BodyOptions(), lag_s: fl
             "bootstrap": boot}
     if pb.mag_sigmas:
         info["mag_sigmas"] = dict(pb.mag_sigmas)  # (B5') the σ the stream's magnetometer factors used
-    info["filtered"] = filtered_result(pb, records)
-    if lag_s is None and fixed_place is None:
+    info["filtered"] = filtered_result(pb, records, bend)
+    if lag_s is None and fixed_place is None:         # no bootstrap: lag_neck_from_bootstrap has nothing to read
         return make_result(pb, est, info)
     if lag_s is None:                             # iSAM2 after a bootstrap: its final estimate, bRs held
         lagged.update({k: _record(pb, est, k, fixed_place) for k in range(k_first, pb.K)})
-    res = filtered_result(pb, [lagged[k] for k in range(pb.K)])
+    res = filtered_result(pb, [lagged[k] for k in range(pb.K)], bend)
     return BodyResult(res.t, res.names, res.n_quat, res.n_pos, res.placements, info)
 
 
@@ -287,19 +292,25 @@ def _make_solver(lag_s, smoother: str, factorization: str, relinearize_threshold
     return gtsam.BatchFixedLagSmoother(float(lag_s), lm)
 
 
-def _bootstrap(session, pb: BodyProblem, opts: BodyOptions, bootstrap_s: float):
-    """Batch solve of the first keyframes: (first keyframe index to stream, estimate, (bRs…, ψ), info)."""
+def _bootstrap(session, pb: BodyProblem, opts: BodyOptions, bootstrap_s: float, neck_opts: BodyOptions | None = None):
+    """Batch solve of the first keyframes: (first keyframe index to stream, estimate, (bRs…, ψ), info, bend);
+    bend: {} or, with `neck_opts` (BodyOptions.lag_neck_from_bootstrap), the neck's constant bend (N5) from the
+    (N6) pass on this batch graph (body_neck.bootstrap_bend; the estimate returned stays the first pass's)."""
     t0 = time.perf_counter()
     rate = 1.0 / float(np.median(np.diff(session.t)))
     m = int(np.clip(round(bootstrap_s * rate / max(1, opts.keyframe_every)), 1, pb.K - 2))
     n = int(pb.kf[m]) + 1                                   # the sub-problem's last keyframe is pb.kf[m]
     sub = replace(session, t=session.t[:n], sensors={k: v.slice(0, n) for k, v in session.sensors.items()})
     pb_b = build_problem(sub, replace(opts, hinges=()))
-    x_b, passes, _ = optimize_with_mag_noise(pb_b)
+    x_b, passes, graph = optimize_with_mag_noise(pb_b)
     pb.mag_dirs, pb.mag_sigmas = pb_b.mag_dirs, pb_b.mag_sigmas    # (B5') carried into the stream
     place = estimate_placements(pb_b, x_b)
-    return m + 1, x_b, place, {"seconds": time.perf_counter() - t0, "keyframes": m + 1,
-                               "iterations": sum(p["iterations"] for p in passes), "psi_deg": float(np.rad2deg(place[1]))}
+    bend, neck_info = body_neck.bootstrap_bend(pb_b, x_b, graph, neck_opts) if neck_opts is not None else ({}, None)
+    info = {"seconds": time.perf_counter() - t0, "keyframes": m + 1,
+            "iterations": sum(p["iterations"] for p in passes), "psi_deg": float(np.rad2deg(place[1]))}
+    if neck_info is not None:
+        info["neck_pass_iterations"] = neck_info["iterations"]
+    return m + 1, x_b, place, info, bend
 
 
 def _anchor(pb: BodyProblem, x: gtsam.Values, k: int) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Values]:
@@ -337,10 +348,11 @@ def _record(pb: BodyProblem, est: gtsam.Values, k: int, place_psi: tuple) -> dic
             "place": place, "psi": psi}
 
 
-def filtered_result(pb: BodyProblem, records: list) -> BodyResult:
+def filtered_result(pb: BodyProblem, records: list, bend: dict | None = None) -> BodyResult:
     """Causal per-sample output: from keyframe k's filtered state, the gyro integrated forward to the samples
     before keyframe k+1 (R_{i+1} = R_i Exp((ω_i − b̂_k) dt_i)), segment rotations nRb = Rz(ψ₀ − ψ_k) nRs bRs_kᵀ
-    with keyframe k's sensor-to-segment rotations, root sensor position p_k + v_k τ."""
+    with keyframe k's sensor-to-segment rotations, root sensor position p_k + v_k τ; `bend` (the bootstrap's
+    body_neck.bootstrap_bend): those links turn with their upper neighbour (N5), the others keep the ties (K2)."""
     t = np.asarray(pb.session.t, float)
     N, K = t.size, len(records)
     kf = pb.kf[:K]
@@ -369,6 +381,7 @@ def filtered_result(pb: BodyProblem, records: list) -> BodyResult:
                 o = p_s + np.einsum("kij,kj->ki", R[ok], np.einsum("kji,kj->ki", bRs0, -b_pos0))
                 root[i] = np.einsum("kij,kj->ki", G[ok], o)
         q_seg[name] = rotmat_to_quat(nRb)
+    q_seg.update(body_neck.apply_bend(bend or {}, q_seg))          # nR_u = nR_A · A_R_u (N5)
     n_quat = fill_segments(pb.skel, q_seg)
     n_pos = forward_kinematics(pb.skel, n_quat, root)
     return BodyResult(t, tuple(pb.skel.names), n_quat, n_pos,

@@ -124,6 +124,9 @@ class BodyOptions:
             (chosen on seeds 0–4, checked on held-out seeds 5–9: docs/results_issue4.md).
         unsensed_bend_mag_free: with use_mag, (N5) reads the bend from the (N6) graph solved once more without the
             magnetometer factors (body_neck (N9)); the orientations stay the magnetometer solution's. Default True since session 21.
+        lag_neck_from_bootstrap: solve_body_incremental with a bootstrap: the (N6) pass ((N8), (N9) as set) runs on the
+            bootstrap's batch graph and the streamed output turns `unsensed_bend`'s links by the constant bend (N5) read
+            there (body_neck.bootstrap_bend); False: the neck keeps the ties (K2) there (single_pass_options).
     """
 
     keyframe_every: int = 6
@@ -184,6 +187,7 @@ class BodyOptions:
     unsensed_bend_length_sigma_m: float | None = None   # (N7) neck-length factor in the (N6) pass; None: none
     lever_pass_bend_sigma_m: float | None = 0.005       # (N8) σ of unsensed_bend's lumped joints in the (N6) pass (session 21 default; was None)
     unsensed_bend_mag_free: bool = True                 # (N9) the bend from the (N6) graph without magnetometers (session 21 default)
+    lag_neck_from_bootstrap: bool = False               # fixed lag / iSAM2: (N5) with the bend of its bootstrap's (N6) pass; False: ties
 
 
 # σ of the sensor's turn about the segment's long axis (soft-tissue artefact, rigid part), by segment-name

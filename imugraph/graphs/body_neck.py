@@ -333,6 +333,32 @@ def graph_bend(pb, x, only: tuple = ()) -> dict:
     return out
 
 
+def bootstrap_bend(pb_b, x_b, graph, opts) -> tuple[dict, dict | None]:
+    """({link: (A, A_R_link)}, the pass's info) for the fixed lag (BodyOptions.lag_neck_from_bootstrap): the (N6)
+    pass ((N8), (N9) as `opts` set them) on the bootstrap's batch problem pb_b, solved at x_b with `graph`, and the
+    constant bend (N5) its levers imply. The bend is a constant of the model, so the bootstrap's value holds for
+    the whole stream; the stream itself keeps x_b (its levers and anchors are not moved by this pass).
+    ({}, None) when `opts` asks for no bend, for nominal-frame priors, or pb_b has no lumped joint."""
+    if not opts.unsensed_bend or opts.lever_prior_frame == "nominal":
+        return {}, None
+    saved = pb_b.opts, list(pb_b.levers), pb_b.bend_values
+    pb_b.opts = dataclasses.replace(opts, hinges=())
+    try:
+        x_n, info = lever_pass(pb_b, x_b, graph)                                                    # (N6), (N8), (N9)
+        if info is None:
+            return {}, None
+        x_bend = x_n if pb_b.bend_values is None else pb_b.bend_values
+        return graph_bend(pb_b, x_bend, tuple(opts.unsensed_bend)), info                         # (N5)
+    finally:
+        pb_b.opts, pb_b.levers, pb_b.bend_values = saved
+
+
+def apply_bend(bend: dict, q_seg: dict) -> dict:
+    """{link: (N, 4) nR_link = nR_A · A_R_link} (N5) for a bend of `graph_bend`, given per-sample q_seg."""
+    return {link: quat_mul(q_seg[A], np.broadcast_to(rotmat_to_quat(R), q_seg[A].shape))
+            for link, (A, R) in bend.items()}
+
+
 def link_orientations(pb, x, q_seg: dict) -> dict:
     """{link: (N, 4) nR_link = nR_A · A_R_link} (N5) for the links above BodyOptions.unsensed_bend's segments
     (() : {}), given the sensed segments' per-sample orientations q_seg."""
