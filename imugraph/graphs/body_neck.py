@@ -347,8 +347,7 @@ def bootstrap_bend(pb_b, x_b, graph, opts) -> tuple[dict, dict | None]:
         x_n, info = lever_pass(pb_b, x_b, graph)                                                    # (N6), (N8), (N9)
         if info is None:
             return {}, None
-        x_bend = x_n if pb_b.bend_values is None else pb_b.bend_values
-        return graph_bend(pb_b, x_bend, tuple(opts.unsensed_bend)), info                         # (N5)
+        return solved_bend(pb_b, x_n), info                                                         # (N5)
     finally:
         pb_b.opts, pb_b.levers, pb_b.bend_values = saved
 
@@ -364,8 +363,10 @@ def link_orientations(pb, x, q_seg: dict) -> dict:
     (() : {}), given the sensed segments' per-sample orientations q_seg."""
     if not pb.opts.unsensed_bend:
         return {}
-    out = {}
-    x_bend = x if pb.bend_values is None else pb.bend_values                     # (N9): the magnetometer-free levers
-    for link, (A, R) in graph_bend(pb, x_bend, tuple(pb.opts.unsensed_bend)).items():
-        out[link] = quat_mul(q_seg[A], np.broadcast_to(rotmat_to_quat(R), q_seg[A].shape))
-    return out
+    return apply_bend(solved_bend(pb, x), q_seg)
+
+
+def solved_bend(pb, x) -> dict:
+    """The constant bend (N5) of pb.opts.unsensed_bend's links at the solution `x`, read from the (N9)
+    magnetometer-free levers when that pass stored them (pb.bend_values)."""
+    return graph_bend(pb, x if pb.bend_values is None else pb.bend_values, tuple(pb.opts.unsensed_bend))
