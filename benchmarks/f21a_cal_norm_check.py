@@ -17,14 +17,7 @@ import numpy as np
 
 from imugraph.config import data_dir
 from imugraph.errors import ImugraphError
-
-
-def _median_norm(session, cal) -> float:
-    from imugraph.io.validate import check_calibration_applies
-    try:
-        return check_calibration_applies(session, cal)
-    except ImugraphError as exc:
-        return float(str(exc).split("median calibrated field norm ")[1].split()[0])
+from imugraph.io.validate import calibrated_norm_median
 
 
 def main() -> None:
@@ -51,7 +44,7 @@ def main() -> None:
         for sname, session in sessions.items():
             if cname != broad[0].stem and sname.startswith(("0", "1", "2", "3")) and sname != broad[0].stem:
                 continue                    # Rasteiro calibrations: on BROAD 01 only, not every BROAD trial
-            med = _median_norm(session, cal)
+            med = calibrated_norm_median(session, cal)
             verdict = "pass" if lo <= med <= hi else "refused"
             print(f"{cname} {sname} {med:.3f} {verdict}", flush=True)
     print(f"# cpu {time.process_time() - c0:.1f} s")

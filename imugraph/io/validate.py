@@ -318,6 +318,13 @@ def _check_quat(s: Session) -> None:
 CAL_NORM_RANGE = (0.5, 2.0)      # median |D⁻¹(b_mag − o)| of a calibration applied to its own sensor is ≈ 1
 
 
+def calibrated_norm_median(session: Session, cal) -> float:
+    """Median |m| of the calibrated field m = Calibration.calibrated_field(t, mag) over its finite rows (NaN if none)."""
+    m_norm = np.linalg.norm(cal.calibrated_field(session.t, np.asarray(session.mag, float)), axis=1)
+    m_norm = m_norm[np.isfinite(m_norm)]
+    return float(np.median(m_norm)) if m_norm.size else float("nan")
+
+
 def check_calibration_applies(session: Session, cal, cal_source: str = "calibration.json") -> float:
     """Refuse a calibration that does not fit this session's magnetometer (one from another sensor).
 
@@ -336,12 +343,9 @@ def check_calibration_applies(session: Session, cal, cal_source: str = "calibrat
     Raises:
         SessionError: field 'calibration', naming the median norm found and the file.
     """
-    y = cal.corrected(session.t, session.mag) if cal.disturbances else np.asarray(session.mag, float)
-    m_norm = np.linalg.norm(cal.apply(y), axis=1)
-    m_norm = m_norm[np.isfinite(m_norm)]
-    if m_norm.size == 0:
-        return float("nan")
-    med = float(np.median(m_norm))
+    med = calibrated_norm_median(session, cal)
+    if not np.isfinite(med):
+        return med
     lo, hi = CAL_NORM_RANGE
     if not lo <= med <= hi:
         raise SessionError(session.source, "calibration", f"median calibrated field norm {med:.3g} with {cal_source} "
