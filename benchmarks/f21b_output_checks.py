@@ -62,7 +62,7 @@ def check(trial: str, out_root: Path, ref_root: Path | None) -> dict:
         for d in cal.disturbances:
             inside |= (session.t >= d["t_start"]) & (session.t <= d["t_end"])
         raw = np.linalg.norm(cal.apply(session.mag[inside]), axis=1)
-        cor = np.linalg.norm(cal.apply(cal.corrected(session.t, session.mag)[inside]), axis=1)
+        cor = np.linalg.norm(cal.calibrated_field(session.t, session.mag)[inside], axis=1)
         cor = cor[np.isfinite(cor)]
         row.update(norm_before=(float(raw.min()), float(raw.max())),
                    norm_after=(float(cor.min()), float(cor.max())) if cor.size else None)
