@@ -13,8 +13,6 @@ from __future__ import annotations
 
 import time
 
-import numpy as np
-
 from imugraph.config import data_dir
 from imugraph.errors import ImugraphError
 from imugraph.io.validate import calibrated_norm_median

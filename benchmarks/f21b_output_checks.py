@@ -24,7 +24,6 @@ from pathlib import Path
 
 import numpy as np
 
-from imugraph.commands import common
 from imugraph.commands.calibrate import CalibrateOptions, calibrate_path
 from imugraph.config import broad_dir
 from imugraph.geometry import quat_to_rotmat

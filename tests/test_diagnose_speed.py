@@ -14,7 +14,7 @@ from imugraph.diagnose.effects import base as effects_base
 from imugraph.diagnose.effects import trajectory
 from imugraph.diagnose.fit import fit_base
 from imugraph.diagnose.gap import quantiles
-from imugraph.diagnose.refit import CONVERGED, _change, refit_effect
+from imugraph.diagnose.refit import CONVERGED, _change
 from imugraph.factors.gyro import keyframe_layout, preintegrate
 
 

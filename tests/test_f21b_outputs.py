@@ -11,7 +11,6 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from imugraph.calibration.result import Calibration
 from imugraph.cli import build_parser, main
 from imugraph.commands import common
 from imugraph.errors import SessionError
