@@ -78,6 +78,12 @@ def _allow_weak(p: argparse.ArgumentParser) -> None:
                         "regularised estimate marked identifiable: false instead of failing")
 
 
+def _allow_gaps(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--allow-gaps", action="store_true",
+                   help="accept time gaps longer than 5 median steps as samples that never arrived (the gap model "
+                        "bridges them) instead of refusing the session; NPZ files may declare them in a key 'gaps'")
+
+
 def _gyro_scale(p: argparse.ArgumentParser) -> None:
     g = p.add_mutually_exclusive_group()
     g.add_argument("--gyro-scale", dest="gyro_scale", action="store_const", const=True, default=None,
@@ -115,6 +121,7 @@ def build_parser() -> argparse.ArgumentParser:
     _keyframes(p)
     _allow_weak(p)
     _gyro_scale(p)
+    _allow_gaps(p)
 
     p = sub.add_parser("smooth", help="smoothed orientation (with a known or estimated calibration)",
                        description="Writes orientation.npz (and calibration.json when it is estimated).")
@@ -124,6 +131,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="with --calibration: no nav-field perturbation d_k (the C++-only smoother of earlier versions)")
     _common(p, default_out, data_dir=True)
     _keyframes(p)
+    _allow_gaps(p)
 
     p = sub.add_parser("stream", help="incremental orientation: samples in arrival order through iSAM2",
                        description="Writes orientation.npz (smoothed), orientation_filtered.npz (available "
@@ -156,6 +164,7 @@ def build_parser() -> argparse.ArgumentParser:
                    "offset as a disturbance), so `smooth --calibration` reproduces orientation.npz (full iSAM2 only)")
     _common(p, default_out, data_dir=True)
     _keyframes(p, default=10.0)        # StreamOptions.keyframe_hz: what the stream benchmarks measure
+    _allow_gaps(p)
 
     p = sub.add_parser("batch", help="calibrate and smooth many sessions in parallel on Dask",
                        description="One folder DIR/<session stem> per session with the files of calibrate, "
@@ -200,7 +209,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("diagnose", help="where the sim-to-real gap lies and which unmodelled effect explains it",
                        description="Writes diagnosis.json, diagnosis.md, gap_over_time.png, residuals.png.")
-    p.add_argument("session", metavar="SESSION", help=session_help)
+    p.add_argument("session", metavar="SESSION", help=session_help + ", or a body session (any mocap SESSION: folder "
+                   "with session.json, gaittoolbox rawimu folder, folder of x-IMU3 export folders, .mvnx file)")
     _common(p, default_out, data_dir=True)
     _keyframes(p)
     p.add_argument("--seed", type=int, default=0, help="seed of the simulations (default 0)")

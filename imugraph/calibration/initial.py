@@ -180,5 +180,13 @@ def weak_initial(session: Session, reason: str, estimate_delay: bool = False):
     return SimpleNamespace(D=scale * np.eye(3), o=np.zeros(3), dip_rad=dip, gyro_bias=bias,
                            noise={k: np.asarray(nz[k], float) for k in ("gyr", "acc", "mag")}, rest=rest,
                            mag_delay_s=float(delay),
-                           coverage={"identifiable": False, "problems": [reason],
+                           coverage={"identifiable": False, "problems": [_without_advice(reason)],
                                      "fallback": "regularised around a sphere (D = s·I, o = 0, ±5 %)"})
+
+
+def _without_advice(reason: str) -> str:
+    """The refusal's problem, without its advice ("...; expected data that identify D and o: rotate ... or pass
+    --allow-weak ...") and the "FILE: field 'mag': found" prefix: after --allow-weak the table must not still tell the
+    user to pass it (U22 defect 15)."""
+    text = reason.split("; expected data that identify", 1)[0]
+    return text.split(": found ", 1)[1] if ": found " in text else text

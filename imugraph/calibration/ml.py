@@ -26,6 +26,7 @@ from imugraph.calibration.acc_timing import session_lead, with_lead
 from imugraph.calibration.gyro_rate import update_rate_error
 from imugraph.calibration.gyro_map_select import calibrate_chosen
 from imugraph.calibration.result import Calibration, n_mag_from_dip
+from imugraph.calibration.dip_fold import folded_dip, turn_quat, turn_vectors
 from imugraph.factors.gaps import GAP_RATE_WALK
 from imugraph.factors.gyro import keyframe_layout, preintegrate
 from imugraph.calibration.disturbance import apply_windows, detect_windows
@@ -290,6 +291,8 @@ def calibrate(session: Session, options: Options | None = None, initial=None,
             # "warm": the plain rounds continue from the E rounds' state (rotations, bias, θ, noise, τ,
             # velocities, windows) with Ê = 0 — the plain model's ML fixed point from a nearer start
             del history[:]
+            if opt.progress:       # the rounds are numbered from 1 again: say why (U22 #15, "ML round 1" twice)
+                print("  gyro scale/misalignment E did not settle: ML rounds again without it", file=sys.stderr)
             gyro.E, phase["map"], rate["kappa"] = np.zeros((3, 3)), False, opt.gyro_rate_error
             bias, noise, nRk, theta, values, converged = ml_rounds(bias, noise, nRk, theta, values)
     else:
@@ -313,6 +316,7 @@ def calibrate(session: Session, options: Options | None = None, initial=None,
     except RuntimeError:     # indeterminate: some direction of θ is not observable (reported as NaN)
         cov_theta, cov_bias = np.full((THETA_DIM, THETA_DIM), np.nan), np.full((3, 3), np.nan)
     D, o, dip = unpack_theta(theta)
+    dip, folded = folded_dip(dip)     # δ → π − δ past 90°, nav frame turned by Rz(π) below (dip_fold.py, U22 #1)
     std_theta = np.sqrt(np.maximum(np.diag(cov_theta), 0.0))
     cal = Calibration(
         D=D, o=o, dip_deg=float(np.rad2deg(dip)), gyro_bias=bias,
@@ -330,17 +334,20 @@ def calibrate(session: Session, options: Options | None = None, initial=None,
                                      bias=bias_segments, seg=seg, mag_state=mag_state,
                                      velocity=_velocity_model(opt, vel_state))
     quat = sample_orientations(nRk, pre)
+    field_offsets, velocity = prob.block.field_offsets, vel_state["v"]
+    if folded:                        # the same optimum in DESIGN's convention: nRb, v_k, d_k turned by Rz(π)
+        quat, field_offsets, velocity = turn_quat(quat), turn_vectors(field_offsets), turn_vectors(velocity)
     return Estimate(cal, session.t, quat, residuals,
                     {"history": history, "keyframes": len(kf), "stride": stride, "g": vel_state["g"] or g,
                      "gyro_bias_segments": bias_segments, "noise_correlation": tau_fixed or {},
                      "lm_iterations_final": info.iterations, "final_cost": (info.cost_initial, info.cost_final),
-                     "velocity": vel_state["v"],
+                     "velocity": velocity, "dip_folded": folded,
                      "acc_bias": (None if vel_state["s"] is None or vel_state["s"].shape[1] < 6
                                   else vel_state["s"][:, 3:].mean(axis=0)),
                      "velocity_sigma": vel_state["sigma"], "velocity_tau": vel_state["tau"],
                      "position_sigma": vel_state.get("pos_sigma"), "final_field_sigma": field_state["sigma"],
                      "disturbance_windows": [w.as_dict(session.t) for w in windows], "keyframe_samples": kf,
-                     "field_offsets": prob.block.field_offsets, "gyro_map": gyro.E,
+                     "field_offsets": field_offsets, "gyro_map": gyro.E,
                      "gyro_map_gate": gate, "gyro_rate_error": rate["kappa"]})
 
 
@@ -364,7 +371,10 @@ def _velocity_model(opt: Options, vel: dict) -> VelocityModel | None:
 def _bias_segments(session: Session, kf: np.ndarray, segment_s: float) -> np.ndarray:
     """Bias segment index (K−1,) of each keyframe interval."""
     t_kf = session.t[kf[:-1]] - session.t[0]
-    return np.floor(t_kf / max(segment_s, 1e-9)).astype(int) if segment_s > 0 else np.zeros(len(t_kf), int)
+    seg = np.floor(t_kf / max(segment_s, 1e-9)).astype(int) if segment_s > 0 else np.zeros(len(t_kf), int)
+    if len(seg) and seg[-1] + 1 != len(np.unique(seg)):    # a declared gap longer than a segment: no keyframe in
+        seg = np.unique(seg, return_inverse=True)[1].astype(int)   # some, a bias with no factor (LM stalls); renumbered
+    return seg
 
 
 def _per_sample_bias(bias: np.ndarray, seg: np.ndarray, skf: np.ndarray) -> np.ndarray:

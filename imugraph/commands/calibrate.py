@@ -35,11 +35,13 @@ class CalibrateOptions:
         gyro_scale: estimate the gyro scale/misalignment matrix E (ml.Options.gyro_map, gated; BROAD
             mean 0.83° → 0.77°, one more ML round where the gates pass); None: the library default
             (ml.Options().gyro_map, on), True/False: --gyro-scale / --no-gyro-scale.
+        allow_gaps: --allow-gaps, time gaps declared as missing samples (`imugraph.io.readers.load_session`).
     """
 
     keyframe_hz: float = 5.0
     allow_weak: bool = False
     gyro_scale: Optional[bool] = None
+    allow_gaps: bool = False
 
 
 def estimate_calibration(session: Session, keyframe_hz: float, progress: common.Progress,
@@ -95,7 +97,8 @@ def calibrate_path(path: Union[str, Path], out_dir: Optional[Union[str, Path]],
     """
     progress = progress or common.Progress(quiet=True)
     path = Path(path)
-    session = common.load(path, progress)
+    session = common.load(path, progress, options.allow_gaps)
+    common.check_keyframe_hz(session, options.keyframe_hz)
     # checked writable before the calibration; removed again if still empty when it fails (e.g. too little rotation)
     with common.output_folder(None if out_dir is None else str(out_dir), path.stem) as out:
         estimate = estimate_calibration(session, options.keyframe_hz, progress, options.allow_weak,
@@ -123,7 +126,7 @@ def run_calibrate(args: argparse.Namespace) -> int:
     progress = common.Progress(args.quiet)
     path = common.resolve_session_path(args.session, args.data_dir)
     options = CalibrateOptions(args.keyframe_hz, getattr(args, "allow_weak", False),
-                               getattr(args, "gyro_scale", None))
+                               getattr(args, "gyro_scale", None), getattr(args, "allow_gaps", False))
     print(calibrate_path(path, args.out, options, progress)["table"])
     return 0
 

@@ -87,12 +87,49 @@ def load_with_calibration(args, progress: Progress) -> tuple[Path, Session, Opti
     if args.calibration:
         from imugraph.io.writers import read_calibration_json
         cal = read_calibration_json(Path(args.calibration).expanduser())
+        cal = _dip_in_convention(cal, args.calibration, progress)
     path = resolve_session_path(args.session, args.data_dir)
-    session = load(path, progress)
+    session = load(path, progress, getattr(args, "allow_gaps", False))
+    check_keyframe_hz(session, getattr(args, "keyframe_hz", None))
     if cal is not None:
         from imugraph.io.validate import check_calibration_applies
         check_calibration_applies(session, cal, args.calibration)
     return path, session, cal
+
+
+# --keyframe-hz upper bound: 10× calibrate's default 5 Hz, 5× the stream's 10 Hz. The ML loop's cost grows faster than
+# the keyframe count: the first 60 s of BROAD 06 (285.7 Hz) 1.0 s CPU at 5 Hz, 4.0 s at 20, 7.4 s at 50, > 120 s at
+# 1000 (= every sample, U22 defect 9: killed, an empty --out left behind).
+MAX_KEYFRAME_HZ = 50.0
+
+
+def check_keyframe_hz(session: Session, keyframe_hz: Optional[float]) -> None:
+    """Refuse a --keyframe-hz above the session's sample rate (a keyframe per sample at most: the rest is a runaway
+    solve, not more accuracy) or above MAX_KEYFRAME_HZ, before any output folder is made.
+
+    Raises:
+        SessionError: field 'keyframe_hz', naming the sample rate and the bound.
+    """
+    if keyframe_hz is None:
+        return
+    limit = min(session.rate, MAX_KEYFRAME_HZ)
+    if keyframe_hz > limit:
+        raise SessionError(session.source, "keyframe_hz", f"--keyframe-hz {keyframe_hz:g} (sample rate "
+                           f"{session.rate:.1f} Hz)", f"at most {limit:.4g} Hz (≤ the sample rate and ≤ "
+                           f"{MAX_KEYFRAME_HZ:g} Hz; default 5 for calibrate/smooth, 10 for stream)")
+
+
+def _dip_in_convention(cal: Calibration, source: str, progress: Progress) -> Calibration:
+    """A calibration.json with |dip| > 90° (written before calibrate folded it, or edited) folded to DESIGN's
+    convention (calibration.dip_fold: δ' = ±180° − δ, the same model with the nav frame turned by 180° about the
+    vertical), said on the progress stream: smoothing it unfolded gave 48.29° instead of 0.57° (U22 defect 1)."""
+    from imugraph.calibration.dip_fold import folded_calibration
+
+    folded = folded_calibration(cal)
+    if folded is not cal:
+        progress.say(f"{source}: dip {cal.dip_deg:.3f}° folded to {folded.dip_deg:.3f}° (|dip| ≤ 90°, x along the "
+                     "horizontal field: the nav frame turned by 180° about the vertical)")
+    return folded
 
 
 def out_dir_for(out: Optional[str], stem: str) -> Path:
@@ -150,8 +187,9 @@ def output_folder(out: Optional[str], stem: str) -> Iterator[Path]:
         raise
 
 
-def load(path: Path, progress: Progress) -> Session:
-    """Load and validate a session, announcing it on the progress stream.
+def load(path: Path, progress: Progress, allow_gaps: bool = False) -> Session:
+    """Load and validate a session, announcing it on the progress stream; allow_gaps: --allow-gaps (gaps of more
+    than 5 median steps declared as missing samples, `imugraph.io.readers.load_session`).
 
     Raises:
         SessionError: unreadable or invalid input.
@@ -159,7 +197,10 @@ def load(path: Path, progress: Progress) -> Session:
     from imugraph.io.readers import load_session
 
     progress.say(f"reading {path}")
-    session = load_session(path)
+    session = load_session(path, allow_gaps=allow_gaps)
+    gaps = session.meta.get("gaps") if isinstance(session.meta, dict) else None
+    if gaps and session.meta.get("gaps_declared_by") == "allow_gaps":
+        progress.say(f"--allow-gaps: {len(gaps)} gap(s) declared, {sum(b - a for a, b in gaps):.3g} s without samples")
     progress.say(f"{session.n} samples, {session.t[-1] - session.t[0]:.1f} s at {session.rate:.1f} Hz, "
                  f"{int(session.mag_valid.sum())} magnetometer samples")
     return session
@@ -213,7 +254,12 @@ def field_norm_scores(session: Session, cal: Calibration) -> tuple[float, float]
     with np.errstate(divide="ignore", invalid="ignore"):       # a dead (all-zero) field: NaN, not a warning
         raw = session.mag / raw_scale if raw_scale > 0 else np.full_like(session.mag, np.nan)
         calibrated = cal.calibrated_field(session.t, session.mag)
-    return _norm_error_or_nan(field_norm_error, raw, valid), _norm_error_or_nan(field_norm_error, calibrated, valid)
+    # "after" over the calibrated field's own finite rows: with a magnetometer lag they are the raw rows shifted by
+    # round(τ/Δt) (Calibration.corrected), which on a lower-rate field never meet the unshifted `valid` rows (a field
+    # every 4th row, lag 2–3 rows: "after n/a", U22 defect 4); with a field on every row this is the same set
+    with_sample = np.all(np.isfinite(calibrated), axis=1)
+    return (_norm_error_or_nan(field_norm_error, raw, valid),
+            _norm_error_or_nan(field_norm_error, calibrated, with_sample))
 
 
 def _norm_error_or_nan(field_norm_error, b_mag: np.ndarray, valid: np.ndarray) -> float:

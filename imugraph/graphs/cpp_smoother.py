@@ -43,6 +43,7 @@ import gtsam
 import numpy as np
 
 from imugraph import keys
+from imugraph.calibration.dip_fold import folded_calibration
 from imugraph.calibration.result import Calibration
 from imugraph.errors import SessionError
 from imugraph.factors.gyro import Preintegration, ahrs_factors, keyframe_layout, preintegrate
@@ -97,13 +98,20 @@ def smooth_fixed(session: Session, cal: Calibration, keyframe_hz: float = 5.0, h
         mag_offsets: (K, 3) raw-field offsets subtracted from keyframe k's field samples (a stream's windowed
         hard-iron offsets Δo_w); a NaN row: no magnetometer factor on that keyframe.
 
+    A calibration with |dip| > 90° is folded first (calibration.dip_fold.folded_calibration: the same model, the nav
+    frame turned by 180° about the vertical; the orientations are returned in that DESIGN-convention frame).
+
     Raises:
         SessionError: unknown `linear_acceleration` or `mag_model`, the field options with "noise", mag_offsets
-        not (K, 3), or a session too short for two keyframes.
+        not (K, 3), or a session too short for two keyframes (fewer than 2 samples included).
     """
     from imugraph.graphs.cpp_field import MAG_MODELS
 
     name = session.name or "session"
+    if session.n < 2:                  # no time step: no rate, no keyframe interval (U22 defect 10)
+        raise SessionError(name, "samples", f"{session.n} sample{'s' if session.n != 1 else ''}",
+                           "at least 2 samples (two keyframes)")
+    cal = folded_calibration(cal)      # |dip| ≤ 90°: the initialisation assumes x along the horizontal field (U22 #1)
     if linear_acceleration not in MODES:
         raise SessionError(name, "linear_acceleration", repr(linear_acceleration), " or ".join(MODES))
     if mag_model not in MAG_MODELS:

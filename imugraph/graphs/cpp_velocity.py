@@ -116,6 +116,8 @@ def velocity_graph(pre: Preintegration, t_kf: np.ndarray, nRk0: np.ndarray, dv: 
     """
     K = len(pre.kf_samples)
     seg = (np.floor(t_kf / o["bias_segment_s"]).astype(int) if o["bias_segment_s"] > 0 else np.zeros(K - 1, int))
+    if len(seg) and seg[-1] + 1 != len(np.unique(seg)):    # a declared gap longer than a segment left some without
+        seg = np.unique(seg, return_inverse=True)[1].astype(int)   # a keyframe (not in the ordering): renumbered
     graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
     _bias_chain(graph, values, b_gyr, int(seg.max()) + 1, float(pre.dt.sum()), o)
     params = gtsam.PreintegrationParams.MakeSharedU(g)

@@ -101,13 +101,16 @@ def plot_calibration(
     if t.shape != (raw.shape[0],):
         raise SessionError(str(path), "t", f"shape {t.shape}", f"({raw.shape[0]},)")
     ok = np.all(np.isfinite(raw), axis=1) & np.all(np.isfinite(cal), axis=1)
+    ok_cal = ok
+    if not ok.any():      # no row holds both: a lower-rate field whose calibrated rows are shifted by the magnetometer
+        ok, ok_cal = np.all(np.isfinite(raw), axis=1), np.all(np.isfinite(cal), axis=1)   # lag (U22 #4): each its own
     raw_n = raw[ok] / np.median(np.linalg.norm(raw[ok], axis=1)) if ok.any() else raw[ok]
 
     fig = Figure(figsize=(15, 9), layout="constrained")
     grid = fig.add_gridspec(2, 3)
     for col, (i, j) in enumerate(((0, 1), (0, 2), (1, 2))):
-        _plot_projection(fig.add_subplot(grid[0, col]), raw_n, cal[ok], i, j)
-    _plot_norm(fig.add_subplot(grid[1, 0]), t[ok], raw_n, cal[ok])
+        _plot_projection(fig.add_subplot(grid[0, col]), raw_n, cal[ok_cal], i, j)
+    _plot_norm(fig.add_subplot(grid[1, 0]), t[ok], raw_n, cal[ok_cal], t[ok_cal])
     _plot_residuals(fig, grid[1, 1:], residuals, whitened, tuple(not_in_cost))
     fig.suptitle(title)
     save_figure_atomic(fig, path)
@@ -117,6 +120,7 @@ def plot_calibration(
 def _plot_projection(ax: Axes, raw_n: np.ndarray, cal: np.ndarray, i: int, j: int) -> None:
     idx = _subsample(raw_n.shape[0])
     ax.scatter(raw_n[idx, i], raw_n[idx, j], s=2, alpha=0.4, color="tab:gray", label="raw / median |raw|")
+    idx = idx if cal.shape[0] == raw_n.shape[0] else _subsample(cal.shape[0])     # rows of their own (U22 #4)
     ax.scatter(cal[idx, i], cal[idx, j], s=2, alpha=0.5, color="tab:blue", label="calibrated")
     phi = np.linspace(0.0, 2.0 * np.pi, 361)
     ax.plot(np.cos(phi), np.sin(phi), "k--", lw=1, label="unit circle")
@@ -128,9 +132,9 @@ def _plot_projection(ax: Axes, raw_n: np.ndarray, cal: np.ndarray, i: int, j: in
     ax.legend(loc="upper right", fontsize=7, markerscale=4)
 
 
-def _plot_norm(ax: Axes, t: np.ndarray, raw_n: np.ndarray, cal: np.ndarray) -> None:
+def _plot_norm(ax: Axes, t: np.ndarray, raw_n: np.ndarray, cal: np.ndarray, t_cal: np.ndarray | None = None) -> None:
     ax.plot(t, np.linalg.norm(raw_n, axis=1), color="tab:gray", lw=0.8, label="raw / median |raw|")
-    ax.plot(t, np.linalg.norm(cal, axis=1), color="tab:blue", lw=0.8, label="calibrated")
+    ax.plot(t if t_cal is None else t_cal, np.linalg.norm(cal, axis=1), color="tab:blue", lw=0.8, label="calibrated")
     ax.axhline(1.0, color="k", ls="--", lw=1, label="ideal (1)")
     ax.set_xlabel("time [s]")
     ax.set_ylabel("|b_mag| [normalised]")

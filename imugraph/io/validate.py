@@ -49,6 +49,8 @@ from imugraph.errors import SessionError
 from imugraph.geometry import expmap
 from imugraph.io.session import Session
 
+NO_MAG = ("calibrate/smooth/stream need a magnetometer (heading comes from it; 6-axis data give tilt only, which "   # U22 #5
+          "imugraph does not output); body sessions without magnetometers: `imugraph mocap` (its default)")
 MIN_SAMPLES = 50
 MIN_SECONDS = 2.0
 GAP_STEPS = 5.0
@@ -162,7 +164,8 @@ def _check_time(s: Session) -> None:
         if not _declared(declared, t[i], t[i + 1], 0.5 * med):
             raise SessionError(s.source, "t", f"gap of {dt[i]:.4g} s ({dt[i] / med:.1f} median steps) at "
                                f"t = {t[i]:.4f} s (index {i}; {gaps.size} gaps)",
-                               f"steps ≤ {GAP_STEPS:g} × the median step {med:.4g} s")
+                               f"steps ≤ {GAP_STEPS:g} × the median step {med:.4g} s, or the gap declared: "
+                               "--allow-gaps, load_session(allow_gaps=True) or NPZ key 'gaps' (docs/formats.md)")
 
 
 def _check_time_base(s: Session, med: float, duration: float) -> None:
@@ -277,7 +280,7 @@ def _check_mag(s: Session) -> None:
         raise SessionError(s.source, "mag", f"±inf at index {i}", "finite values, or NaN rows for no sample")
     valid = np.all(np.isfinite(mag), axis=1)
     if not valid.any():
-        raise SessionError(s.source, "mag", "all NaN (no magnetometer sample)", "at least one finite (N, 3) row")
+        raise SessionError(s.source, "mag", "all NaN (no magnetometer sample)", f"one finite (N, 3) row; {NO_MAG}")
     rows = mag[valid]
     if rows.shape[0] < 2:
         return

@@ -25,6 +25,7 @@ import numpy as np
 
 from imugraph.errors import SessionError
 from imugraph.io.session import Session
+from imugraph.io.validate import NO_MAG
 
 G_STD = 9.80665
 _QUANTITY = {"gyroscope": "gyr", "accelerometer": "acc", "magnetometer": "mag"}
@@ -139,6 +140,8 @@ def _block(src: str, spec: dict, data: np.ndarray, q: str, converted: list) -> n
     for ax in "xyz":
         if (q, ax) not in spec:
             name = f"{label} {ax.upper()}"
+            if q == "mag" and not any(k[0] == "mag" for k in spec if isinstance(k, tuple)):   # a 6-axis export
+                raise SessionError(src, name, "no magnetometer columns (a 6-axis recording)", NO_MAG)
             raise SessionError(src, name, "column missing", f"an x-io column '{name} (unit)'")
     units = sorted({spec[(q, ax)][1] for ax in "xyz"})
     if len(units) != 1:
