@@ -15,6 +15,7 @@ only (the optical reference is resampled, nothing is refitted).
 
 from __future__ import annotations
 
+import argparse
 import json
 import sys
 from pathlib import Path
@@ -23,19 +24,27 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from benchmarks.common import iter_broad, parse_options, pop_opts, print_table, rms_diff_ci  # noqa: E402
+from benchmarks.common import iter_broad, parse_options, print_table, rms_diff_ci  # noqa: E402
 from benchmarks.peers import timed, vqf_offline, vqf_online  # noqa: E402
 from imugraph.calibration.ml import calibrate  # noqa: E402
 from imugraph.evaluate import orientation_error  # noqa: E402
 
+def parse_args(argv: list[str]) -> argparse.Namespace:
+    """The command line of the module docstring (--help prints it without running anything)."""
+    ap = argparse.ArgumentParser(prog="broad_published.py", description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("trials", nargs="?", default=None, help="comma-separated trial numbers, e.g. 01,04 (default: all)")
+    ap.add_argument("--keyframe-hz", type=float, default=None, help="Options.keyframe_hz (default: the Options default)")
+    ap.add_argument("--opt", action="append", default=[], metavar="FIELD=VALUE",
+                    help="any field of imugraph.calibration.ml.Options (repeatable)")
+    return ap.parse_args(argv)
+
+
 def main(argv: list[str]) -> int:
-    kw = {}
-    if "--keyframe-hz" in argv:
-        i = argv.index("--keyframe-hz")
-        kw["keyframe_hz"] = float(argv[i + 1])
-        argv = argv[:i] + argv[i + 2:]
-    opts, argv = pop_opts(argv)
-    options = parse_options(opts, **kw)
+    args = parse_args(argv)
+    kw = {} if args.keyframe_hz is None else {"keyframe_hz": args.keyframe_hz}
+    options = parse_options(args.opt, **kw)
+    argv = [args.trials] if args.trials else []
     select = set(argv[0].split(",")) if argv else None
     rows = []
     for num, s, mask in iter_broad(select):

@@ -6,6 +6,7 @@ lie within 3 reported standard deviations, and how close are the estimated noise
 
 from __future__ import annotations
 
+import argparse
 import json
 import sys
 from pathlib import Path
@@ -32,9 +33,13 @@ def run(seed: int, duration: float, rate: float) -> dict:
 
 
 def main(argv: list[str]) -> int:
-    runs = int(argv[0]) if argv else 50
-    duration = float(argv[1]) if len(argv) > 1 else 60.0
-    rate = float(argv[2]) if len(argv) > 2 else 100.0
+    ap = argparse.ArgumentParser(prog="sim_coverage.py", description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("runs", nargs="?", type=int, default=50, help="seeds 0..RUNS-1 (default 50)")
+    ap.add_argument("duration", nargs="?", type=float, default=60.0, metavar="DURATION_S", help="s (default 60)")
+    ap.add_argument("rate", nargs="?", type=float, default=100.0, metavar="RATE_HZ", help="Hz (default 100)")
+    args = ap.parse_args(argv)
+    runs, duration, rate = args.runs, args.duration, args.rate
     rows = []
     for seed in range(runs):
         rows.append(run(seed, duration, rate))

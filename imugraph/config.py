@@ -51,13 +51,29 @@ def find_session(session: str, data_dir_arg: Optional[str] = None) -> Path:
     Raises:
         SessionError: field 'file': not found (naming every place looked in), or several matches (listing them).
     """
+    return find_data_path(session, data_dir_arg)
+
+
+def find_data_path(session: str, data_dir_arg: Optional[str] = None,
+                   expected: str = "an existing session file or folder") -> Path:
+    """Any input file named on the command line (a session, a --skeleton bvh:PATH), looked up as `find_session`
+    says: as given, else relative to the data directory, else a unique trailing-components match below it.
+
+    Args:
+        session: path as typed.  data_dir_arg: --data-dir, or None for `data_dir()`.
+        expected: what the path should name, for the not-found message.
+    Returns:
+        An existing path.
+    Raises:
+        SessionError: field 'file': not found (naming every place looked in), or several matches (listing them).
+    """
     from imugraph.errors import SessionError
 
     path = Path(session).expanduser()
     if path.exists():
         return path
     if path.is_absolute():
-        raise SessionError(session, "file", "no such file", "an existing session file or folder")
+        raise SessionError(session, "file", "no such file", expected)
     base = Path(data_dir_arg).expanduser() if data_dir_arg else data_dir()
     if (base / path).exists():
         return base / path
@@ -71,4 +87,4 @@ def find_session(session: str, data_dir_arg: Optional[str] = None) -> Path:
     where = (f"{base} and its subfolders ({SEARCH_DEPTH} levels)" if base.is_dir()
              else f"{base} (no such folder)")
     raise SessionError(session, "file", f"no such file (looked in {Path.cwd()} and in the data directory {where})",
-                       "an existing session file or folder, or --data-dir DIR / $IMUGRAPH_DATA where it lies")
+                       f"{expected}, or --data-dir DIR / $IMUGRAPH_DATA where it lies")

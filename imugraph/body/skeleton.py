@@ -308,13 +308,16 @@ def from_bvh(bvh, mapping: Optional[dict] = None) -> tuple[Skeleton, dict]:
     return skel, mapping
 
 
-def skeleton_from_spec(spec: Optional[str], segments: Iterable[str] = LOWER_BODY) -> Optional[Skeleton]:
+def skeleton_from_spec(spec: Optional[str], segments: Iterable[str] = LOWER_BODY,
+                       data_dir: Optional[str] = None) -> Optional[Skeleton]:
     """The skeleton an option string names, restricted to `segments`; None for the reader's default.
 
     spec: None, "" or "nominal" → None (the caller keeps its nominal skeleton); "height:H" → `full_body(H)`
     (Winter's proportions for body height H m); "bvh:PATH" → the segment lengths and joint positions of a BVH
     file's HIERARCHY (its OFFSETs, `from_bvh`; the MOTION is not used), e.g. the subject's own dimensions as
-    entered in Xsens MVN: ``bvh:gaittoolbox/xsens/S02-Trial-Walk-1.bvh``.
+    entered in Xsens MVN: ``bvh:gaittoolbox/xsens/S02-Trial-Walk-1.bvh``. PATH is looked up like a session path
+    (`imugraph.config.find_data_path`): as given, else in the data directory (`data_dir`: --data-dir, None for
+    $IMUGRAPH_DATA or ../shared/data), else a unique match of its trailing components below it.
     Raises:
         SessionError: an unknown form, an implausible height, an unreadable BVH, or a BVH without a joint
         for one of `segments` (the message names the file and the missing segments).
@@ -330,7 +333,8 @@ def skeleton_from_spec(spec: Optional[str], segments: Iterable[str] = LOWER_BODY
             raise SessionError("--skeleton", "height", repr(arg), "a body height in m, e.g. height:1.80") from None
         return full_body(h).subset(segments)
     if kind == "bvh" and arg:
-        skel, _ = from_bvh(arg)
+        from imugraph.config import find_data_path
+        skel, _ = from_bvh(str(find_data_path(arg, data_dir, "an existing BVH file")))
         missing = [s for s in segments if s not in skel.names]
         if missing:
             raise SessionError(arg, "HIERARCHY", f"no joint for {missing}",

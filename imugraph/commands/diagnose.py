@@ -1,6 +1,10 @@
 """`imugraph diagnose SESSION --out DIR`: where the sim-to-real gap lies, which unmodelled effect explains
 it and how far it shrinks (imugraph.diagnose.run.diagnose); writes diagnosis.json, diagnosis.md,
 gap_over_time.png and residuals.png, and prints a short summary.
+
+SESSION: a single-IMU session file (.npz, .mat, .hdf5, .csv, .txt) or x-IMU3 folder, or a body session (any
+SESSION of `imugraph mocap`: a folder with session.json, a gaittoolbox rawimu folder, a folder of x-IMU3 export
+folders, an .mvnx file; `imugraph.io.body_session.is_body_session`), diagnosed by imugraph.diagnose.body.
 """
 
 from __future__ import annotations
