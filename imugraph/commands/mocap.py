@@ -1,6 +1,7 @@
 """`imugraph mocap SESSION`: body motion from several IMUs on one body (the factor graph of imugraph.graphs.body).
 
-SESSION: a body-session folder (session.json), a gaittoolbox Xsens MTw ``rawimu`` folder, or an .mvnx file
+SESSION: a body-session folder (session.json), a gaittoolbox Xsens MTw ``rawimu`` folder, an .mvnx file, a folder
+of x-IMU3 export folders, or the qmt full-body .mat
 (`imugraph.io.body_session.read_body_session`); a relative path that does not exist is looked up in the data
 directory (--data-dir, $IMUGRAPH_DATA, ../shared/data).
 
@@ -19,7 +20,8 @@ Writes in --out DIR (default imugraph_out/<session name>):
 Options: --lag S runs the fixed-lag incremental solver keeping S seconds instead of batch LM; --mag uses the
 magnetometers (default off: indoor fields near the body are rarely homogeneous); --hinges LIST treats joints
 as hinges (comma-separated: knees, elbows, or joint names RightKnee, LeftElbow, … or child segment names);
---skeleton SPEC replaces the session's skeleton (height:H, or bvh:PATH: the OFFSETs of a BVH hierarchy).
+--skeleton SPEC replaces the session's skeleton (height:H, or bvh:PATH: the OFFSETs of a BVH hierarchy);
+--npose T0,T1 gives the static N-pose window instead of detecting it.
 """
 
 from __future__ import annotations
@@ -41,7 +43,9 @@ HINGE_GROUPS = {"knees": ("RightKnee", "LeftKnee"), "elbows": ("RightElbow", "Le
 def add_arguments(p: argparse.ArgumentParser) -> None:
     """The mocap subcommand's arguments (cli.py calls this; the lead wires it)."""
     p.add_argument("session", metavar="SESSION",
-                   help="body session: folder with session.json, gaittoolbox rawimu folder, or .mvnx file")
+                   help="body session: folder with session.json (sensor NPZ without magnetometer accepted: mocap "
+                        "runs without magnetometers by default), gaittoolbox rawimu folder, folder of x-IMU3 export "
+                        "folders (one per segment), qmt full-body .mat, or .mvnx file")
     p.add_argument("--out", metavar="DIR", default=None, help="output folder (default: imugraph_out/<session name>)")
     p.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
     p.add_argument("--data-dir", metavar="DIR", default=None,
@@ -54,9 +58,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--hinges", metavar="LIST", default="",
                    help="joints constrained to hinges about the lateral axis: knees, elbows, or joint names "
                         "(RightKnee, LeftElbow, ...), comma-separated")
+    p.add_argument("--npose", metavar="T0,T1", default=None,
+                   help="the static N-pose window in the session's own time, s (default: detected, the common rest "
+                        "of all sensors at the start; e.g. 40,44 for qmt_full_body, whose upper-arm sensors read "
+                        "0.04 rad/s at rest)")
     p.add_argument("--skeleton", metavar="SPEC", default="nominal",
                    help="segment lengths and joint positions: nominal (the session's own), height:H (Winter's "
-                        "proportions for body height H m), or bvh:PATH (the HIERARCHY OFFSETs of a BVH file, e.g. "
+                        "proportions for body height H m), or bvh:PATH (the HIERARCHY OFFSETs of a BVH file, looked "
+                        "up in --data-dir like SESSION, e.g. "
                         "the subject's dimensions in an Xsens MVN export; its motion is not used)")
 
 
@@ -96,7 +105,24 @@ def hinge_segments(spec: str, skel, ignored: list | None = None) -> tuple:
     return tuple(out)
 
 
-def apply_skeleton(session, spec: str):
+def npose_window(spec) -> tuple | None:
+    """--npose "T0,T1" → (T0, T1) s (BodyOptions.npose); None → None (detected).
+
+    Raises:
+        SessionError: not two numbers with T0 < T1.
+    """
+    if spec is None or str(spec).strip() == "":
+        return None
+    try:
+        t0, t1 = (float(x) for x in str(spec).split(","))
+    except ValueError:
+        raise SessionError("--npose", "T0,T1", repr(spec), "two times in s, e.g. 40,44") from None
+    if not t0 < t1:
+        raise SessionError("--npose", "T0,T1", repr(spec), "T0 < T1")
+    return (t0, t1)
+
+
+def apply_skeleton(session, spec: str, data_dir: str | None = None):
     """`session` with its skeleton replaced by the one `spec` names (`imugraph.body.skeleton.skeleton_from_spec`,
     restricted to the session's segments, the session's sensed set kept); 'nominal' returns it unchanged.
 
@@ -108,7 +134,7 @@ def apply_skeleton(session, spec: str):
     from imugraph.body.skeleton import skeleton_from_spec
 
     skel = session.skeleton
-    new = skeleton_from_spec(spec, skel.names)
+    new = skeleton_from_spec(spec, skel.names, data_dir)     # bvh:PATH looked up like SESSION
     if new is None:
         return session
     new = dataclasses.replace(new, sensed=tuple(s for s in skel.sensed))
@@ -178,7 +204,11 @@ def run_mocap(args: argparse.Namespace) -> int:
     skel = session.skeleton
     if skel is None:
         raise SessionError(str(path), "skeleton", "none", "a body session with a skeleton")
-    session = apply_skeleton(session, getattr(args, "skeleton", "nominal"))
+    session = apply_skeleton(session, getattr(args, "skeleton", "nominal"), args.data_dir)
+    no_mag = session.meta.get("no_mag") or [n for n, s in session.sensors.items() if np.isnan(s.mag).all()]
+    if args.mag and no_mag:             # 6-axis sensors: fine without magnetometers (the default), not with --mag
+        raise SessionError(str(path), "mag", f"no magnetometer samples for {no_mag}", "magnetometer samples in "
+                           "every sensor file for --mag (omit --mag: mocap runs without magnetometers by default)")
     skel = session.skeleton
     progress.say(f"{len(session.sensors)} sensors on {len(skel.names)} segments, {session.n} samples, "
                  f"{session.t[-1] - session.t[0]:.1f} s at {session.rate:.1f} Hz")
@@ -187,7 +217,7 @@ def run_mocap(args: argparse.Namespace) -> int:
     if ignored:        # a group with nothing to constrain here: said, not silently dropped
         print(f"imugraph: warning: --hinges {', '.join(ignored)}: no such joint between sensed segments of this "
               "skeleton; ignored", file=sys.stderr, flush=True)
-    opts = BodyOptions(use_mag=bool(args.mag), hinges=hinges)
+    opts = BodyOptions(use_mag=bool(args.mag), hinges=hinges, npose=npose_window(getattr(args, "npose", None)))
     with common.output_folder(args.out, session.name) as out:     # no empty folder left by a failed run
         return _mocap_into(out, args, path, session, opts, hinges, progress)
 

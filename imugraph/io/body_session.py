@@ -5,8 +5,10 @@ Own format (a folder):
     session.json   {"format": "imugraph-body", "version": 1, "name": str,
                     "sensors": {segment: "<file>.npz", ...},       # one single-IMU NPZ per sensor
                     "skeleton": {"names", "parents", "offsets", "sensed", "ends"} | null,
-                    "truth": "truth.npz" | null, "meta": {...}}
-    <segment>.npz  single-IMU NPZ contract (DESIGN.md): gyr, acc, mag, t (and quat when known)
+                    "truth": "truth.npz" | null, "meta": {...},
+                    "gyr_robust_max": {segment: rad/s}}              # simulated sessions only (`read_own_folder`)
+    <segment>.npz  single-IMU NPZ contract (DESIGN.md): gyr, acc, mag, t (and quat when known); mag may be
+                   missing or all NaN (a 6-axis IMU)
     truth.npz      optional: n_quat (T,S,4), n_pos (T,S,3), names (S,), placement_names (P,),
                    bRs (P,3,3), b_pos (P,3), and sensor_pos, sensor_vel (P,T,3) when known
 
@@ -132,6 +134,8 @@ def write_body_session(folder: PathLike, session: BodySession) -> Path:
     doc = {"format": FORMAT, "version": 1, "name": session.name, "sensors": files,
            "skeleton": None if session.skeleton is None else skeleton_to_dict(session.skeleton),
            "truth": truth_file, "meta": session.meta}
+    if session.meta.get("simulated"):   # what the writer wrote: the reader's units check trusts these files only
+        doc["gyr_robust_max"] = {seg: gyr_robust_max(s.gyr) for seg, s in session.sensors.items()}
     atomic_write_text(folder / "session.json", json.dumps(json_ready(doc), indent=1) + "\n")
     return folder
 
@@ -153,12 +157,71 @@ def _read_truth(path: Path) -> dict:
     return truth
 
 
+def gyr_robust_max(gyr: np.ndarray) -> float:
+    """The units check's statistic (`imugraph.io.validate._check_units` rule (a)): the largest per-axis 99.9th
+    percentile of |gyr| over the finite rows, rad/s."""
+    g = np.asarray(gyr, float)
+    g = g[np.all(np.isfinite(g), axis=1)]
+    return float(np.max(np.percentile(np.abs(g), 99.9, axis=0))) if g.size else float("nan")
+
+
+def _unique_keys(src: str):
+    """json object_pairs_hook refusing a key given twice (json.loads would keep the last one silently)."""
+    def hook(pairs: list) -> dict:
+        seen = set()
+        for k, _ in pairs:
+            if k in seen:
+                raise SessionError(src, k, "the key twice in one object", "each key once")
+            seen.add(k)
+        return dict(pairs)
+    return hook
+
+
+def _check_segments(src: str, sensors_doc: dict, skel: Optional[Skeleton]) -> None:
+    """The segment names of session.json's "sensors" against its skeleton (read before any sensor file): every
+    name a segment of the skeleton, every sensed segment given a sensor. Without a skeleton `default_skeleton`
+    checks the names."""
+    if skel is None:
+        return
+    unknown = [seg for seg in sensors_doc if seg not in skel.names]
+    if unknown:
+        raise SessionError(src, "sensors", f"unknown segment{'s' if len(unknown) > 1 else ''} {unknown}",
+                           f"segments of the session's skeleton: {', '.join(skel.names)}")
+    missing = [seg for seg in skel.sensed if seg not in sensors_doc]
+    if missing:
+        raise SessionError(src, "sensors", f"no sensor file for the sensed segment{'s' if len(missing) > 1 else ''} "
+                           f"{missing}", f"one file for each of the skeleton's sensed segments {list(skel.sensed)}")
+
+
+def _sensor_files(folder: Path, src: str, sensors_doc: dict) -> dict:
+    """{segment: path} of session.json's "sensors", refusing one file given to two segments (the same IMU
+    twice: mocap then solves two segments from one sensor's readings)."""
+    paths, first = {}, {}
+    for seg, fname in sensors_doc.items():
+        if not isinstance(fname, str) or not fname:
+            raise SessionError(src, f"sensors.{seg}", repr(fname)[:60], "a file name (<segment>.npz)")
+        p = folder / fname
+        key = p.resolve()
+        if key in first:
+            raise SessionError(src, f"sensors.{seg}", f"'{fname}', the file of '{first[key]}' too",
+                               "one NPZ file per segment")
+        first[key], paths[seg] = seg, p
+    return paths
+
+
 def read_own_folder(folder: PathLike) -> BodySession:
     """Read the own folder format (module docstring).
 
+    A sensor NPZ without 'mag', or with mag all NaN, is a 6-axis IMU: read with mag all NaN, listed in
+    ``meta["no_mag"]`` (mocap runs without magnetometers by default and refuses --mag on it). A simulated session
+    (meta "simulated") skips the saturation check (noise-free simulations hold exact plateaus) and, for a sensor
+    file whose robust max |gyr| is the one the writer recorded ("gyr_robust_max"), the units check: the
+    simulator's segment rates add up along the chain and may exceed any real gyroscope's range (35 rad/s).
+
     Raises:
-        SessionError: missing/invalid session.json, a sensor file that is not a valid NPZ session,
-        sensors with different sample times.
+        SessionError: missing/invalid session.json (a key given twice included), one file for two segments,
+        segment names not in the skeleton (naming the valid ones), a sensed segment without a file, a sensor file
+        that is not a valid NPZ session, sensors with different sample times.
     """
     from imugraph.io.readers import read_npz
     from imugraph.io.validate import validate_session
@@ -166,7 +229,7 @@ def read_own_folder(folder: PathLike) -> BodySession:
     folder = Path(folder)
     src = str(folder / "session.json")
     try:
-        doc = json.loads((folder / "session.json").read_text(encoding="utf-8"))
+        doc = json.loads((folder / "session.json").read_text(encoding="utf-8"), object_pairs_hook=_unique_keys(src))
     except FileNotFoundError:
         raise SessionError(src, "file", "no such file", "a body-session folder with session.json") from None
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
@@ -176,22 +239,36 @@ def read_own_folder(folder: PathLike) -> BodySession:
     sensors_doc = doc.get("sensors")
     if not isinstance(sensors_doc, dict) or not sensors_doc:
         raise SessionError(src, "sensors", repr(sensors_doc)[:60], "an object {segment: file.npz}")
-    sensors, t = {}, None
+    paths = _sensor_files(folder, src, sensors_doc)
+    skel = None if doc.get("skeleton") is None else skeleton_from_dict(src, doc["skeleton"])
+    _check_segments(src, sensors_doc, skel)
+    sensors, t, no_mag = {}, None, []
     meta = doc.get("meta") if isinstance(doc.get("meta"), dict) else {}
-    skip = ("saturation",) if meta.get("simulated") else ()      # noise-free simulations hold exact plateaus
-    for seg, fname in sensors_doc.items():
-        s = validate_session(read_npz(folder / str(fname)), skip=skip)
+    simulated = bool(meta.get("simulated"))
+    written = doc.get("gyr_robust_max") if simulated and isinstance(doc.get("gyr_robust_max"), dict) else {}
+    for seg, path in paths.items():
+        raw = read_npz(path, mag_optional=True)
+        skip = ["saturation"] if simulated else []
+        if np.isnan(np.asarray(raw.mag, float)).all():      # no magnetometer (±inf still checked): nothing to check
+            skip.append("mag")
+            no_mag.append(seg)
+        w = written.get(seg)
+        if isinstance(w, (int, float)) and np.isclose(gyr_robust_max(raw.gyr), w, rtol=1e-12, atol=0.0):
+            skip.append("units")                      # the simulator's own rad/s, as written
+        s = validate_session(raw, skip=tuple(skip))
         s = Session(s.t, s.gyr, s.acc, s.mag, s.quat, s.movement, s.source, seg, s.meta)
         if t is None:
             t = s.t
         elif s.t.shape != t.shape or np.max(np.abs(s.t - t)) > 1e-9:
-            raise SessionError(str(folder / str(fname)), "t", f"{s.n} samples differing from the first sensor's",
+            raise SessionError(str(path), "t", f"{s.n} samples differing from the first sensor's",
                                f"the same {t.size} sample times for every sensor")
         sensors[seg] = s
-    skel = default_skeleton(src, sensors) if doc.get("skeleton") is None else skeleton_from_dict(src, doc["skeleton"])
+    if skel is None:
+        skel = default_skeleton(src, sensors)
     truth = None if not doc.get("truth") else _read_truth(folder / str(doc["truth"]))
+    meta = dict(meta, no_mag=no_mag) if no_mag else dict(meta)
     return BodySession(t=t, sensors=sensors, skeleton=skel, truth=truth, source=str(folder),
-                       name=str(doc.get("name", folder.name)), meta=dict(meta))
+                       name=str(doc.get("name", folder.name)), meta=meta)
 
 
 def default_skeleton(src: str, sensors: dict) -> Skeleton:
@@ -219,8 +296,9 @@ def is_body_session(path: PathLike) -> bool:
 
 
 def read_body_session(path: PathLike) -> BodySession:
-    """Any multi-IMU session: own folder (session.json), gaittoolbox MTw folder (*_<id>.txt), .mvnx, or a folder
-    of x-IMU3 export folders (`imugraph.io.xio_body.read_ximu3_body`).
+    """Any multi-IMU session: own folder (session.json), gaittoolbox MTw folder (*_<id>.txt), .mvnx, a folder
+    of x-IMU3 export folders (`imugraph.io.xio_body.read_ximu3_body`), or the qmt full-body .mat
+    (`imugraph.io.qmt_body.read_qmt_body`).
 
     Raises:
         SessionError: a path that is none of these.
@@ -237,9 +315,13 @@ def read_body_session(path: PathLike) -> BodySession:
     from imugraph.io.xio_body import is_ximu3_body_folder, read_ximu3_body
     if is_ximu3_body_folder(p):                       # one x-IMU3 export folder per sensor
         return read_ximu3_body(p)
-    raise SessionError(str(p), "path", "not a body-session folder, an Xsens MTw folder, a folder of x-IMU3 folders "
-                       "or an .mvnx file", "a folder with session.json, a gaittoolbox rawimu folder, a folder of "
-                       "x-IMU3 export folders, or an .mvnx file")
+    from imugraph.io.qmt_body import is_qmt_body_mat, read_qmt_body
+    if is_qmt_body_mat(p):                            # the qmt full-body .mat (t + one struct per sensor)
+        return read_qmt_body(p)
+    raise SessionError(str(p), "path", "not a body-session folder, an Xsens MTw folder, a folder of x-IMU3 folders, "
+                       "a qmt full-body .mat or an .mvnx file", "a folder with session.json, a gaittoolbox rawimu "
+                       "folder, a folder of x-IMU3 export folders, a qmt full-body .mat (t and one struct per sensor "
+                       "with acc, gyr, quat), or an .mvnx file")
 
 
 def read_gaittoolbox(folder: PathLike) -> BodySession:
