@@ -21,10 +21,12 @@ calibration (see docs/stream.md). Wall times; the machine may be shared: compare
     .venv/bin/python benchmarks/stream_speed.py [TRIALS] [--lag 2 | --no-lag] [--no-batch] [--bootstrap-s 30]
         [--calibration online|fixed|both] [--lag-solver chain|incremental|batch] [--lag-only] [--no-cal-compare] [--[no-]calib-states]
         [--[no-]disturb] [--weak-prior] [--[no-]offsets] [--cache DIR] [--opt KEY=VALUE ...]   (defaults: StreamOptions')
+        [--bootstrap-max-s S] [--score-after-bootstrap]   (the bootstrap's growth capped; the filtered error and online
+        VQF's also on the movement samples after each trial's bootstrap window only: `filtered_after_deg`)
 
 TRIALS: comma-separated BROAD trial numbers, or "all" (the 17 trials; default 01). --no-lag / --no-batch skip
 the fixed-lag run / the batch smoother (time). Prints the per-trial table, then the means of the filtered
-error of every streamed method beside online VQF's over the same trials. Writes bench_out/stream_speed.json.
+error of every streamed method beside online VQF's over the same trials. Writes bench_out/stream_speed.json (--out NAME).
 """
 
 from __future__ import annotations
@@ -50,10 +52,20 @@ def _err(q, s):
     return orientation_error(q, s.quat, s.movement, s.rate).rms_deg
 
 
+def _err_after(q, s, n_boot: int):
+    """--score-after-bootstrap: the error over the movement samples after the bootstrap's window (its last row
+    n_boot − 1), where the filtered output is causal; None when the bootstrap took the whole trial."""
+    from imugraph.evaluate import orientation_error
+    if n_boot >= s.n:
+        return None
+    mask = np.asarray(s.movement, bool) & (np.arange(s.n) >= n_boot)
+    return orientation_error(q, s.quat, mask, s.rate).rms_deg if mask.any() else None
+
+
 def run_trial(path: Path, lag: float | None, bootstrap_s: float, batch: bool = True, online=(True,),
               compare_cal: bool = True, lag_solver: str = "chain", lag_only: bool = False, calib_states: bool = True,
               disturb: bool = True, weak_prior: bool = False, cache: str | None = None, offsets: bool = True,
-              extra: dict | None = None) -> list[dict]:
+              extra: dict | None = None, bootstrap_max_s: float | None = None, after: bool = False) -> list[dict]:
     from imugraph.evaluate import orientation_error
     from imugraph.graphs.cpp_smoother import smooth_fixed
     from imugraph.graphs.stream import StreamOptions
@@ -64,13 +76,14 @@ def run_trial(path: Path, lag: float | None, bootstrap_s: float, batch: bool = T
     solvers = ([] if lag_only else [("stream iSAM2", None)]) + ([(f"stream lag {lag:g} s", lag)] if lag is not None else [])
     runs = [(f"{label} {'online' if on else 'fixed'} cal", lag_s, on) for label, lag_s in solvers for on in online]
     want_full = compare_cal and any(on for *_, on in runs)
-    cached = _cache_load(cache, name)
+    tag = name if bootstrap_max_s is None else f"{name}_max{bootstrap_max_s:g}"      # a capped bootstrap apart
+    cached = _cache_load(cache, tag)
     if cached is not None:
         cal, n_boot, boot = cached["boot"], cached["n_boot"], cached["boot_seconds"]
         dirty = False
     else:
         start = time.perf_counter()
-        cal, n_boot = bootstrap_calibration(s, bootstrap_s)
+        cal, n_boot = bootstrap_calibration(s, bootstrap_s, max_s=bootstrap_max_s)
         boot = time.perf_counter() - start
         cached, dirty = {"boot": cal, "n_boot": n_boot, "boot_seconds": boot}, True
     q_batch, t_batch = timed(smooth_fixed, s, cal) if batch else (None, None)
@@ -90,7 +103,7 @@ def run_trial(path: Path, lag: float | None, bootstrap_s: float, batch: bool = T
         cached.update(full=cal_full, f_batch=f_batch)
         dirty = True
     if dirty and cache:
-        atomic_write_bytes(Path(cache) / f"cal_{name}.pkl", pickle.dumps(cached))
+        atomic_write_bytes(Path(cache) / f"cal_{tag}.pkl", pickle.dumps(cached))
     for label, lag_s, on in runs:
         opts = StreamOptions(lag_s=lag_s, online_calibration=on, fixed_lag_solver=lag_solver, calib_states=calib_states,
                              disturb_detect=disturb, calib_weak_prior=weak_prior, disturb_offsets=offsets, **(extra or {}))
@@ -103,6 +116,7 @@ def run_trial(path: Path, lag: float | None, bootstrap_s: float, batch: bool = T
                      "max_cpu_ms": tm.get("max_cpu_ms"), "p99_btw_cpu_ms": tm.get("p99_between_cpu_ms"),
                      "max_btw_cpu_ms": tm.get("max_between_cpu_ms"), "E_max": float(np.abs(cal.gyro_map).max()),
                      "filtered_deg": _err(r.filtered, s), "smoothed_deg": _err(r.smoothed, s),
+                     **({"filtered_after_deg": _err_after(r.filtered, s, n_boot)} if after else {}),
                      "vs_batch_deg": orientation_error(r.smoothed, q_batch, None, s.rate, heading=False,
                                                        max_shift=0.0).rms_deg if batch else None,
                      "seconds": tm["seconds"], "bootstrap_s": boot, "failed": r.counts["failed_updates"],
@@ -115,9 +129,10 @@ def run_trial(path: Path, lag: float | None, bootstrap_s: float, batch: bool = T
                      "rt_factor": s.n / s.rate / t_batch})
     q_vqf, t_vqf = timed(vqf_online, s)
     rows.append({"trial": name, "method": "online VQF", "filtered_deg": _err(q_vqf, s), "seconds": t_vqf,
-                 "rt_factor": s.n / s.rate / t_vqf})
+                 "rt_factor": s.n / s.rate / t_vqf, **({"filtered_after_deg": _err_after(q_vqf, s, n_boot)} if after else {})})
     for r in rows:
-        r.update(samples=s.n, rate_hz=round(s.rate, 1), bootstrap_samples=n_boot)
+        r.update(samples=s.n, rate_hz=round(s.rate, 1), bootstrap_samples=n_boot,
+                 bootstrap_span_s=round(float(s.t[n_boot - 1] - s.t[0]), 1))
     return rows
 
 
@@ -209,6 +224,8 @@ def _means(rows: list[dict]) -> list[dict]:
             v = [r[key] for r in sel if r.get(key) is not None]
             return max(v) if v else None
         out.append({"method": m, "trials": len(sel), "filtered_deg": mean("filtered_deg"),
+                    "filtered_after_deg": mean("filtered_after_deg"),
+                    "after_trials": sum(r.get("filtered_after_deg") is not None for r in sel),
                     "smoothed_deg": mean("smoothed_deg"), "rt_factor": mean("rt_factor"), "p99_ms": worst("p99_ms"),
                     "cpu_rt": mean("cpu_rt"), "p99_cpu_ms": worst("p99_cpu_ms"), "p99_btw_cpu_ms": worst("p99_btw_cpu_ms")})
     return out
@@ -240,6 +257,13 @@ def main(argv=None) -> int:
                     "its own hard-iron offset, the reported hard iron the majority's (StreamOptions(disturb_offsets=True))")
     ap.add_argument("--cache", default=None, help="DIR: reuse / store each trial's bootstrap and whole-trial batch "
                     "calibration (cal_NN.pkl; the calibration code may have changed since they were computed)")
+    ap.add_argument("--bootstrap-max-s", type=float, default=None, metavar="S",
+                    help="cap the bootstrap window's growth at S seconds (bootstrap_calibration max_s: at the cap the "
+                         "weak fallback of calibrate); default: grows until identified or the trial ends")
+    ap.add_argument("--out", default="stream_speed.json", help="file name under bench_out/ (default stream_speed.json)")
+    ap.add_argument("--score-after-bootstrap", action="store_true",
+                    help="also score the filtered output (and online VQF) only on the movement samples after each "
+                         "trial's bootstrap window (`filtered_after_deg`; none when the bootstrap took the whole trial)")
     ap.add_argument("--opt", action="append", default=[], metavar="KEY=VALUE",
                     help="a further StreamOptions field (Python literal), e.g. disturb_learn_sigma=False")
     a = ap.parse_args(argv)
@@ -255,19 +279,21 @@ def main(argv=None) -> int:
     for p in paths:
         online = {"online": (True,), "fixed": (False,), "both": (True, False)}[a.calibration]
         rows += run_trial(p, lag, a.bootstrap_s, not a.no_batch, online, not a.no_cal_compare, a.lag_solver, a.lag_only,
-                          a.calib_states, a.disturb, a.weak_prior, a.cache, a.offsets, extra)
+                          a.calib_states, a.disturb, a.weak_prior, a.cache, a.offsets, extra, a.bootstrap_max_s,
+                          a.score_after_bootstrap)
         print(f"trial {trial_number(p):02d} done", file=sys.stderr, flush=True)
     cols = ["trial", "method", "rt_factor", "p50_ms", "p99_ms", "cpu_rt", "p99_cpu_ms", "max_cpu_ms", "p99_btw_cpu_ms",
-            "max_btw_cpu_ms", "filtered_deg", "smoothed_deg", "vs_batch_deg", "E_max",
+            "max_btw_cpu_ms", "filtered_deg", "filtered_after_deg", "bootstrap_span_s", "smoothed_deg", "vs_batch_deg", "E_max",
             "seconds", "bootstrap_s", "failed", "dist", "dist_kf", "cal_z", "cal_z_white", "whiteness", "cal_dD_rel", "refit_z", "refit_z_bF",
             "refit_z_white", "refit_z_white_bF", "V_max", "F_batch_max", "refit_dD_rel",
             "applied", "refits"]
     print_table(rows, cols)
     means = _means(rows)
-    print_table(means, ["method", "trials", "filtered_deg", "smoothed_deg", "rt_factor", "p99_ms", "cpu_rt", "p99_cpu_ms",
+    print_table(means, ["method", "trials", "filtered_deg", "filtered_after_deg", "after_trials", "smoothed_deg", "rt_factor", "p99_ms", "cpu_rt", "p99_cpu_ms",
                         "p99_btw_cpu_ms"])
     print(f"peak memory {peak_memory_mb():.0f} MB")
-    write_json("stream_speed.json", {"rows": rows, "means": means, "lag_s": lag, "bootstrap_s": a.bootstrap_s,
+    write_json(a.out, {"rows": rows, "means": means, "lag_s": lag, "bootstrap_s": a.bootstrap_s,
+                                "bootstrap_max_s": a.bootstrap_max_s,
                                 "command": " ".join(sys.argv)})
     return 0
 

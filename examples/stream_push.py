@@ -7,9 +7,14 @@ calibration.json from `imugraph calibrate`, read with imugraph.io.writers.read_c
 acquisition loop is simulated by iterating over a simulated session; replace `acquire()` with your driver.
 Each `push` returns at once the filtered orientation (w, x, y, z, sensor → nav) for that sample; pass
 mag=None when the magnetometer has no new sample (lower rate). `finish()` then `smoothed()` give the
-smoothed orientation of every accepted sample (rows at `sample_times()`). The calibration (D, o) is
-re-estimated online from the bootstrap start: `smoother.cal` is the latest one applied, and
-`smoother.calibration_history` one row per refit (t, D, o, dip_deg, std, applied) for a convergence plot.
+smoothed orientation of every accepted sample (rows at `sample_times()`). The calibration (D, o, dip) is
+re-estimated online from the bootstrap start — by default (StreamOptions.calib_states) as a state of the graph
+that every magnetometer factor shares: no refit is ever "applied" to the filtered output (it keeps the start
+calibration; `applied` is False in every history row), `smoother.cal` stays the start calibration until `finish()`
+and is the streamed estimate after it (what `imugraph stream` writes to calibration.json).
+`smoother.calibration_history` holds one row per refit, a record of that estimate (t, D, o, dip_deg, std,
+applied), for a convergence plot. (With StreamOptions(calib_states=False) the closed-form refits instead swap in when well
+determined: then `smoother.cal` is the latest one applied, and `applied` says which.)
 `imugraph stream SESSION --out OUT` writes the same rows to OUT/calibration_history.json;
 `examples/plot_convergence.py OUT [--batch calibration.json]` draws them.
 """
@@ -45,3 +50,4 @@ if hist:
     last = hist[-1]
     print(f"{len(hist)} calibration refits ({sum(r['applied'] for r in hist)} applied); last at t = {last['t']:.1f} s: "
           f"o = {np.round(last['o'], 3)} ± {np.round(last['std']['o'], 3) if last['std'] else '—'}")
+print(f"start o = {np.round(cal.o, 3)}; smoother.cal.o after finish() = {np.round(smoother.cal.o, 3)} (the streamed one)")

@@ -142,7 +142,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--lag", type=_positive(float), default=None, metavar="S",
                    help="fixed-lag smoother keeping S seconds (default: iSAM2 over the whole stream)")
     p.add_argument("--bootstrap-s", type=_positive(float), default=30.0, metavar="S",
-                   help="seconds calibrated in batch before streaming (default 30)")
+                   help="seconds calibrated in batch before streaming (default 30; the window grows while it holds "
+                        "too little rotation to identify the calibration, up to the whole recording unless "
+                        "--bootstrap-max-s)")
+    p.add_argument("--bootstrap-max-s", type=_positive(float), default=None, metavar="S",
+                   help="cap the bootstrap's growth at S seconds; at the cap calibrate's regularised weak fallback "
+                        "is used (default: no cap)")
     p.add_argument("--calibration", metavar="FILE", default=None,
                    help="start calibration.json instead of the bootstrap (re-estimated online unless --fixed-calibration; the smoothed output of a full iSAM2 run uses the streamed one)")
     p.add_argument("--fixed-calibration", action="store_true",

@@ -15,7 +15,9 @@ it used: the normal state's streamed θ and each detector window's final Δo_w a
 hard iron is the last history row's), calibration_history.json (the start calibration and one row per online
 refit: t, D, o, dip_deg, std, ...), the figures stream_calibration.png, stream_orientation.png and stream_timing.png
 (`write_stream_figures`), timing.json (updates, seconds, p50_ms, p99_ms, plus max_ms, realtime_factor,
-the CPU-time figures, the between-keyframe steps' p50/p99/max, bootstrap_seconds, bootstrap_samples and the arrival counters; docs/stream.md).
+the CPU-time figures, the between-keyframe steps' p50/p99/max, bootstrap_seconds, bootstrap_samples, bootstrap_span_s
+(the seconds the bootstrap actually used: it grows past --bootstrap-s while they hold too little rotation),
+bootstrap_note (the same in words, as printed) and the arrival counters; docs/stream.md).
 """
 
 from __future__ import annotations
@@ -124,7 +126,9 @@ def _stream_into(out: Path, args: argparse.Namespace, session, cal, progress: co
                             disturb_offsets=_flag(args, "disturb_offsets", StreamOptions.disturb_offsets),
                             calib_json_end_graph=_flag(args, "calib_json_end_graph", StreamOptions.calib_json_end_graph))
     with progress.library_output():
-        result = stream_session(session, cal, options, bootstrap_s=args.bootstrap_s, say=progress.say)
+        # --bootstrap-max-s when the parser offers it (the bootstrap's growth capped; None: grows to the session's end)
+        result = stream_session(session, cal, options, bootstrap_s=args.bootstrap_s, say=progress.say,
+                                bootstrap_max_s=getattr(args, "bootstrap_max_s", None))
     write_orientation_npz(out / "orientation.npz", result.t, result.smoothed)
     write_orientation_npz(out / "orientation_filtered.npz", result.t, result.filtered)
     common.write_calibration(out, result.calibration, progress)

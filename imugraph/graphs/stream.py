@@ -23,10 +23,13 @@ per-sample values blended between keyframes as the batch path does (`sample_orie
 
 Arrival problems, all counted in `StreamStats`, none raises: a repeated time stamp is dropped
 (`duplicates`); a sample older than the newest one is inserted in time order while its keyframe interval is
-still open (`late_inserted`), else dropped (`late_dropped`); rows with non-finite gyro or accelerometer
+still open (`late_inserted`; with a lagging magnetometer the fields re-paired, stream_interval._insert_shifted),
+else dropped (`late_dropped`); rows with non-finite gyro or accelerometer
 are dropped (`invalid`); a time step over 1.5 nominal steps is a gap (`gaps`, `missing`): the gyro is
 integrated across it (held rate) and the covariances grow with the step. A NaN magnetometer row is "no
-sample" (lower magnetometer rates); a keyframe interval without one gets no magnetometer factor.
+sample" (lower magnetometer rates); a keyframe interval without one gets no magnetometer factor. Not arrival
+problems but caller errors: a rate or a `push` argument of the wrong type or shape raises SessionError naming it;
+a nominal rate the first 100 time steps contradict by more than 1.5× warns once (RuntimeWarning, `rate_ratio`).
 Online calibration (options.online_calibration): by default the closed-form refit on fixed orientations
 (`imugraph.graphs.stream_online`, stream_calib); with calib_states θ = (D, o, dip) is a state of the graph in
 every magnetometer factor, pinned at the start calibration, and the streamed calibration is what the data say
@@ -37,6 +40,7 @@ gravity are estimated with the orientations.
 from __future__ import annotations
 
 import math
+import numbers
 import time
 from array import array
 from collections import deque
@@ -50,11 +54,12 @@ from imugraph.calibration.result import Calibration
 from imugraph.errors import SessionError
 from imugraph.factors.gaps import gap_steps, keyframe_gap_step
 from imugraph.graphs.cpp_velocity import G_KEY, imu_bias_key, pose_key, super_sample_pim
-from imugraph.graphs.stream_interval import (NAN3 as _NAN3, Q_ID, ArrivalMixin,
+from imugraph.graphs.stream_interval import (NAN3 as _NAN3, Q_ID, ArrivalMixin, bad_row as _bad_row,
                                              interval_preintegration, lead_interval, qmul,
                                              row3 as _row3)
 from imugraph.graphs.stream_bridge import bridged_preintegration
 from imugraph.graphs.stream_calib import OnlineMagCalibration
+from imugraph.graphs.stream_carry import MagCarryMixin
 from imugraph.graphs.stream_calstate import CAL_KEY
 from imugraph.graphs.stream_field import field_key
 from imugraph.graphs.stream_kernels import StepBlocks, linear_step, split_noise_one
@@ -70,7 +75,7 @@ __all__ = ["StreamOptions", "StreamSmoother", "StreamStats"]
 
 
 class StreamSmoother(OnlineCalibrationMixin, KeyframeStartMixin, ArrivalMixin, StreamOutputMixin, GapRealignMixin,
-                     PositionMixin):
+                     PositionMixin, MagCarryMixin):
     """Push samples in arrival order; get the filtered orientation of each at once, the smoothed ones at the end.
 
     Args:
@@ -85,8 +90,10 @@ class StreamSmoother(OnlineCalibrationMixin, KeyframeStartMixin, ArrivalMixin, S
 
     def __init__(self, cal: Calibration, rate: float, options: StreamOptions = StreamOptions(), g0: float = 9.81,
                  weak_scale: float | None = None, start_window_s: float = 0.0):
-        if not (np.isfinite(rate) and rate > 0):
-            raise SessionError("stream", "rate", repr(rate), "a positive sampling rate in Hz")
+        if isinstance(rate, bool) or not isinstance(rate, numbers.Real) or not (np.isfinite(rate) and rate > 0):
+            raise SessionError("stream", "rate", f"{rate!r} ({type(rate).__name__})", "a positive sampling rate in Hz (a number)")
+        if not isinstance(options, StreamOptions):
+            raise SessionError("stream", "options", type(options).__name__, "a StreamOptions")
         if options.fixed_lag_solver not in ("batch", "incremental", "chain"):
             raise SessionError("stream", "fixed_lag_solver", repr(options.fixed_lag_solver),
                                '"chain", "incremental" or "batch"')
@@ -150,14 +157,20 @@ class StreamSmoother(OnlineCalibrationMixin, KeyframeStartMixin, ArrivalMixin, S
         self._field = options.field_sigma is not None          # nav-field perturbation d_k (stream_field)
         self._d = np.zeros(3)                # latest estimate of keyframe k's d_k
         self._finished = False
+        self._rate_steps: list | None = []   # the first steps seen, to check the nominal rate once (_check_rate)
+        self.rate_ratio = None               # median arrived step × rate (1 when the nominal rate is right)
         self._init_end_extensions()          # windows_end, velocity_end, gyro_map_end (stream_output)
 
     # ------------------------------------------------------------------ arrival
     def push(self, t: float, gyr, acc, mag=None) -> np.ndarray:
         """Add one sample; returns the filtered orientation nRb (4,) w,x,y,z available now (for a dropped
         sample: that of the newest accepted one; NaN before any sample)."""
-        mx, my, mz = _NAN3 if mag is None else _row3(mag)
-        return np.array(self.push_floats(float(t), *_row3(gyr), *_row3(acc), mx, my, mz))
+        try:
+            mx, my, mz = _NAN3 if mag is None else _row3(mag)
+            row = (float(t), *_row3(gyr), *_row3(acc), mx, my, mz)
+        except (TypeError, ValueError):                     # named, as a reader names a bad field (U22 defect 10)
+            raise _bad_row(t, gyr, acc, mag) from None
+        return np.array(self.push_floats(*row))
 
     def push_floats(self, t: float, gx: float, gy: float, gz: float, ax: float, ay: float, az: float,
                     mx: float = math.nan, my: float = math.nan, mz: float = math.nan) -> tuple:
@@ -262,6 +275,8 @@ class StreamSmoother(OnlineCalibrationMixin, KeyframeStartMixin, ArrivalMixin, S
             w_rec = w if self._IE_inv is None else w @ self._IE_inv
             a, self._acc_tail = lead_interval(t, w_rec, a, self._acc_tail, self._lead_n, self._lead_f)
         steps = t[1:] - t[:-1]
+        if self._rate_steps is not None:
+            self._check_rate(steps)
         gap = gap_steps(steps, 1.0 / self.rate)          # counted on the interval as accepted (late rows in)
         if gap.any():
             self.stats.gaps += int(gap.sum())
@@ -303,8 +318,12 @@ class StreamSmoother(OnlineCalibrationMixin, KeyframeStartMixin, ArrivalMixin, S
             graph.add(linear_step(field_key(k), field_key(k + 1), self._steps.field(dt_k)))
             values.insert(field_key(k + 1), np.exp(-dt_k / self.opt.field_tau) * self._d)
             stamps[field_key(k + 1)] = t_next - self._t0
-        if ok.any() and not (flagged and self.opt.disturb_orient):
-            f_mag = self._mag_factor(k, kRb, y, no_theta=flagged, into=(graph, values, stamps, t_next - self._t0))
+        carry = self._carry_rows(k) if self.opt.mag_carry and self._mag_shift > 0 else None     # stream_carry (C1)
+        kRb_m, y_m = (kRb, y) if carry is None else (np.concatenate([carry[0], kRb]), np.concatenate([carry[1], y]))
+        if carry is not None:
+            self._carry_history(k, *carry[1:])
+        if (ok.any() or carry is not None) and not (flagged and self.opt.disturb_orient):
+            f_mag = self._mag_factor(k, kRb_m, y_m, no_theta=flagged, into=(graph, values, stamps, t_next - self._t0))
             if self.opt.lag_s is None:               # for the final re-issue (iSAM2 keeps every factor): the index
                 # once built — a new window's Δo_w prior goes into `graph` first (stream_offsets.added); indexed
                 # before, the re-issue replaced that prior and kept the linearised factor too (BROAD 30: 0.132°)
@@ -337,6 +356,8 @@ class StreamSmoother(OnlineCalibrationMixin, KeyframeStartMixin, ArrivalMixin, S
                     self._hist_raw.append(m_raw.copy())
         if self._gmap is not None:           # J_k and E's coverage sums (stream_gmap)
             self._gmap.interval(k, t, w, rows[:, 4:7], kRb, delta_R, bridged, a)   # a: re-timed ("exact" keeps it)
+        if self.opt.mag_carry and self._mag_shift > 0:
+            self._keep_tail(t[:-1], kRb, delta_R, k)
         self._k = k + 1
         self._maintained = not self._chain
         if self._online is not None:

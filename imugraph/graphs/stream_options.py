@@ -234,6 +234,10 @@ class StreamOptions:
     # Default "guarded" since session 19 (the lead): 26 0.151 → 0.048° from the batch; the other 16 BROAD trials
     # unchanged (the shift is the start's on 13, 04's guard keeps s₀, 32's re-pairing is skipped); True as before.
     mag_delay_end: bool | str = "guarded"
+    # session 22 (helper F22a): a lagging magnetometer's fields that arrive after their interval closed (its last s₀
+    # rows' fields: counts.mag_dropped) go into the next keyframe's magnetometer factor, rotated by the closed interval's
+    # own rotations (stream_carry eq. C1), and into the closed interval's kept rows for the end graph. False: dropped.
+    mag_carry: bool = False
 
 
 @dataclass

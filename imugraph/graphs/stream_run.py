@@ -53,7 +53,8 @@ class StreamResult:
 
 def bootstrap_calibration(session: Session, bootstrap_s: float, keyframe_hz: float = 10.0,
                           allow_weak: bool = True, grow: float = 1.5, gyro_map: bool | None = None,
-                          overrides: dict | None = None, info: dict | None = None) -> tuple[Calibration, int]:
+                          overrides: dict | None = None, info: dict | None = None,
+                          max_s: float | None = None) -> tuple[Calibration, int]:
     """ML calibration of the first seconds of the stream: (calibration, number of samples used).
 
     Starts with `bootstrap_s` seconds and, while that window holds too little rotation to identify D and o
@@ -70,7 +71,12 @@ def bootstrap_calibration(session: Session, bootstrap_s: float, keyframe_hz: flo
     gyro_map: estimate the gyro scale/misalignment E (`calibration.ml.Options.gyro_map`; None: its default,
     as the batch path); the stream applies (I + E) to every incoming gyro sample (`StreamSmoother.push`).
     overrides: further `calibration.ml.Options` fields (benchmarks: e.g. window_trial_verdict=False); None: defaults.
-    info: a dict updated with the accepted calibration's `info` (e.g. its chosen "position_sigma"); None: not kept.
+    info: a dict updated with the accepted calibration's `info` (e.g. its chosen "position_sigma") and, under
+    "bootstrap_growth", one (span s, reason) per refused window, "bootstrap_capped" (True: stopped at max_s before the
+    session's end); None: not kept.
+    max_s: cap of the growth (None: none, until the session ends — on BROAD 10, 12, 15, 16 that is the whole trial,
+    so the stream's filtered output there is a replay, not causal; U22 defect 3). At the cap the window is the last
+    one tried: with allow_weak the regularised weak fallback of `calibrate`, as at the session's end.
 
     Raises:
         SessionError: a bootstrap window shorter than 2 s of data.
@@ -79,27 +85,64 @@ def bootstrap_calibration(session: Session, bootstrap_s: float, keyframe_hz: flo
     from imugraph.calibration.ml import Options, calibrate
     from imugraph.errors import CalibrationError
 
+    if max_s is not None and not (isinstance(max_s, (int, float)) and np.isfinite(max_s) and max_s > 0):
+        raise SessionError(session.name, "bootstrap_max_s", repr(max_s), "a positive number of seconds or None")
     span = bootstrap_s
     b_rest = rest_gyro_bias(session)
+    growth = []                              # (span, reason) of each refused window
     while True:
-        n = int(np.searchsorted(session.t, session.t[0] + span, side="right"))
+        capped = max_s is not None and span >= max_s
+        n = int(np.searchsorted(session.t, session.t[0] + (max_s if capped else span), side="right"))
         if session.t[n - 1] - session.t[0] < 2.0:
-            raise SessionError(session.name, "bootstrap_s", f"{bootstrap_s:g} s ({n} samples)",
-                               "at least 2 s of data")
-        last = n >= session.n
+            raise SessionError(session.name, "bootstrap_max_s" if capped else "bootstrap_s",
+                               f"{max_s if capped else bootstrap_s:g} s ({n} samples)", "at least 2 s of data")
+        last = n >= session.n or capped
         try:
             opt = Options(keyframe_hz=keyframe_hz) if gyro_map is None else Options(keyframe_hz=keyframe_hz, gyro_map=gyro_map)
             if overrides:
                 opt = replace(opt, **overrides)
             est = calibrate(session.slice(0, n), opt, allow_weak=last and allow_weak)
-            if last or b_rest is None or np.max(np.abs(est.calibration.gyro_bias - b_rest)) <= BIAS_TOL:
+            off = None if b_rest is None else float(np.max(np.abs(est.calibration.gyro_bias - b_rest)))
+            if last or off is None or off <= BIAS_TOL:
                 if info is not None:
                     info.update(est.info)
+                    info.update(bootstrap_growth=growth, bootstrap_capped=bool(capped and n < session.n),
+                                bootstrap_max_s=max_s)
                 return est.calibration, n
-        except CalibrationError:
+            growth.append((float(session.t[n - 1] - session.t[0]), f"gyro bias {off:.3f} rad/s off the initial rest's"))
+        except CalibrationError as e:
             if last:
                 raise
+            growth.append((float(session.t[n - 1] - session.t[0]), _refusal(str(e))))
         span *= grow
+
+
+def _refusal(message: str) -> str:
+    """A short reason from calibrate's refusal ("too little rotation" from its coverage check), for the progress line."""
+    if "too little rotation" in message:
+        return "too little rotation"
+    found = message.split("found ", 1)[-1]
+    return found.split(";")[0][:80]
+
+
+def bootstrap_note(session: Session, n_boot: int, bootstrap_s: float, info: dict | None = None) -> str:
+    """What the bootstrap actually used (U22 defect 3): "the first 186.9 s (grown from 30 s: too little rotation;
+    all of the session: its filtered output is a replay, not causal)". info: bootstrap_calibration's (growth reasons)."""
+    if n_boot <= 0:
+        return "none (calibration given)"
+    span = float(session.t[n_boot - 1] - session.t[0])
+    growth = (info or {}).get("bootstrap_growth") or []
+    parts = []
+    if growth:
+        reasons = list(dict.fromkeys(r for _, r in growth))
+        parts.append(f"grown from {bootstrap_s:g} s: {', '.join(reasons)}")
+    if (info or {}).get("bootstrap_capped"):
+        parts.append(f"capped at bootstrap_max_s = {info['bootstrap_max_s']:g} s: calibrate's weak fallback if not identified")
+    if n_boot >= session.n:
+        parts.append("all of the session: its filtered output is a replay, not causal")
+    else:
+        parts.append(f"{100.0 * n_boot / session.n:.0f} % of the session")
+    return f"the first {span:.1f} s ({'; '.join(parts)})"
 
 
 # rad/s: largest accepted difference between a bootstrap's gyro bias and the gyro's mean at the initial rest
@@ -125,7 +168,8 @@ def rest_gyro_bias(session: Session, rest_s: float = 2.0, min_fraction: float = 
 
 
 def select_position(session: Session, options: StreamOptions, bootstrap_s: float = 30.0,
-                    allow_weak: bool = True, info: dict | None = None) -> tuple[Calibration, int, StreamOptions]:
+                    allow_weak: bool = True, info: dict | None = None,
+                    max_s: float | None = None) -> tuple[Calibration, int, StreamOptions]:
     """StreamOptions.position_select: the bootstrap batch chooses σ_p among the candidates by the Laplace marginal
     likelihood (calibration.position_select eq. J2, "off" = 1e4 a candidate, with position_select_rounds) and the
     stream uses it: (calibration, bootstrap samples, options with position_sigma = the choice, None for "off").
@@ -137,7 +181,7 @@ def select_position(session: Session, options: StreamOptions, bootstrap_s: float
     cal, n_boot = bootstrap_calibration(session, bootstrap_s, options.keyframe_hz, allow_weak,
                                         overrides={"position_select": tuple(options.position_select),
                                                    "position_select_rounds": True,
-                                                   "position_tau": options.position_tau}, info=info)
+                                                   "position_tau": options.position_tau}, info=info, max_s=max_s)
     return cal, n_boot, replace(options, position_sigma=info.get("position_sigma"))
 
 
@@ -191,7 +235,8 @@ def timing_summary(update_s, seconds: float, n_samples: int, rate: float, update
 
 def stream_session(session: Session, cal: Optional[Calibration] = None, options: StreamOptions = StreamOptions(),
                    bootstrap_s: float = 30.0, allow_weak: bool = True,
-                   say: Callable[[str], None] = lambda m: None, bootstrap: tuple | None = None) -> StreamResult:
+                   say: Callable[[str], None] = lambda m: None, bootstrap: tuple | None = None,
+                   bootstrap_max_s: float | None = None) -> StreamResult:
     """Stream every sample of `session` in time order through a `StreamSmoother`.
 
     Args:
@@ -199,22 +244,28 @@ def stream_session(session: Session, cal: Optional[Calibration] = None, options:
         options: `StreamOptions`; allow_weak: see `calibrate`; say: progress callback.
         bootstrap: (calibration, samples) of a bootstrap already computed on this session (`bootstrap_calibration`;
         with cal None): used as if computed here (g0, the detector's learning window, the weak prior's scale).
+        bootstrap_max_s: cap of the bootstrap window's growth (`bootstrap_calibration` max_s; None: grows until it
+        identifies the calibration or the session ends — the default).
 
     Returns:
-        StreamResult (timing also holds `bootstrap_seconds`, the wall time of the bootstrap calibration).
+        StreamResult (timing also holds `bootstrap_seconds`, the wall time of the bootstrap calibration,
+        `bootstrap_span_s`, the seconds it used, and `bootstrap_note`, the progress line's words on it).
     """
-    n_boot, boot_s = 0, 0.0
+    n_boot, boot_s, boot_info = 0, 0.0, {}
     if cal is None and bootstrap is not None:
         cal, n_boot = bootstrap
     elif cal is None:
-        say(f"bootstrap calibration on the first {bootstrap_s:g} s")
+        say(f"bootstrap calibration from the first {bootstrap_s:g} s")
         start = time.perf_counter()
         if options.position_select:          # σ_p chosen by the bootstrap (select_position)
-            cal, n_boot, options = select_position(session, options, bootstrap_s, allow_weak)
+            cal, n_boot, options = select_position(session, options, bootstrap_s, allow_weak, info=boot_info,
+                                                   max_s=bootstrap_max_s)
             say(f"bootstrap chose position_sigma {options.position_sigma}")
         else:
-            cal, n_boot = bootstrap_calibration(session, bootstrap_s, options.keyframe_hz, allow_weak)
+            cal, n_boot = bootstrap_calibration(session, bootstrap_s, options.keyframe_hz, allow_weak, info=boot_info,
+                                                max_s=bootstrap_max_s)
         boot_s = time.perf_counter() - start
+        say(f"bootstrap calibration on {bootstrap_note(session, n_boot, bootstrap_s, boot_info)}")
     smoother = session_smoother(session, cal, n_boot, options)
     say(f"streaming {session.n} samples ({'iSAM2' if options.lag_s is None else f'lag {options.lag_s:g} s'})")
     start, start_cpu = time.perf_counter(), time.process_time()
@@ -235,6 +286,8 @@ def stream_session(session: Session, cal: Optional[Calibration] = None, options:
     timing = timing_summary(st.update_s, seconds, session.n, session.rate, st.update_cpu_s, cpu_seconds,
                             st.between_s, st.between_cpu_s)
     timing["bootstrap_seconds"] = boot_s
+    timing["bootstrap_span_s"] = float(session.t[n_boot - 1] - session.t[0]) if n_boot else 0.0
+    timing["bootstrap_note"] = bootstrap_note(session, n_boot, bootstrap_s, boot_info)
     update_ms = np.asarray(st.update_s, float) * 1e3
     update_t = smoother.times()[1:]  # keyframe 0 is the first sample; every update adds k+1 (StreamSmoother._close)
     return StreamResult(session.t, filtered, smoothed, smoother.cal, timing, smoother.stats.counts(), n_boot,
