@@ -37,6 +37,14 @@ helper N21b: "len" (the default + BodyOptions.unsensed_bend_length_sigma_m 5 mm,
 (N8), that pass run to convergence), "mf" / "neck5mf" (BodyOptions.unsensed_bend_mag_free, body_neck (N9): with
 magnetometers the bend read from the (N6) graph solved without them; alone / with neck5), "neck3mf" (N8 3 mm + N9);
 labels and the seed table carry the variant.
+Helper Q22b: --neck motion = the default with BodyOptions.init "motion" (sensor headings from the joint
+accelerations, imugraph.body.placement_motion); compare with --neck default,motion.
+Helper L22 (the fixed lag's own neck bend and bootstrap; imugraph.graphs.body_lag_neck, body_lag_settle): --neck
+"lagstream[NN]" (BodyOptions.lag_neck_stream, neck-lever anchor σ NN mm), "ovN" (lag_bootstrap_overlap_s N s), "bsN" /
+"ls20bsN" / "lsmargbsN" ((A1) thresholds × N), "marg" / "lsmarg" (lag_bootstrap_marginal), "lsmargsetN" / "ls20setN"
+(lag_bootstrap_settle_deg 0.N°), "lsmargset3mo" / "lsmargbs3mo" (+ lag_neck_mag_offset); --lag-only skips the batch solves,
+--lag-iterations sets solve_body_incremental's lag_iterations, --lag-filtered also scores the lag's filtered output
+(label "… filtered"); records carry the bootstrap length (bootstrap_s).
 Writes bench_out/body_sim_accuracy.json.
 """
 
@@ -74,6 +82,7 @@ def _solve(session, use_mag: bool, lag: float | None, opts_kw: dict | None = Non
 
 
 _LAG_KW: dict = {}          # --lag-bootstrap S (helper L21): solve_body_incremental's bootstrap_s; {}: its "auto"
+_FILTERED: list = []        # --lag-filtered (helper L22): also score the fixed lag's filtered output (info["filtered"])
 
 
 # --neck variants (session 21): BodyOptions fields of imugraph.graphs.body_neck (N5), (N6)
@@ -83,6 +92,7 @@ _S21A = {"unsensed_bend": ("Head",), "lever_prior_frame": "lumped", "lever_pass_
          "lever_pass_bend_sigma_m": None, "unsensed_bend_mag_free": False}                           # of a3049c8
 NECK_VARIANTS = {"default": {},                                  # since session 21's second flip = "neck5mf"
                  "tie": _TIES,                                   # the default before session 21
+                 "motion": {"init": "motion"},                   # helper Q22b: BodyOptions.init (placement_motion)
                  "bend": {**_TIES, "unsensed_bend": ("Head",)}, "lever": {**_TIES, "lever_prior_frame": "estimated"},
                  "bend+lever": {**_TIES, "unsensed_bend": ("Head",), "lever_prior_frame": "estimated"},
                  "bend+lumped": {**_TIES, "unsensed_bend": ("Head",), "lever_prior_frame": "lumped"},
@@ -104,7 +114,36 @@ NECK_VARIANTS = {"default": {},                                  # since session
                  "neck3mf": {**_S21A, "lever_pass_bend_sigma_m": 0.003, "lever_pass_iterations": None,
                              "unsensed_bend_mag_free": True},
                  # helper L21: the fixed lag's neck by (N5) with the bend of its bootstrap's (N6) pass (batch: = default)
-                 "lagboot": {"lag_neck_from_bootstrap": True}}
+                 "lagboot": {"lag_neck_from_bootstrap": True},
+                 # helper L22: the fixed lag estimates the neck's bend in its own graph (body_lag_neck (L1)–(L4));
+                 # "lagstreamNN": the neck levers' bootstrap anchor σ NN mm (L2) instead of 5
+                 "lagstream": {"lag_neck_stream": True},
+                 "lagstream10": {"lag_neck_stream": True, "lag_neck_anchor_sigma_m": 0.01},
+                 "lagstream20": {"lag_neck_stream": True, "lag_neck_anchor_sigma_m": 0.02},
+                 "lagstream50": {"lag_neck_stream": True, "lag_neck_anchor_sigma_m": 0.05},
+                 # "ovN": the bootstrap's last N s re-streamed (BodyOptions.lag_bootstrap_overlap_s, (L5))
+                 "ov1": {"lag_bootstrap_overlap_s": 1.0}, "ov2": {"lag_bootstrap_overlap_s": 2.0},
+                 "ls20ov1": {"lag_neck_stream": True, "lag_neck_anchor_sigma_m": 0.02, "lag_bootstrap_overlap_s": 1.0},
+                 "ls20ov2": {"lag_neck_stream": True, "lag_neck_anchor_sigma_m": 0.02, "lag_bootstrap_overlap_s": 2.0},
+                 # "bsN": the auto bootstrap's (A1) thresholds × N (BodyOptions.lag_bootstrap_scale, (L6)); "ls20bsN": + lagstream20
+                 **{f"bs{n}": {"lag_bootstrap_scale": float(n)} for n in (2, 3, 4)},
+                 **{f"ls20bs{n}": {"lag_neck_stream": True, "lag_neck_anchor_sigma_m": 0.02, "lag_bootstrap_scale": float(n)}
+                    for n in (2, 3, 4)},
+                 # "marg": the bootstrap's factors in the smoother, N-pose kept, bRs re-estimated (lag_bootstrap_marginal, (L7))
+                 "marg": {"lag_bootstrap_marginal": True},
+                 "lsmarg": {"lag_neck_stream": True, "lag_bootstrap_marginal": True},
+                 **{f"lsmargbs{n}": {"lag_neck_stream": True, "lag_bootstrap_marginal": True, "lag_bootstrap_scale": float(n)}
+                    for n in (2, 3, 4)},
+                 # "lsmargsetN" / "ls20setN": the bootstrap extended until bRs moves < 0.N° per second (A2)
+                 **{f"lsmargset{n}": {"lag_neck_stream": True, "lag_bootstrap_marginal": True,
+                                      "lag_bootstrap_settle_deg": n / 10} for n in (2, 3, 5)},
+                 **{f"ls20set{n}": {"lag_neck_stream": True, "lag_neck_anchor_sigma_m": 0.02,
+                                    "lag_bootstrap_settle_deg": n / 10} for n in (2, 3, 5)},
+                 # "lsmargset3mo": + the bootstrap's (N9) lever offset on the stream's bend with magnetometers (L8)
+                 "lsmargset3mo": {"lag_neck_stream": True, "lag_bootstrap_marginal": True, "lag_bootstrap_settle_deg": 0.3,
+                                  "lag_neck_mag_offset": True},
+                 "lsmargbs3mo": {"lag_neck_stream": True, "lag_bootstrap_marginal": True, "lag_bootstrap_scale": 3.0,
+                                 "lag_neck_mag_offset": True}}
 
 
 def _label(head: str, use_mag: bool, lag, uns, neck: str) -> str:
@@ -138,6 +177,7 @@ def run_case(name: str, seed: int, duration: float | None, lower: bool, mags: li
         out.append({"label": label, "motion": name, "seed": seed, "use_mag": use_mag, "lag_s": lag, "unsensed_deg": uns,
                     "neck": neck,
                     "realtime_factor": result.info.get("realtime_factor"), "samples": int(session.n),
+                    "bootstrap_s": result.info.get("bootstrap", {}).get("bootstrap_s"),
                     "duration_s": float(session.t[-1]), "sensors": len(session.sensors), "seconds": secs,
                     "iterations": [p.get("iterations") for p in result.info.get("passes", [])],
                     "npose": result.info.get("npose"), "scores": scores, "row": summary_row(label, scores, secs),
@@ -145,6 +185,10 @@ def run_case(name: str, seed: int, duration: float | None, lower: bool, mags: li
         print(f"  {label}: {session.n} samples, {len(session.sensors)} IMUs, {secs:.1f} s, joint max "
               f"{out[-1]['row']['joint_max_deg']:.2f}° ({out[-1]['row']['worst_joint']}), position RMS "
               f"{out[-1]['row']['pos_rms_cm']:.2f} cm", flush=True)
+        if lag is not None and _FILTERED and "filtered" in result.info:     # --lag-filtered (helper L22)
+            fs = score_against_truth(result.info["filtered"], session.truth, skel, mask)
+            out.append(dict(out[-1], label=label + " filtered", neck=neck + " filtered", scores=fs,
+                            row=summary_row(label + " filtered", fs, secs)))
     return out
 
 
@@ -196,6 +240,9 @@ def main(argv=None) -> int:
                     + " (session 21, imugraph.graphs.body_neck)")
     ap.add_argument("--lag-bootstrap", type=float, default=None, metavar="S",
                     help="the fixed lag's batch bootstrap in s (solve_body_incremental bootstrap_s; default: auto)")
+    ap.add_argument("--lag-only", action="store_true", help="with --lag: skip the batch solves (helper L22)")
+    ap.add_argument("--lag-iterations", type=int, default=None, help="solve_body_incremental lag_iterations (helper L22)")
+    ap.add_argument("--lag-filtered", action="store_true", help="with --lag: also score its filtered (causal) output")
     ap.add_argument("--out", default="body_sim_accuracy.json", help="file name in bench_out/")
     a = ap.parse_args(argv)
     legs = {"thighs": ("RightUpperLeg", "LeftUpperLeg"), "shanks": ("RightLowerLeg", "LeftLowerLeg"),
@@ -204,6 +251,10 @@ def main(argv=None) -> int:
     opts_kw = {k: legs.get(v, tuple(x for x in v.split(",") if x)) for k, v in
                (("hinges", a.hinges), ("axial_segments", a.axial)) if v}
     mags = {"both": [False, True], "off": [False], "on": [True]}[a.mag]
+    if a.lag_filtered:
+        _FILTERED.append(True)
+    if a.lag_iterations is not None:
+        _LAG_KW["lag_iterations"] = a.lag_iterations
     if a.lag_bootstrap is not None:
         _LAG_KW["bootstrap_s"] = a.lag_bootstrap
     unsensed = tuple(None if v == "off" else float(v) for v in a.unsensed.split(","))
@@ -221,7 +272,8 @@ def main(argv=None) -> int:
             print(f"  {name}: {motion_path(name)} absent, skipped")
             continue
         for seed in (int(s) for s in a.seeds.split(",")):
-            records += run_case(name, seed, a.duration, a.lower, mags, [None] + ([a.lag] if a.lag else []), a.tie,
+            lags = ([] if a.lag_only and a.lag else [None]) + ([a.lag] if a.lag else [])
+            records += run_case(name, seed, a.duration, a.lower, mags, lags, a.tie,
                                 a.bias_walk, opts_kw, unsensed, tuple(a.neck.split(",")))
     if not records:
         print("no motion data found")

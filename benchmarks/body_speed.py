@@ -18,9 +18,11 @@ rotation (deg), worst joint, and of segment origins relative to the pelvis (cm, 
                                               [--lag-iterations 1] [--bootstrap-s auto] [--factorization QR]
                                               [--unsensed SIGMA_DEG] [--unsensed-prior fixed] [--unsensed-chains Head]
                                               [--unsensed-npose-sigma DEG] [--unsensed-gain G]
+                                              [--lag-set FIELD=VALUE ...]
 
 --unsensed* set BodyOptions.unsensed_sigma_rad (given in degrees), unsensed_prior and unsensed_chains of the
 batch (imugraph.graphs.body_chain: a second batch pass; the fixed-lag smoother does not use them).
+--lag-set (helper L22) sets a BodyOptions field of the incremental modes, e.g. lag_bootstrap_marginal=True.
 
 Writes bench_out/body_speed.json (--out-name to change).
 """
@@ -28,6 +30,7 @@ Writes bench_out/body_speed.json (--out-name to change).
 from __future__ import annotations
 
 import argparse
+import ast
 import resource
 import sys
 import time
@@ -109,6 +112,8 @@ def main(argv=None) -> int:
     ap.add_argument("--unsensed-chains", default="", help="comma-separated distal segments (unsensed_chains)")
     ap.add_argument("--unsensed-npose-sigma", type=float, default=None, help="unsensed_npose_sigma_rad in degrees")
     ap.add_argument("--unsensed-gain", type=float, default=None, help="BodyOptions.unsensed_sigma_gain (rad per rad)")
+    ap.add_argument("--lag-set", action="append", default=[], metavar="FIELD=VALUE",
+                    help="BodyOptions field of the incremental modes (python literal; repeatable; helper L22)")
     ap.add_argument("--out-name", default="body_speed.json", help="file name under bench_out/")
     a = ap.parse_args(argv)
     sess, skel, nom, psi0 = make_session(a.duration)
@@ -131,14 +136,15 @@ def main(argv=None) -> int:
                    "build_s": res.info["build_s"], "solve_s": res.info["solve_s"],
                    "iterations": [p["iterations"] for p in res.info["passes"]], "keyframes": res.info["keyframes"]}
         else:
-            lag_opts = BodyOptions(placements=nom, npose_heading_deg=psi0, keyframe_every=a.lag_keyframe_every)
+            lag_set = {k: ast.literal_eval(v) for k, v in (x.split("=", 1) for x in a.lag_set)}
+            lag_opts = BodyOptions(placements=nom, npose_heading_deg=psi0, keyframe_every=a.lag_keyframe_every, **lag_set)
             boot = a.bootstrap_s if a.bootstrap_s == "auto" else (float(a.bootstrap_s) or None)
             res = solve_body_incremental(sess, lag_opts, lag_s=None if mode == "isam2" else a.lag, smoother="batch",
                                          update_every=a.update_every, lag_iterations=a.lag_iterations,
                                          bootstrap_s=boot, factorization=a.factorization)
             u = res.info["update_s"]
             row = {"wall_s": time.perf_counter() - t0, "cpu_s": time.process_time() - c0,
-                   "lag_s": None if mode == "isam2" else a.lag,
+                   "lag_s": None if mode == "isam2" else a.lag, "lag_set": a.lag_set,
                    "keyframe_every": a.lag_keyframe_every, "lag_iterations": a.lag_iterations,
                    "bootstrap": res.info["bootstrap"],
                    "update_every": a.update_every, "updates": int(u.size), "update_sum_s": float(u.sum()),

@@ -18,7 +18,7 @@ its preintegrated IMU (x_k = pim.predict(x_{k−1}, b̂)), joint centres J = nTs
   2.0° (lag 1 s, one update per keyframe, 3 iterations) — default, available as smoother="incremental".
 - `bootstrap_s` (default "auto"): the first seconds — N-pose plus some motion, which is what makes the
   relative headings and hence bRs observable — are solved in batch; bRs and ψ are then held, keyframe states
-  and globals continue from the bootstrap's last keyframe under diagonal priors (`_anchor`), and no N-pose
+  and globals continue from the bootstrap's last keyframe under diagonal priors (`body_lag_boot.anchor`), and no N-pose
   keys need to stay in the window. "auto" ends it once every sensor has turned ≥ 1 rad and accelerated
   ≥ 2 m/s beyond the N-pose (imugraph.graphs.body_bootstrap, A1). After a bootstrap the linear solves use
   Cholesky (the anchors make them well posed; QR without one), with weak priors on every new keyframe
@@ -40,6 +40,13 @@ its preintegrated IMU (x_k = pim.predict(x_{k−1}, b̂)), joint centres J = nTs
 - The unsensed neck: the stream keeps the ties (K2) (body_neck.single_pass_options); with
   BodyOptions.lag_neck_from_bootstrap (off by default) the bootstrap runs the (N6) pass and the output turns the
   neck by the constant bend (N5) read there (body_neck.bootstrap_bend), for the whole stream.
+- Helper L22 (all off by default): `lag_neck_stream` — the stream's own levers carry the neck's bend, read per
+  keyframe as it leaves the window (imugraph.graphs.body_lag_neck (L1)–(L4)); `lag_bootstrap_marginal` (L7) — the
+  bootstrap's factors enter the smoother as its first update (from the bootstrap's estimate), the last N-pose
+  keyframes stay in the window and bRs, ψ are re-estimated at every update instead of held; `lag_bootstrap_settle_deg`
+  (A2) — the auto bootstrap extended until bRs settles (imugraph.graphs.body_lag_settle); `lag_bootstrap_scale` (L6)
+  — (A1)'s thresholds scaled; `lag_bootstrap_overlap_s` (L5) — the bootstrap's last seconds re-streamed (no gain
+  measured). Numbers: docs/results_issue4.md, "Session 22, helper L22".
 
 Output: the final estimate (iSAM2: its last full estimate; fixed lag: each keyframe's estimate as it leaves
 the window, i.e. smoothed with lag_s) as a `BodyResult`, and in `info["filtered"]` the same built from the
@@ -59,13 +66,12 @@ import numpy as np
 from imugraph.errors import SessionError
 from imugraph.factors import body as bf
 from imugraph.graphs.body import BodyProblem, build_problem, factors_at, optimize_with_mag_noise
-from imugraph.graphs.body_bootstrap import motion_bootstrap_s
-from imugraph.graphs import body_neck
+from imugraph.graphs.body_bootstrap import MIN_DV, MIN_TURN_RAD, motion_bootstrap_s
+from imugraph.graphs.body_lag_settle import settled_bootstrap_s
+from imugraph.graphs import body_lag_boot, body_lag_neck, body_neck
 from imugraph.graphs.body_model import BodyOptions
-from imugraph.geometry import expmap, rotmat_to_quat
-from imugraph.graphs.body_init import rz
-from imugraph.graphs.body_output import (BodyResult, estimate_placements, fill_segments, forward_kinematics,
-                                         make_result)
+from imugraph.graphs.body_lag_output import _record, filtered_result
+from imugraph.graphs.body_output import BodyResult, estimate_placements, make_result
 
 
 def _global_keys(pb: BodyProblem) -> list[int]:
@@ -149,12 +155,14 @@ def solve_body_incremental(session, opts: BodyOptions = BodyOptions(), lag_s: fl
         update_every: keyframes per solver update (>1: the newest keyframes of an update are estimated
             with up to update_every − 1 keyframes of look-ahead; fewer, cheaper updates).
         bootstrap_s: batch-solve the first bootstrap_s seconds (N-pose and some motion), fix bRs and ψ from
-            it, then continue incrementally from its last keyframe (see `_anchor`); its wall time is in
+            it, then continue incrementally from its last keyframe (see `body_lag_boot.anchor`); its wall time is in
             info["bootstrap"], not in update_s. "auto" (default): until every sensor has turned and
             accelerated enough (imugraph.graphs.body_bootstrap, A1). None: incremental from the first sample.
     """
     t_start = time.perf_counter()
     neck_opts = opts if opts.lag_neck_from_bootstrap and bootstrap_s is not None else None
+    full_opts = opts                                    # lag_neck_stream (L1)–(L4) reads unsensed_bend from these
+    stream_neck = body_lag_neck.wanted(opts, bootstrap_s)
     opts = body_neck.single_pass_options(opts)          # no (N6) pass in the stream: ties (K2), or the bootstrap's bend
     pb = build_problem(session, opts)
     kf_t = pb.kf_t
@@ -168,13 +176,21 @@ def solve_body_incremental(session, opts: BodyOptions = BodyOptions(), lag_s: fl
     records = []                                  # per keyframe: (sensor nRs (n,3,3), p, v of root, bRs, ψ)
     lagged: dict = {}                             # fixed lag: the record of each keyframe as it leaves the window
     update_s, failures, first_failure = [], 0, None
-    est, fixed_place, k_first, boot, bend = None, None, 0, {}, {}
+    est, fixed_place, k_first, k_stream, boot, bend = None, None, 0, 0, {}, {}
+    marginal = bool(full_opts.lag_bootstrap_marginal and lag_s is not None and bootstrap_s is not None)     # (L7)
+    lever_delta = None
     anchor, anchor_vals = gtsam.NonlinearFactorGraph(), gtsam.Values()
     auto = {}
     if isinstance(bootstrap_s, str):
         if bootstrap_s != "auto":
             raise SessionError(session.source, "bootstrap_s", repr(bootstrap_s), '"auto", seconds or None')
-        bootstrap_s, auto = motion_bootstrap_s(session, pb)
+        scale = float(opts.lag_bootstrap_scale)           # (L6) the (A1) thresholds × scale
+        bootstrap_s, auto = motion_bootstrap_s(session, pb, MIN_TURN_RAD * scale, MIN_DV * scale)
+        if full_opts.lag_bootstrap_settle_deg is not None:                                      # (A2)
+            bootstrap_s, settle = settled_bootstrap_s(
+                lambda t: _bootstrap(session, pb, opts, t)[2][0], bootstrap_s, float(session.t[-1] - session.t[0]),
+                full_opts.lag_bootstrap_settle_deg, full_opts.lag_bootstrap_settle_step_s)
+            auto = dict(auto, bootstrap_s=bootstrap_s, **settle)
     if factorization is None:
         factorization = "QR" if bootstrap_s is None else "CHOLESKY"
     if relinearize_threshold is None:
@@ -182,27 +198,51 @@ def solve_body_incremental(session, opts: BodyOptions = BodyOptions(), lag_s: fl
     solver = _make_solver(lag_s, smoother, factorization, relinearize_threshold, lag_iterations)
     regularize = factorization.upper() == "CHOLESKY"
     if bootstrap_s is not None:
-        k_first, x_b, fixed_place, boot, bend = _bootstrap(session, pb, opts, bootstrap_s, neck_opts)
+        k_first, x_b, fixed_place, boot, bend = _bootstrap(session, pb, opts, bootstrap_s, neck_opts,
+                                                           full_opts if stream_neck else None)
         boot.update(auto)
-        for k in range(k_first):
-            records.append(_record(pb, x_b, k, fixed_place))
-            lagged[k] = records[-1]
-        anchor, anchor_vals = _anchor(pb, x_b, k_first - 1)
-        npose_keys = []
+        lever_delta = boot.pop("lever_delta", None)                                              # (L8)
+        k_stream = 0 if marginal else body_lag_boot.overlap_start(pb, k_first, full_opts.lag_bootstrap_overlap_s)      # (L5)
+        if marginal:                                  # (L7) the bootstrap's factors enter the smoother itself
+            fixed_place = None
+            if stream_neck and boot.get("levers") is not None:
+                pb.levers = boot.pop("levers")        # (N6)'s lever priors, as the bootstrap's pass had them
+        for k in range(k_first if not marginal else 0):
+            lagged[k] = _record(pb, x_b, k, fixed_place, bend if stream_neck else None)
+            if k < k_stream:
+                records.append(lagged[k])
+        neck_sigma = {}
+        if stream_neck and full_opts.lag_neck_anchor_sigma_m is not None:                       # (L2)
+            neck_sigma = {key: full_opts.lag_neck_anchor_sigma_m for key in body_lag_neck.neck_lever_keys(pb, full_opts)}
+        if not marginal:
+            anchor, anchor_vals = body_lag_boot.anchor(pb, x_b, k_stream - 1, neck_sigma)
+        if stream_neck:
+            bend = {}                                   # per keyframe from here on (records' "bend", (L4))
+        npose_keys = npose_keys if marginal else []
     M = max(1, int(update_every))
-    for k_end in range(k_first, pb.K, M):
-        ks = list(range(k_end, min(k_end + M, pb.K)))
+    chunks = [list(range(k, min(k + M, pb.K))) for k in range(k_first if marginal else k_stream, pb.K, M)]
+    if marginal:
+        chunks.insert(0, list(range(k_first)))
+    boot_keys: dict = {}                          # (L7) first update's keys → their real time, re-stamped next update
+    for ks in chunks:
+        k_end = ks[0]
         graph, new = gtsam.NonlinearFactorGraph(), gtsam.Values()
-        if k_end == k_first and k_first > 0:      # bootstrap: its last keyframe and globals, anchored
+        if k_end == k_stream and k_first > 0 and not marginal:     # bootstrap: its last keyframe, globals, anchored
             graph.push_back(anchor)
             new.insert(anchor_vals)
-            ks_stamp = [k_first - 1] + ks
+            ks_stamp = [k_stream - 1] + ks
         else:
             ks_stamp = ks
         cur = gtsam.Values(new) if est is None else gtsam.Values(est)
         for k in ks:                              # predictions chain through the batch's own new keyframes
-            graph.push_back(factors_at(pb, k))
-            v = _initial_k0(pb) if k == 0 else _predict(pb, cur, k)
+            fk = factors_at(pb, k)
+            if stream_neck:
+                body_lag_neck.stream_factors(pb, fk, full_opts)                                 # (L3)
+            graph.push_back(fk)
+            if k == 0:
+                v = _initial_k0(pb) if not marginal else body_lag_boot.values_k0(pb, x_b)
+            else:                                 # (L5) the bootstrap's own keyframes start at its estimate
+                v = _predict(pb, cur, k) if k >= k_first else body_lag_boot.values_at(pb, x_b, k)
             if regularize:
                 graph.push_back(_weak_priors(v))
             new.insert(v)
@@ -212,14 +252,20 @@ def solve_body_incremental(session, opts: BodyOptions = BodyOptions(), lag_s: fl
             if lag_s is not None:
                 stamps = gtsam.FixedLagSmootherKeyTimestampMap()
                 restamp = glob + [key for key in npose_keys if est is not None and est.exists(key)]
-                for k in ks_stamp:
-                    for key in _keys_at(pb, k):
-                        if new.exists(key):
-                            stamps.insert((key, float(kf_t[k])))
-                for key in restamp:
-                    stamps.insert((key, float(kf_t[ks[-1]])))
-                for key, tk in _bias_stamps(pb, ks).items():
-                    stamps.insert((key, tk))
+                if marginal:                      # (L7)
+                    restamp = glob + [key for key in npose_keys if est is None or est.exists(key)]
+                    for key, tk in body_lag_boot.marginal_stamps(pb, ks, new, restamp, boot_keys, est is None,
+                                                                  _keys_at, _bias_stamps).items():
+                        stamps.insert((key, tk))
+                else:
+                    for k in ks_stamp:
+                        for key in _keys_at(pb, k):
+                            if new.exists(key):
+                                stamps.insert((key, float(kf_t[k])))
+                    for key in restamp:
+                        stamps.insert((key, float(kf_t[ks[-1]])))
+                    for key, tk in _bias_stamps(pb, ks).items():
+                        stamps.insert((key, tk))
                 solver.update(graph, new, stamps)
             else:
                 solver.update(graph, new)
@@ -234,16 +280,19 @@ def solve_body_incremental(session, opts: BodyOptions = BodyOptions(), lag_s: fl
             est = cur
         update_s.append(time.perf_counter() - t0)
         place = fixed_place if fixed_place is not None else estimate_placements(pb, est)
+        bend_now = body_lag_neck.stream_bend(pb, est, place[0], full_opts, lever_delta) if stream_neck else None  # (L4)
         for k in ks:
-            records.append(_record(pb, est, k, place))
+            records.append(_record(pb, est, k, place, bend_now))
+        if marginal and len(records) == len(ks):  # (L7) the bootstrap's keyframes, after their one joint update
+            lagged.update({k: records[k] for k in ks})
         if lag_s is not None:                     # keyframes still in the window: latest (lag-smoothed) estimate
             k_old = ks[-1]
             while k_old >= 0 and kf_t[ks[-1]] - kf_t[k_old] <= lag_s + 1e-9:
                 if est.exists(bf.pose_key(0, k_old)):
-                    lagged[k_old] = _record(pb, est, k_old, place)
+                    lagged[k_old] = _record(pb, est, k_old, place, bend_now)
                 k_old -= 1
     total = time.perf_counter() - t_start
-    dur = float(session.t[-1] - (session.t[pb.kf[k_first - 1]] if k_first > 0 else session.t[0]))  # streamed
+    dur = float(session.t[-1] - (session.t[pb.kf[k_stream - 1]] if k_stream > 0 else session.t[0]))  # streamed
     info = {"mode": "isam2" if lag_s is None else f"fixed_lag_{lag_s}s", "keyframes": pb.K,
             "update_s": np.asarray(update_s), "total_s": total, "failed_updates": failures,
             "first_failure": first_failure,
@@ -255,8 +304,10 @@ def solve_body_incremental(session, opts: BodyOptions = BodyOptions(), lag_s: fl
     if lag_s is None and fixed_place is None:         # no bootstrap: lag_neck_from_bootstrap has nothing to read
         return make_result(pb, est, info)
     if lag_s is None:                             # iSAM2 after a bootstrap: its final estimate, bRs held
-        lagged.update({k: _record(pb, est, k, fixed_place) for k in range(k_first, pb.K)})
-    res = filtered_result(pb, [lagged[k] for k in range(pb.K)], bend)
+        bend_end = body_lag_neck.stream_bend(pb, est, fixed_place[0], full_opts, lever_delta) if stream_neck else None
+        lagged.update({k: _record(pb, est, k, fixed_place, bend_end) for k in range(k_stream, pb.K)})
+    info["lag_records"] = [lagged[k] for k in range(pb.K)]     # per keyframe as output (benchmarks/l22_lag_diag.py)
+    res = filtered_result(pb, info["lag_records"], bend)
     return BodyResult(res.t, res.names, res.n_quat, res.n_pos, res.placements, info)
 
 
@@ -292,10 +343,13 @@ def _make_solver(lag_s, smoother: str, factorization: str, relinearize_threshold
     return gtsam.BatchFixedLagSmoother(float(lag_s), lm)
 
 
-def _bootstrap(session, pb: BodyProblem, opts: BodyOptions, bootstrap_s: float, neck_opts: BodyOptions | None = None):
+def _bootstrap(session, pb: BodyProblem, opts: BodyOptions, bootstrap_s: float, neck_opts: BodyOptions | None = None,
+               stream_opts: BodyOptions | None = None):
     """Batch solve of the first keyframes: (first keyframe index to stream, estimate, (bRs…, ψ), info, bend);
     bend: {} or, with `neck_opts` (BodyOptions.lag_neck_from_bootstrap), the neck's constant bend (N5) from the
-    (N6) pass on this batch graph (body_neck.bootstrap_bend; the estimate returned stays the first pass's)."""
+    (N6) pass on this batch graph (body_neck.bootstrap_bend; the estimate returned stays the first pass's).
+    `stream_opts` (BodyOptions.lag_neck_stream): the estimate returned, its placements and the bend are the (N6)
+    pass's (body_lag_neck (L1)), the stream continues from them."""
     t0 = time.perf_counter()
     rate = 1.0 / float(np.median(np.diff(session.t)))
     m = int(np.clip(round(bootstrap_s * rate / max(1, opts.keyframe_every)), 1, pb.K - 2))
@@ -304,86 +358,16 @@ def _bootstrap(session, pb: BodyProblem, opts: BodyOptions, bootstrap_s: float, 
     pb_b = build_problem(sub, replace(opts, hinges=()))
     x_b, passes, graph = optimize_with_mag_noise(pb_b)
     pb.mag_dirs, pb.mag_sigmas = pb_b.mag_dirs, pb_b.mag_sigmas    # (B5') carried into the stream
+    if stream_opts is not None:                                                                   # (L1)
+        x_b, bend, neck_info = body_lag_neck.bootstrap_pass(pb_b, x_b, graph, stream_opts)
     place = estimate_placements(pb_b, x_b)
-    bend, neck_info = body_neck.bootstrap_bend(pb_b, x_b, graph, neck_opts) if neck_opts is not None else ({}, None)
+    if stream_opts is None:
+        bend, neck_info = body_neck.bootstrap_bend(pb_b, x_b, graph, neck_opts) if neck_opts is not None else ({}, None)
     info = {"seconds": time.perf_counter() - t0, "keyframes": m + 1,
             "iterations": sum(p["iterations"] for p in passes), "psi_deg": float(np.rad2deg(place[1]))}
     if neck_info is not None:
         info["neck_pass_iterations"] = neck_info["iterations"]
+        for key in ("levers", "lever_delta"):
+            if key in neck_info:
+                info[key] = neck_info[key]
     return m + 1, x_b, place, info, bend
-
-
-def _anchor(pb: BodyProblem, x: gtsam.Values, k: int) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Values]:
-    """Priors on keyframe k's states and the global variables at their bootstrap estimate (a diagonal
-    stand-in for the bootstrap's marginal: σ 0.01 rad / 0.01 m pose, 0.02 m/s velocity, bias σ 0.02 m/s²
-    and 0.002 rad/s, lever arms 0.005 m)."""
-    g, v = gtsam.NonlinearFactorGraph(), gtsam.Values()
-    pose_m = gtsam.noiseModel.Diagonal.Sigmas(np.full(6, 0.01))
-    vel_m = gtsam.noiseModel.Isotropic.Sigma(3, 0.02)
-    bias_m = gtsam.noiseModel.Diagonal.Sigmas(np.r_[np.full(3, 0.02), np.full(3, 0.002)])
-    lever_m = gtsam.noiseModel.Isotropic.Sigma(3, 0.005)
-    for s in range(len(pb.names)):
-        T, vel, b = x.atPose3(bf.pose_key(s, k)), x.atVector(bf.vel_key(s, k)), x.atConstantBias(pb.bkey(s, k))
-        g.add(gtsam.PriorFactorPose3(bf.pose_key(s, k), T, pose_m))
-        g.add(gtsam.PriorFactorVector(bf.vel_key(s, k), vel, vel_m))
-        g.add(gtsam.PriorFactorConstantBias(pb.bkey(s, k), b, bias_m))   # same segments in the prefix problem
-        v.insert(bf.pose_key(s, k), T)
-        v.insert(bf.vel_key(s, k), vel)
-        v.insert(pb.bkey(s, k), b)
-    for i in range(len(pb.levers)):
-        g.add(gtsam.PriorFactorPoint3(bf.lever_key(i), x.atPoint3(bf.lever_key(i)), lever_m))
-        v.insert(bf.lever_key(i), x.atPoint3(bf.lever_key(i)))
-    return g, v
-
-
-def _record(pb: BodyProblem, est: gtsam.Values, k: int, place_psi: tuple) -> dict:
-    """What the filter knows right after keyframe k's update: keyframe k's sensor states, the biases and the
-    sensor-to-segment rotations from the CURRENT estimate of the N-pose (heading becomes observable only
-    once the subject moves, so these improve over time)."""
-    place, psi = place_psi
-    S = len(pb.names)
-    return {"nRs": np.stack([est.atPose3(bf.pose_key(s, k)).rotation().matrix() for s in range(S)]),
-            "p": est.atPose3(bf.pose_key(0, k)).translation(), "v": est.atVector(bf.vel_key(0, k)),
-            "b_gyr": np.stack([est.atConstantBias(pb.bkey(s, k)).gyroscope() for s in range(S)]),
-            "place": place, "psi": psi}
-
-
-def filtered_result(pb: BodyProblem, records: list, bend: dict | None = None) -> BodyResult:
-    """Causal per-sample output: from keyframe k's filtered state, the gyro integrated forward to the samples
-    before keyframe k+1 (R_{i+1} = R_i Exp((ω_i − b̂_k) dt_i)), segment rotations nRb = Rz(ψ₀ − ψ_k) nRs bRs_kᵀ
-    with keyframe k's sensor-to-segment rotations, root sensor position p_k + v_k τ; `bend` (the bootstrap's
-    body_neck.bootstrap_bend): those links turn with their upper neighbour (N5), the others keep the ties (K2)."""
-    t = np.asarray(pb.session.t, float)
-    N, K = t.size, len(records)
-    kf = pb.kf[:K]
-    L = np.diff(np.append(kf, N))                       # samples owned by each keyframe
-    nRg = np.stack([rz(np.deg2rad(pb.opts.npose_heading_deg) - r["psi"]) for r in records])     # (K,3,3)
-    q_seg = {}
-    for s, name in enumerate(pb.names):
-        sess = pb.session.sensors[name]
-        R = np.stack([r["nRs"][s] for r in records])
-        b = np.stack([r["b_gyr"][s] for r in records])
-        bRs = np.stack([r["place"][name][0] for r in records])
-        G = nRg                                          # (K,3,3) graph → output rotation per keyframe
-        nRb = np.empty((N, 3, 3))
-        for m in range(int(L.max())):
-            ok = m < L
-            i = kf[ok] + m
-            if m > 0:
-                R[ok] = R[ok] @ expmap((sess.gyr[i - 1] - b[ok]) * sess.dt[i - 1][:, None])
-            nRb[i] = G[ok] @ R[ok] @ np.swapaxes(bRs[ok], 1, 2)
-            if s == 0:
-                if m == 0:
-                    root = np.empty((N, 3))
-                bRs0 = bRs[ok]
-                b_pos0 = np.stack([records[k]["place"][name][1] for k in np.flatnonzero(ok)])
-                p_s = np.stack([records[k]["p"] + records[k]["v"] * (t[kf[k] + m] - t[kf[k]]) for k in np.flatnonzero(ok)])
-                o = p_s + np.einsum("kij,kj->ki", R[ok], np.einsum("kji,kj->ki", bRs0, -b_pos0))
-                root[i] = np.einsum("kij,kj->ki", G[ok], o)
-        q_seg[name] = rotmat_to_quat(nRb)
-    q_seg.update(body_neck.apply_bend(bend or {}, q_seg))          # nR_u = nR_A · A_R_u (N5)
-    n_quat = fill_segments(pb.skel, q_seg)
-    n_pos = forward_kinematics(pb.skel, n_quat, root)
-    return BodyResult(t, tuple(pb.skel.names), n_quat, n_pos,
-                      {n: {"bRs": records[-1]["place"][n][0], "b_pos": records[-1]["place"][n][1]} for n in pb.names},
-                      {"mode": "filtered", "npose_heading_deg": [float(np.rad2deg(r["psi"])) for r in records]})

@@ -51,6 +51,10 @@ class BodyOptions:
         placements: nominal {segment: (bRs (3,3), b_pos (3,))}; segments missing here get
             `imugraph.body.placement.nominal_placement` (on the skin mid-segment, z out of the skin, x along
             the segment; `default_placement`).
+        init: "nominal" (default): sensors missing from `placements` start at their nominal placement; "motion"
+            (helper Q22b): their headings about the vertical from the joint accelerations after the N-pose
+            (imugraph.body.placement_motion (H1)–(H4); every build_problem, so also the fixed lag's bootstrap).
+        init_motion_window_s: with init "motion", the seconds after the N-pose whose samples (H3) uses.
         use_mag: magnetometer factors (B5) with a per-sensor field direction from the N-pose.
         mag_sigma: σ of the normalised field direction (unitless, per axis); with mag_sigma_ml its floor.
         mag_sigma_ml: how many times each sensor's field-direction σ is estimated by maximum likelihood
@@ -127,6 +131,28 @@ class BodyOptions:
         lag_neck_from_bootstrap: solve_body_incremental with a bootstrap: the (N6) pass ((N8), (N9) as set) runs on the
             bootstrap's batch graph and the streamed output turns `unsensed_bend`'s links by the constant bend (N5) read
             there (body_neck.bootstrap_bend); False: the neck keeps the ties (K2) there (single_pass_options).
+        lag_neck_stream: solve_body_incremental with a bootstrap (helper L22, imugraph.graphs.body_lag_neck): the
+            bootstrap's (N6) pass ((N8), (N9) as set) gives the anchor of the stream's levers, the stream keeps the
+            neck's lumped joint at lever_pass_bend_sigma_m (N8), and each keyframe's output turns the neck by the bend
+            (N5) of the stream's levers when it leaves the window (filtered: right after its update). False: ties.
+        lag_neck_anchor_sigma_m: with lag_neck_stream, σ of the anchor prior on the neck's lumped-joint levers (L2)
+            (None: the 5 mm of every lever anchor).
+        lag_bootstrap_overlap_s: solve_body_incremental with a bootstrap (helper L22): the bootstrap's keyframes of its
+            last this many seconds are solved again by the stream (anchored before them, started at the bootstrap's
+            estimate), so they are smoothed with the data that follow; 0: output as the bootstrap left them.
+        lag_bootstrap_scale: the auto bootstrap (imugraph.graphs.body_bootstrap (A1)) ends once every sensor has turned
+            ≥ scale × 1 rad and accelerated ≥ scale × 2 m/s beyond the N-pose (helper L22: the placements bRs the stream
+            holds come from it; CMU 131_02's shoulder needs more motion than 1×).
+        lag_bootstrap_marginal: the fixed lag (helper L22, (L7)): instead of diagonal anchor priors at the bootstrap's
+            last keyframe, the bootstrap's own factors enter the smoother as its first update (started at the bootstrap's
+            estimate, so their linearisation is good) and the smoother marginalises them; the last N-pose keyframes stay
+            in the window, and the placements bRs, ψ are re-estimated from them at every update. False: anchors.
+        lag_bootstrap_settle_deg, lag_bootstrap_settle_step_s: the auto bootstrap, after (A1), is solved again
+            every step s longer until no sensor's bRs moves by settle_deg or more (imugraph.graphs.body_lag_settle (A2));
+            None: (A1) alone.
+        lag_neck_mag_offset: with lag_neck_stream, use_mag and unsensed_bend_mag_free: the stream's bend (L4) is read
+            from its levers plus the offset (N9)'s magnetometer-free levers had from the bootstrap's own (body_lag_neck
+            (L8)); False: the bootstrap's (N9) neck levers start the stream, the bend read from its levers as they are.
     """
 
     keyframe_every: int = 6
@@ -149,6 +175,8 @@ class BodyOptions:
     npose: tuple | None = None
     npose_heading_deg: float = 0.0
     placements: dict = field(default_factory=dict)
+    init: str = "nominal"                               # "motion": placements from (H1)–(H4) (placement_motion)
+    init_motion_window_s: float = 30.0                  # (H3) window after the N-pose, s
     use_mag: bool = False
     init_heading_from_mag: bool | None = None
     mag_sigma: float = 0.05
@@ -188,6 +216,14 @@ class BodyOptions:
     lever_pass_bend_sigma_m: float | None = 0.005       # (N8) σ of unsensed_bend's lumped joints in the (N6) pass (session 21 default; was None)
     unsensed_bend_mag_free: bool = True                 # (N9) the bend from the (N6) graph without magnetometers (session 21 default)
     lag_neck_from_bootstrap: bool = False               # fixed lag / iSAM2: (N5) with the bend of its bootstrap's (N6) pass; False: ties
+    lag_neck_stream: bool = False                       # fixed lag / iSAM2 (helper L22): (N5) read from the stream's own levers (body_lag_neck)
+    lag_neck_anchor_sigma_m: float | None = None        # (L2) σ of the neck levers' bootstrap anchor in the stream; None: 5 mm
+    lag_bootstrap_overlap_s: float = 0.0                # (L5) the bootstrap's last seconds re-estimated by the stream; 0: none
+    lag_bootstrap_scale: float = 1.0                    # (L6) the auto bootstrap's (A1) turn and Δv thresholds × this
+    lag_bootstrap_marginal: bool = False                # (L7) the bootstrap's factors enter the fixed lag (N-pose kept): bRs keeps improving
+    lag_bootstrap_settle_deg: float | None = None       # (A2) the auto bootstrap extended until its bRs change < this; None: (A1) only
+    lag_bootstrap_settle_step_s: float = 1.0            # (A2) the step of that extension, s
+    lag_neck_mag_offset: bool = False                   # (L8) with magnetometers: (L4) reads levers + the bootstrap's (N9) offset
 
 
 # σ of the sensor's turn about the segment's long axis (soft-tissue artefact, rigid part), by segment-name

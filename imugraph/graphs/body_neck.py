@@ -307,13 +307,14 @@ def _rot_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.eye(3) + V + V @ V / (1.0 + c)
 
 
-def graph_bend(pb, x, only: tuple = ()) -> dict:
+def graph_bend(pb, x, only: tuple = (), place: dict | None = None) -> dict:
     """{link: (A, A_R_link)} the constant bend (N5) of each single unsensed link (distal segment D in `only`,
     () = all) that the graph's lumped joint implies: d = bRs_A (l_A,D − l_A,up), l_A,up the lever of A's own
     proximal joint on A's sensor (the root: d = bRs_A l_A,D + b_pos_A with b_pos_A, A's sensor origin on A,
-    the mean of b_j − bRs_A l_A,j over A's other joints j)."""
+    the mean of b_j − bRs_A l_A,j over A's other joints j). `place`: the placements to use ({segment: (bRs, b_pos)});
+    None: estimated from x's N-pose keyframes (the fixed lag passes its bootstrap's: its window holds no N-pose)."""
     from imugraph.graphs.body_output import estimate_placements
-    place = estimate_placements(pb, x)[0]
+    place = estimate_placements(pb, x)[0] if place is None else place
     skel = pb.skel
     lev = {(seg, jj): i for i, (seg, jj, _) in enumerate(pb.levers)}
     out = {}
