@@ -183,8 +183,9 @@ def long_axis_in_sensor(skel, name: str, bRs: np.ndarray) -> np.ndarray:
     return bRs.T @ e
 
 
-def fit_body(session, opts=None) -> BodyFit:
-    """The base fit (module doc): the body graph's batch LM with `opts` (default: BodyOptions())."""
+def fit_body(session, opts=None, chunk_s: float | None = None) -> BodyFit:
+    """The base fit (module doc): the body graph's batch LM with `opts` (default: BodyOptions()). chunk_s: LM
+    starts from the chunked warm start of body/chunked.py (same graph and optimum; None: from pb.init)."""
     from imugraph.graphs.body import build_problem, full_graph, optimize
     from imugraph.graphs.body_model import BodyOptions
     from imugraph.graphs.body_neck import single_pass_options
@@ -196,7 +197,13 @@ def fit_body(session, opts=None) -> BodyFit:
     t0 = time.perf_counter()
     pb = build_problem(session, opts)
     graph = full_graph(pb)
-    x, info = optimize(pb, graph, pb.init)
+    start, chunk_its = pb.init, None
+    if chunk_s is not None:
+        from imugraph.diagnose.body.chunked import chunked_start
+        start, chunk_its = chunked_start(pb, graph, float(chunk_s), optimize)
+    x, info = optimize(pb, graph, start)
+    if chunk_its is not None:
+        info = dict(info, chunk_iterations=chunk_its, chunk_s=float(chunk_s))
     return _extract(session, pb, x, info, t0, graph)
 
 

@@ -56,11 +56,17 @@ N_REFIT = 3                  # stage 2: the best screened candidates by G (> 0).
                              # neither its sign test nor its size gates the refit
 
 
-def body_effects(names=None) -> list:
-    """The body effect library (soft_tissue, gyro_bias_drift, accelerometer_bias), optionally a subset."""
+def body_effects(names=None, soft_tissue_window: bool | str = False) -> list:
+    """The body effect library (soft_tissue, gyro_bias_drift, accelerometer_bias), optionally a subset;
+    soft_tissue_window: soft_tissue fitted over a time window (effects/soft_tissue_window.py)."""
     from imugraph.diagnose.body.effects.accelerometer_bias import EFFECT as ACC
     from imugraph.diagnose.body.effects.gyro_bias_drift import EFFECT as GYR
-    from imugraph.diagnose.body.effects.soft_tissue import EFFECT as SOFT
+    if soft_tissue_window == "shape":
+        from imugraph.diagnose.body.effects.soft_tissue_window import EFFECT_SHAPE as SOFT
+    elif soft_tissue_window:
+        from imugraph.diagnose.body.effects.soft_tissue_window import EFFECT as SOFT
+    else:
+        from imugraph.diagnose.body.effects.soft_tissue import EFFECT as SOFT
 
     lib = [SOFT, GYR, ACC]
     if names:
@@ -89,7 +95,12 @@ class BodyDiagnoseOptions:
     simulations, refits), replacing body_options' (None: the base model's, BodyOptions default 6): fewer
     states per solve, but a different (coarser) user model and keyframe-interval residual time base;
     keyframe_s: the same in seconds, keyframe_every = round(keyframe_s / median sample interval) (0.1 s: 6 at
-    60 Hz, the default there, 10 at 100 Hz); not together with keyframe_every."""
+    60 Hz, the default there, 10 at 100 Hz); not together with keyframe_every; chunk_s: the base fit's LM starts
+    from the chunked warm start of body/chunked.py (overlapping chunks of chunk_s seconds solved in turn, then
+    the full graph: the same model and optimum; None: the cold start from the gyro-integrated values);
+    soft_tissue_window: the soft_tissue effect is fitted over a time window (effects/soft_tissue_window.py,
+    7 parameters, size inside the window; "shape": also its resonance (ω_n, ζ) chosen on all rows, only the
+    gains per fold (SW5); False: over the whole recording, 5 parameters)."""
     seed: int = 0
     effects: tuple | None = None
     sensors: tuple | None = None
@@ -99,6 +110,8 @@ class BodyDiagnoseOptions:
     n_refit: int = N_REFIT
     keyframe_every: int | None = None
     keyframe_s: float | None = None
+    chunk_s: float | None = None
+    soft_tissue_window: bool | str = False
 
 
 @dataclass
@@ -186,6 +199,10 @@ def score_candidate(effect, real, a, b, sigma, sensor: str, opt: GapOptions, the
     shrink = shrink_per.get(ch, 0.0)
     final = effect.fit(src, sensor, {c: np.ones(sf.residuals[c].shape[0], bool) for c in CHANNELS}, sigma[sensor])
     significant = clearly_better(G, folds_net)
+    if getattr(effect, "window_sign_test", False):                   # (SW4): soft_tissue_window only
+        from imugraph.diagnose.body.effects.soft_tissue_window import folds_in_window
+        use = folds_in_window(sf, folds, final.t_start, final.t_end)
+        significant = sum(use) >= 2 and clearly_better(G, [f for f, u in zip(folds_net, use) if u])
     relevant = final.size.get("value", 0.0) >= final.size.get("threshold", 0.0)
     return {"name": effect.name, "sensor": sensor, "channel": ch, "t_start": final.t_start, "t_end": final.t_end,
             "gap_before": ex_b.get(ch, 0.0), "gap_after": ex_a.get(ch, 0.0), "shrink": float(shrink),
@@ -222,7 +239,7 @@ def diagnose_body(session, options: BodyDiagnoseOptions = BodyDiagnoseOptions(),
 
         from imugraph.graphs.body_model import BodyOptions
         bopts = dc_replace(BodyOptions() if bopts is None else bopts, keyframe_every=int(every))
-    real = fit_body(session, bopts)
+    real = fit_body(session, bopts, chunk_s=options.chunk_s)
     say(f"base fit: {real.info['iterations']} LM iterations, {real.info['seconds']:.1f} s")
     rng = np.random.default_rng(options.seed)
     a = fit_simulation(simulate_from_fit(real, rng, "+simA"), real, bopts, warm=options.warm)
@@ -235,7 +252,7 @@ def diagnose_body(session, options: BodyDiagnoseOptions = BodyDiagnoseOptions(),
     sensors = [n for n in real.sensors if options.sensors is None or n in options.sensors]
     results = []
     base = {n: base_gaps(real, a, b, sigma, n, opt) for n in sensors}      # the same for every effect
-    for eff in body_effects(options.effects):
+    for eff in body_effects(options.effects, options.soft_tissue_window):
         for n in sensors:
             r = score_candidate(eff, real, a, b, sigma, n, opt, base=base[n])
             locs = [loc for loc in locations if loc["sensor"] == n]
@@ -253,7 +270,7 @@ def diagnose_body(session, options: BodyDiagnoseOptions = BodyDiagnoseOptions(),
             r["refit_skipped"] = "no located gap"
             say(f"refit {r['name']} on {r['sensor']} skipped (no located gap)")
             continue
-        eff = next(e for e in body_effects(options.effects) if e.name == r["name"])
+        eff = next(e for e in body_effects(options.effects, options.soft_tissue_window) if e.name == r["name"])
         try:
             theta = refit_effect(eff, real, r["sensor"], sigma[r["sensor"]], bopts,
                                  warm=options.warm)
@@ -269,7 +286,7 @@ def diagnose_body(session, options: BodyDiagnoseOptions = BodyDiagnoseOptions(),
         results[i] = r2
         say(f"refit {r['name']} on {r['sensor']}: G {r['loglik_gain']:+.3f} → {r2['loglik_gain']:+.3f}, "
             f"shrink {r['shrink']:.2f} → {r2['shrink']:.2f} (LM iterations per round {r2['refit_iterations']})")
-    if any(e.name == "gyro_bias_drift" for e in body_effects(options.effects)):     # stage 2 of the drift: (BD1)
+    if any(e.name == "gyro_bias_drift" for e in body_effects(options.effects, options.soft_tissue_window)):     # stage 2 of the drift: (BD1)
         for r2 in graph_drift_candidates(real, sensors, a, b, sigma, opt, base, score_candidate, say, only=located):
             i = next(i for i, r in enumerate(results) if r["name"] == r2["name"] and r["sensor"] == r2["sensor"])
             r2["screen"] = {k: results[i][k] for k in ("loglik_gain", "shrink", "size", "significant", "relevant")}
