@@ -38,7 +38,8 @@ helper N21b: "len" (the default + BodyOptions.unsensed_bend_length_sigma_m 5 mm,
 magnetometers the bend read from the (N6) graph solved without them; alone / with neck5), "neck3mf" (N8 3 mm + N9);
 labels and the seed table carry the variant.
 Helper Q22b: --neck motion = the default with BodyOptions.init "motion" (sensor headings from the joint
-accelerations, imugraph.body.placement_motion); compare with --neck default,motion.
+accelerations, imugraph.body.placement_motion), --neck auto = init "auto" (motion only for sensors > 45° from
+nominal); compare with --neck default,motion,auto.
 Helper L22 (the fixed lag's own neck bend and bootstrap; imugraph.graphs.body_lag_neck, body_lag_settle): --neck
 "lagstream[NN]" (BodyOptions.lag_neck_stream, neck-lever anchor σ NN mm), "ovN" (lag_bootstrap_overlap_s N s), "bsN" /
 "ls20bsN" / "lsmargbsN" ((A1) thresholds × N), "marg" / "lsmarg" (lag_bootstrap_marginal), "lsmargsetN" / "ls20setN"
@@ -93,6 +94,7 @@ _S21A = {"unsensed_bend": ("Head",), "lever_prior_frame": "lumped", "lever_pass_
 NECK_VARIANTS = {"default": {},                                  # since session 21's second flip = "neck5mf"
                  "tie": _TIES,                                   # the default before session 21
                  "motion": {"init": "motion"},                   # helper Q22b: BodyOptions.init (placement_motion)
+                 "auto": {"init": "auto"},                       # helper Q22b: motion only where > 45° from nominal
                  "bend": {**_TIES, "unsensed_bend": ("Head",)}, "lever": {**_TIES, "lever_prior_frame": "estimated"},
                  "bend+lever": {**_TIES, "unsensed_bend": ("Head",), "lever_prior_frame": "estimated"},
                  "bend+lumped": {**_TIES, "unsensed_bend": ("Head",), "lever_prior_frame": "lumped"},

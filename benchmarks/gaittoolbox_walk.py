@@ -23,6 +23,7 @@ knee and hip.
     .venv/bin/python benchmarks/gaittoolbox_walk.py [--mag] [--hinges knees] [--axial thighs|shanks|legs|SEGS]
                                                    [--lag S] [--ablation] [--figure] [--skeleton SPEC] [--subsample]
                                                    [--knee-gain thighs|left|SEGS --knee-gain-tau S|none]
+                                                   [--init nominal|motion|auto]
 
 --skeleton bvh:mvn reads the session onto the subject's skeleton, from the HIERARCHY (OFFSETs only, never the
 motion) of the trial's MVN BVH; also 'height:H' or 'bvh:PATH' (imugraph.body.skeleton.skeleton_from_spec).
@@ -100,7 +101,13 @@ def ours(root: Path, use_mag: bool, hinges: tuple, lag: float | None = None, var
             "realtime_factor": res.info.get("realtime_factor"),
             "iterations": [p.get("iterations") for p in res.info.get("passes", [])],
             "mag_sigmas": res.info.get("mag_sigmas"), "skeleton": session.meta.get("skeleton"),
-            "knee_gain": res.info.get("knee_gain")}
+            "knee_gain": res.info.get("knee_gain"), "init_motion": res.info.get("init_motion")}
+    if lag is None:                 # helper Q22b: the estimated bRs vs the nominal site's (which start was closer)
+        from imugraph.geometry import logmap
+        from imugraph.graphs.body_model import default_placement
+        info["bRs_final_vs_nominal_deg"] = {
+            n: round(float(np.degrees(np.linalg.norm(logmap(default_placement(session.skeleton, n)[0].T @ p["bRs"])))), 1)
+            for n, p in res.placements.items()}
     return {n: res.n_quat[:, i] for i, n in enumerate(res.names)}, info
 
 
@@ -212,6 +219,7 @@ def main(argv=None) -> int:
     ap.add_argument("--knee-gain-turn", choices=("hinge", "cardan"), default="hinge", help="BodyOptions.knee_gain_turn")
     ap.add_argument("--knee-gain-hinge", default="", help="σ of that knee's hinge (S3), 'IE,AbAd' rad (default: "
                     "BodyOptions.axial_hinge_sigmas_rad)")
+    ap.add_argument("--init", choices=("nominal", "motion", "auto"), default="nominal", help="BodyOptions.init (helper Q22b): sensor headings from the nominal placement or from the motion (imugraph.body.placement_motion)")
     ap.add_argument("--figure", action="store_true")
     ap.add_argument("--out", default="gaittoolbox_walk.json", help="file name in bench_out/")
     a = ap.parse_args(argv)
@@ -230,21 +238,28 @@ def main(argv=None) -> int:
              "knee_gain_screw_home": a.knee_gain_screw_home, "knee_gain_turn": a.knee_gain_turn,
              "knee_gain_hinge_sigmas_rad": tuple(float(v) for v in a.knee_gain_hinge.split(",")) if a.knee_gain_hinge
              else None} if kg else {}
-    q_ours, info = ours(root, a.mag, hinges, axial=axial, skeleton=skeleton, extra=kg_opts)
+    init_kw = {"init": a.init} if a.init != "nominal" else {}     # helper Q22b: BodyOptions.init, every solve
+    q_ours, info = ours(root, a.mag, hinges, axial=axial, skeleton=skeleton, extra={**kg_opts, **init_kw})
     if info.get("knee_gain"):
         print("knee gain: " + ", ".join(f"{n} g {v['gain']:+.3f}, offset sd {np.rad2deg(v['offset_std_rad']):.2f}°"
                                         for n, v in info["knee_gain"].items()))
     info["skeleton_stated"] = ("subject's, from the MVN BVH hierarchy" if a.skeleton == "bvh:mvn" else info["skeleton"])
     print(f"skeleton: {info['skeleton_stated']}")
+    print("estimated bRs vs the nominal site's (deg):", info.get("bRs_final_vs_nominal_deg"))
+    if info.get("init_motion"):
+        print("init motion (H3) δ / (H4) ψ, switched (deg from nominal):",
+              {k: v["delta_deg"] for k, v in info["init_motion"].items() if not k.startswith("_")},
+              info["init_motion"].get("_psi_deg"), info["init_motion"].get("_switched"))
     print(f"ours: {info['samples']} samples solved in {info['seconds']:.1f} s (npose {info['npose']}, "
           f"LM iterations {info['iterations']})")
     systems = {"ours": q_ours, "Xsens MVN": xsens_mvn(root)}
     for variant in (("no_joints", "no_levers") if a.ablation else ()):
-        systems[f"ours {variant}"], info[variant] = ours(root, a.mag, hinges, None, variant, axial, skeleton, kg_opts)
+        systems[f"ours {variant}"], info[variant] = ours(root, a.mag, hinges, None, variant, axial, skeleton,
+                                                          {**kg_opts, **init_kw})
         print(f"ours {variant}: {info[variant]['seconds']:.1f} s")
     if a.lag is not None:
         try:
-            q_lag, info["fixed_lag"] = ours(root, a.mag, hinges, a.lag, axial=axial, skeleton=skeleton)
+            q_lag, info["fixed_lag"] = ours(root, a.mag, hinges, a.lag, axial=axial, skeleton=skeleton, extra=init_kw)
             systems[f"ours lag {a.lag:g} s"] = q_lag
             print(f"ours, fixed lag {a.lag:g} s: {info['fixed_lag']['seconds']:.1f} s")
         except Exception as exc:              # report the failure of the incremental solver, score the rest
@@ -280,7 +295,7 @@ def main(argv=None) -> int:
         shown = {n: q for n, q in systems.items() if n in ("ours", "Xsens MVN")}
         shifts = {n: results["offset"][n]["shift_samples"] for n in shown}
         figure(OUT_DIR / "gaittoolbox_walk.png", vicon, shown, shifts)
-    payload = {"issue": "4b", "use_mag": a.mag, "skeleton": skeleton or "nominal",
+    payload = {"issue": "4b", "use_mag": a.mag, "init": a.init, "skeleton": skeleton or "nominal",
                "hinges": list(hinges), "axial_segments": list(axial), "knee_gain": kg_opts,   # tuples: json_ready
                "ours": info, "handlings": HANDLINGS,
                "results": results, "peak_memory_mb": peak_memory_mb(),

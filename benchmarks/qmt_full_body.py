@@ -27,7 +27,7 @@ No ground truth. What is checked, and what it means:
               the RMS difference of its hip/knee/ankle angles from the 16-sensor batch's.
 
     .venv/bin/python benchmarks/qmt_full_body.py [--duration S] [--lag 1] [--no-lag] [--lower]
-        [--init nominal|motion] [--npose T0,T1] [--hinges RightLowerLeg,LeftLowerLeg] [--lower-back L5|L3]
+        [--init nominal|motion|auto] [--npose T0,T1] [--hinges RightLowerLeg,LeftLowerLeg] [--lower-back L5|L3]
     .venv/bin/python benchmarks/qmt_full_body.py --sim 0,1,2 [--sim-duration 30]    (the (H1)–(H3) check)
 
 --duration: only the first S seconds (default: all 100 s). Writes bench_out/qmt_full_body.json.
@@ -97,100 +97,22 @@ def part_read(bs) -> dict:
     return {"npose": [float(bs.t[idx[0]]), float(bs.t[idx[-1]]), how], "sensors": rows}
 
 
-def motion_placements(bs, opts, window_s: float = 30.0, step_deg: float = 5.0) -> tuple[dict, dict]:
-    """Experiment (H1)–(H3), option --init motion: each sensor's heading at the N-pose from the joint accelerations.
-
-    The estimator starts every sensor at the heading its NOMINAL placement implies (body_init); on a real suit
-    mounted another way a sensor can start up to 180° off. Here, with the N-pose tilt (gravity) and the gyro
-    integrated from it (body_init.initial_orientations, nominal headings), every joint (topological order, the
-    root's heading fixed) gets the heading turn δ of its child sensor that best explains one joint centre:
-
-        n_a_s = nRs f_s − g ẑ,  K_s = nRs ([ω̇_s×] + [ω_s×]²)                                       (H1)
-        n_a_P + K_P l_P = Rz(δ) (n_a_C + K_C l_C)    (l_P, l_C least squares for each δ)           (H2)
-        δ_C = argmin_δ RMS residual of (H2) over `window_s` after the N-pose (grid `step_deg`)    (H3)
-        ψ: (O1) of body_output.npose_heading on the N-pose joint centres chained from the root with
-           the fitted levers, J = p_P + nRs_P l_P, p_C = J − nRs_C l_C                              (H4)
-
-    (the standard joint-acceleration constraint, e.g. Seel, Schauer & Raisch 2012, with levers fitted, not
-    assumed). Placement: bRs = Rz(ψ)ᵀ Rz(δ_C) nRs(N-pose) (the segments aligned at the N-pose, facing ψ), b_pos
-    nominal. Without (H4) every lever prior would turn with the root sensor's unknown heading (simulated: worst
-    joint 1.21° instead of the nominal start's 0.47°, --sim 0).
-    Uses only the IMU samples. Returns ({segment: (bRs, b_pos)} for BodyOptions.placements, {child: δ deg, rms})."""
-    from imugraph.graphs.body_init import initial_orientations, rz
-    from imugraph.graphs.body_model import body_joints, npose_samples, sensor_setup
-
-    skel = bs.skeleton
-    names = sorted(skel.sensed, key=skel.index)
-    idx, _ = npose_samples(bs, opts)
-    setups = sensor_setup(bs, skel, opts, idx)
-    R = initial_orientations(bs, names, setups, idx, 0.0, False)
-    w = slice(int(idx[-1]) + 1, min(bs.n - 1, int(idx[-1]) + 1 + int(window_s * bs.rate)))
-
-    def skew(v):
-        z = np.zeros(v.shape[:-1])
-        return np.stack([np.stack([z, -v[..., 2], v[..., 1]], -1), np.stack([v[..., 2], z, -v[..., 0]], -1),
-                         np.stack([-v[..., 1], v[..., 0], z], -1)], -2)
-    acc_n, K = {}, {}
-    for n in names:
-        s = bs.sensors[n]
-        om = s.gyr - setups[n].gyro_bias0
-        dom = np.gradient(om, s.t, axis=0)
-        acc_n[n] = np.einsum("nij,nj->ni", R[n][w], s.acc[w]) - np.array([0.0, 0.0, opts.g])     # (H1)
-        K[n] = R[n][w] @ (skew(dom[w]) + skew(om[w]) @ skew(om[w]))
-    turn, info = {names[0]: 0.0}, {}
-    for jt in body_joints(skel):
-        P, C = jt.parent, jt.child
-        RzP = rz(np.radians(turn[P]))
-        aP, KP = acc_n[P] @ RzP.T, RzP @ K[P]
-        best = None
-        for d in np.arange(0.0, 360.0, step_deg):
-            Rd = rz(np.radians(d))
-            aC, KC = acc_n[C] @ Rd.T, Rd @ K[C]
-            A = np.concatenate([KP, -KC], axis=2).reshape(-1, 6)                                 # (H2)
-            b = (aC - aP).reshape(-1)
-            sol, *_ = np.linalg.lstsq(A, b, rcond=None)
-            rms = float(np.sqrt(np.mean((A @ sol - b) ** 2)))
-            if best is None or rms < best[1]:
-                best = (float(d), rms, sol)
-        turn[C] = best[0]
-        info[C] = {"delta_deg": best[0], "rms_m_s2": best[1], "levers": best[2]}
-    R0 = {n: rz(np.radians(turn[n])) @ R[n][int(idx[0])] for n in names}                         # (H3)
-    pos, J, c = {names[0]: np.zeros(3)}, [], []
-    neutral = skel.neutral_positions()
-    for jt in body_joints(skel):                                                                  # (H4)
-        l_P, l_C = info[jt.child]["levers"][:3], info[jt.child]["levers"][3:]
-        J.append(pos[jt.parent] + R0[jt.parent] @ l_P)
-        pos[jt.child] = J[-1] - R0[jt.child] @ l_C
-        c.append(neutral[skel.index(jt.child)])
-    u, d = (np.array(c) - np.mean(c, axis=0))[:, :2], (np.array(J) - np.mean(J, axis=0))[:, :2]
-    psi = float(np.arctan2(np.sum(u[:, 0] * d[:, 1] - u[:, 1] * d[:, 0]), np.sum(u * d)))          # (O1)
-    place = {n: (rz(psi).T @ R0[n], setups[n].b_pos_nom) for n in names}
-    for v in info.values():
-        v["levers"] = np.round(v["levers"], 4).tolist()
-    info["_psi_deg"] = float(np.degrees(psi))
-    return place, info
-
-
 def solve(bs, lag=None, init: str = "nominal", npose=None, hinges: tuple = ()):
     """(BodyResult, CPU s, {child: δ}) of the batch solver or the fixed lag: BodyOptions defaults (no magnetometer
-    here) but `npose` (None: detected), and init "nominal" (the estimator's own start) or "motion"
-    (`motion_placements`, its CPU time included)."""
-    import dataclasses
-
+    here) but `npose` (None: detected), hinges, and BodyOptions.init "nominal" (the estimator's own start) or
+    "motion" (imugraph.body.placement_motion (H1)–(H4), inside build_problem: its CPU time included; the batch's
+    δ and ψ from info["init_motion"])."""
     from imugraph.graphs.body_model import BodyOptions
 
     c0 = time.process_time()
-    opts, deltas = BodyOptions(npose=npose, hinges=tuple(h for h in hinges if h in bs.skeleton.sensed)), {}
-    if init == "motion":
-        place, deltas = motion_placements(bs, opts)
-        opts = dataclasses.replace(opts, placements=place)
+    opts = BodyOptions(npose=npose, hinges=tuple(h for h in hinges if h in bs.skeleton.sensed), init=init)
     if lag is None:
         from imugraph.graphs.body import solve_body_batch
         res = solve_body_batch(bs, opts)
     else:
         from imugraph.graphs.body_incremental import solve_body_incremental
         res = solve_body_incremental(bs, opts, lag_s=lag)
-    return res, time.process_time() - c0, deltas
+    return res, time.process_time() - c0, res.info.get("init_motion") or {}
 
 
 def _seg_R(res, name: str) -> np.ndarray:
@@ -322,7 +244,8 @@ def part_sim(seeds: list, duration: float, motion: str = "xsens") -> dict:
     """Ground truth for (H1)–(H3): a simulated 17-IMU session (benchmarks/body_bench.py set-up: random placements
     ≤ 30°, MEMS noise and bias) whose sensors are ALSO turned about their segment's long (N-pose vertical) axis by
     a uniform random angle in [0°, 360°) — a suit strapped on without regard to the nominal layout — solved with the
-    nominal start and with `motion_placements`; worst joint-angle RMSE and position RMS vs the truth."""
+    nominal start and with BodyOptions.init "motion" and "auto" (imugraph.body.placement_motion); worst
+    joint-angle RMSE and position RMS vs the truth."""
     from benchmarks.body_bench import BLEND_S, NPOSE_S, RATE_HZ, motion_path, sensor_params
     from imugraph.body.evaluate import score_against_truth
     from imugraph.body.placement import Placement
@@ -340,7 +263,7 @@ def part_sim(seeds: list, duration: float, motion: str = "xsens") -> dict:
         bs = simulate_body(mo, skel, place, sensor_params(list(place), rng), rng, name=f"{motion}_seed{seed}")
         mask = bs.t >= NPOSE_S + BLEND_S - 1e-9
         row = {}
-        for init in ("nominal", "motion"):
+        for init in ("nominal", "motion", "auto"):
             res, cpu, _ = solve(bs, init=init)
             sc = score_against_truth(res, bs.truth, skel, mask)
             row[init] = {"joint_rmse_max_deg": sc["joint_rmse_max_deg"],
@@ -361,8 +284,9 @@ def main(argv=None) -> int:
     p.add_argument("--lag", type=float, default=1.0, help="fixed-lag smoother lag, s")
     p.add_argument("--no-lag", action="store_true", help="skip the fixed lag")
     p.add_argument("--lower", action="store_true", help="also the 7 lower-body sensors alone")
-    p.add_argument("--init", choices=("nominal", "motion"), default="nominal",
-                   help="sensor headings at the start: the estimator's nominal placement, or motion_placements")
+    p.add_argument("--init", choices=("nominal", "motion", "auto"), default="nominal",
+                   help="BodyOptions.init: sensor headings at the start from the nominal placement, or from the motion "
+                   "(imugraph.body.placement_motion)")
     p.add_argument("--sim", default="", metavar="SEEDS", help="only the simulated check of motion_placements "
                    "(part_sim) on these seeds, comma-separated")
     p.add_argument("--sim-duration", type=float, default=30.0)
@@ -393,7 +317,8 @@ def main(argv=None) -> int:
     res, cpu, deltas = solve(bs, init=a.init, npose=npose, hinges=hinges)
     if deltas:
         print(f"motion_placements ψ {deltas['_psi_deg']:.1f}°, δ (deg) / (H2) RMS (m/s²):",
-              {k: (round(v["delta_deg"]), round(v["rms_m_s2"], 2)) for k, v in deltas.items() if k != "_psi_deg"})
+              {k: (round(v["delta_deg"]), round(v["rms_m_s2"], 2)) for k, v in deltas.items() if not k.startswith("_")},
+              "switched (deg from nominal):", deltas.get("_switched"))
     result["batch"] = {"cpu_s": cpu, "cpu_per_realtime_s": cpu / dur, "npose": res.info.get("npose"),
                        "init": a.init, "motion_placements": deltas,
                        "passes": [{k: v for k, v in q.items() if k in ("iterations", "seconds", "cost_final")}

@@ -21,7 +21,10 @@ Options: --lag S runs the fixed-lag incremental solver keeping S seconds instead
 magnetometers (default off: indoor fields near the body are rarely homogeneous); --hinges LIST treats joints
 as hinges (comma-separated: knees, elbows, or joint names RightKnee, LeftElbow, … or child segment names);
 --skeleton SPEC replaces the session's skeleton (height:H, or bvh:PATH: the OFFSETs of a BVH hierarchy);
---npose T0,T1 gives the static N-pose window instead of detecting it.
+--npose T0,T1 gives the static N-pose window instead of detecting it; --init motion starts every sensor at the
+heading about the vertical its joint accelerations imply (imugraph.body.placement_motion) instead of its nominal site
+(a suit strapped on another way, e.g. the qmt full-body file: converged instead of stopping at the iteration limit);
+--init auto does that only for the sensors more than 45° from their nominal site.
 """
 
 from __future__ import annotations
@@ -62,6 +65,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="the static N-pose window in the session's own time, s (default: detected, the common rest "
                         "of all sensors at the start; e.g. 40,44 for qmt_full_body, whose upper-arm sensors read "
                         "0.04 rad/s at rest)")
+    p.add_argument("--init", choices=("nominal", "motion", "auto"), default="nominal",
+                   help="sensor-on-segment start: nominal (the standard sites, default), motion (each sensor's "
+                        "heading about the vertical from the joint accelerations after the N-pose; for suits worn "
+                        "another way, e.g. qmt_full_body) or auto (motion only for sensors > 45° from nominal)")
     p.add_argument("--skeleton", metavar="SPEC", default="nominal",
                    help="segment lengths and joint positions: nominal (the session's own), height:H (Winter's "
                         "proportions for body height H m), or bvh:PATH (the HIERARCHY OFFSETs of a BVH file, looked "
@@ -217,7 +224,8 @@ def run_mocap(args: argparse.Namespace) -> int:
     if ignored:        # a group with nothing to constrain here: said, not silently dropped
         print(f"imugraph: warning: --hinges {', '.join(ignored)}: no such joint between sensed segments of this "
               "skeleton; ignored", file=sys.stderr, flush=True)
-    opts = BodyOptions(use_mag=bool(args.mag), hinges=hinges, npose=npose_window(getattr(args, "npose", None)))
+    opts = BodyOptions(use_mag=bool(args.mag), hinges=hinges, npose=npose_window(getattr(args, "npose", None)),
+                       init=getattr(args, "init", "nominal"))
     with common.output_folder(args.out, session.name) as out:     # no empty folder left by a failed run
         return _mocap_into(out, args, path, session, opts, hinges, progress)
 
@@ -258,12 +266,13 @@ def _mocap_into(out: Path, args: argparse.Namespace, path: Path, session, opts, 
     plot_stick_figures(out / "stick_figures.png", skel, result.t, result.n_quat, result.n_pos,
                        title=f"Stick figures: {session.name}")
     written += [out / "joint_angles.png", out / "stick_figures.png"]
-    info = {"session": str(path), "name": session.name, "solver": solver, "use_mag": bool(args.mag),
+    info = {"session": str(path), "name": session.name, "solver": solver, "use_mag": bool(args.mag), "init": opts.init,
             "hinges": list(hinges), "skeleton": session.meta.get("skeleton", "session's own"),
             "samples": int(session.n), "segments": list(result.names),
             "placements": result.placements, "info": {k: v for k, v in result.info.items()
                                                       if k in ("build_s", "solve_s", "passes", "keyframes", "npose",
-                                                               "factors", "timing", "biases", "joint_names")},
+                                                               "factors", "timing", "biases", "joint_names",
+                                                               "init_motion")},
             "timing": timing, "scores": scores}
     written.append(atomic_write_text(out / "mocap_info.json", json.dumps(json_ready(info), indent=1) + "\n"))
     progress.say("wrote " + ", ".join(p.name for p in written))

@@ -61,6 +61,7 @@ from dataclasses import dataclass
 import gtsam
 import numpy as np
 
+from imugraph.body.placement_motion import with_motion_placements
 from imugraph.errors import SessionError
 from imugraph.factors import body as bf
 from imugraph.factors import knee_sta
@@ -121,6 +122,7 @@ def build_problem(session, opts: BodyOptions = BodyOptions()) -> BodyProblem:
         raise SessionError(session.source, "skeleton.sensed", f"root '{skel.names[0]}' unsensed", "a sensed root")
     joints = body_joints(skel) if opts.use_joints else []
     npose_idx, method = npose_samples(session, opts)
+    opts, init_motion = with_motion_placements(session, opts, npose_idx)     # init "motion": (H1)–(H4); else as is
     setups = sensor_setup(session, skel, opts, npose_idx)
     turn = sample_turn(session, names, setups) if opts.max_keyframe_turn_rad is not None else None
     kf = keyframes(session.t.size, opts.keyframe_every, turn, opts.max_keyframe_turn_rad)
@@ -134,8 +136,11 @@ def build_problem(session, opts: BodyOptions = BodyOptions()) -> BodyProblem:
     init = initial_values(names, joints, levers, {n: nRs[n][kf] for n in names}, t[kf], setups,
                           int(bias_seg.max()) + 1)
     pims = {name: sensor_pims(session.sensors[name], setups[name], kf, opts) for name in names}
-    return BodyProblem(session, skel, opts, names, joints, setups, levers, kf, npose_idx, method, pims, init,
-                       bias_seg=bias_seg)
+    pb = BodyProblem(session, skel, opts, names, joints, setups, levers, kf, npose_idx, method, pims, init,
+                     bias_seg=bias_seg)
+    if init_motion is not None:
+        pb.init_motion = init_motion                   # (H3) δ and RMS per child, (H4) ψ: solve_body_batch's info
+    return pb
 
 
 def sensor_pims(s, st, kf: np.ndarray, opts: BodyOptions):
@@ -391,6 +396,8 @@ def solve_body_batch(session, opts: BodyOptions = BodyOptions()) -> BodyResult:
             "factors": int(graph.size()), "solve_s": sum(p["seconds"] for p in passes)}
     if pb.mag_sigmas:
         info["mag_sigmas"] = dict(pb.mag_sigmas)
+    if getattr(pb, "init_motion", None) is not None:
+        info["init_motion"] = pb.init_motion
     res = make_result(pb, x, info)
     if opts.knee_gain_segments:
         knee_sta.apply_to_result(pb, x, res)                  # nRb = nRs bRsᵀ Exp(−θ â), θ = c + g κ (G1)

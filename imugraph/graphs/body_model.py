@@ -53,8 +53,9 @@ class BodyOptions:
             the segment; `default_placement`).
         init: "nominal" (default): sensors missing from `placements` start at their nominal placement; "motion"
             (helper Q22b): their headings about the vertical from the joint accelerations after the N-pose
-            (imugraph.body.placement_motion (H1)–(H4); every build_problem, so also the fixed lag's bootstrap).
-        init_motion_window_s: with init "motion", the seconds after the N-pose whose samples (H3) uses.
+            (imugraph.body.placement_motion (H1)–(H4); every build_problem, so also the fixed lag's bootstrap);
+            "auto": "motion" only for the sensors whose motion placement is > init_motion_switch_deg from nominal.
+        init_motion_window_s: with init "motion"/"auto", the seconds after the N-pose whose samples (H3) uses.
         use_mag: magnetometer factors (B5) with a per-sensor field direction from the N-pose.
         mag_sigma: σ of the normalised field direction (unitless, per axis); with mag_sigma_ml its floor.
         mag_sigma_ml: how many times each sensor's field-direction σ is estimated by maximum likelihood
@@ -175,8 +176,9 @@ class BodyOptions:
     npose: tuple | None = None
     npose_heading_deg: float = 0.0
     placements: dict = field(default_factory=dict)
-    init: str = "nominal"                               # "motion": placements from (H1)–(H4) (placement_motion)
+    init: str = "nominal"                               # "motion" / "auto": placements from (H1)–(H4) (placement_motion)
     init_motion_window_s: float = 30.0                  # (H3) window after the N-pose, s
+    init_motion_switch_deg: float = 45.0                # init "auto": motion placement only if this far from nominal
     use_mag: bool = False
     init_heading_from_mag: bool | None = None
     mag_sigma: float = 0.05
