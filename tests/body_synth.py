@@ -42,6 +42,13 @@ class MiniSkeleton:
         i = self.index(name)
         return [n for n, p in zip(self.names, self.parents) if p == i]
 
+    def neutral_positions(self) -> np.ndarray:
+        """Segment origins in the neutral pose, root at the origin (as Skeleton's; BodyOptions.init "auto" reads it)."""
+        pos = np.zeros((len(self.names), 3))
+        for i in range(1, len(self.names)):
+            pos[i] = pos[self.parents[i]] + np.asarray(self.offsets[i], float)
+        return pos
+
 
 @dataclass(frozen=True)
 class MiniBodySession:

@@ -69,7 +69,8 @@ def motion_placements(session, opts, npose_idx: np.ndarray | None = None, window
     joints = body_joints(skel)
     if npose_idx is None:
         npose_idx, _ = npose_samples(session, opts)
-    w = slice(int(npose_idx[-1]) + 1, min(session.n - 1, int(npose_idx[-1]) + 1 + int(window_s * session.rate)))
+    n_samples, rate = session.t.size, 1.0 / float(np.median(np.diff(session.t)))     # any session with t (BodySession or not)
+    w = slice(int(npose_idx[-1]) + 1, min(n_samples - 1, int(npose_idx[-1]) + 1 + int(window_s * rate)))
     if not joints or w.stop - w.start < 3:
         return {}, {"skipped": "no joints" if not joints else "no motion after the N-pose"}
     setups = sensor_setup(session, skel, opts, npose_idx)

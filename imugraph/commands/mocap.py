@@ -24,7 +24,8 @@ as hinges (comma-separated: knees, elbows, or joint names RightKnee, LeftElbow, 
 --npose T0,T1 gives the static N-pose window instead of detecting it; --init motion starts every sensor at the
 heading about the vertical its joint accelerations imply (imugraph.body.placement_motion) instead of its nominal site
 (a suit strapped on another way, e.g. the qmt full-body file: converged instead of stopping at the iteration limit);
---init auto does that only for the sensors more than 45° from their nominal site.
+--init auto (the default since session 22) does that only for the sensors more than 45° from their nominal site;
+--init nominal is the start before session 22.
 """
 
 from __future__ import annotations
@@ -65,10 +66,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="the static N-pose window in the session's own time, s (default: detected, the common rest "
                         "of all sensors at the start; e.g. 40,44 for qmt_full_body, whose upper-arm sensors read "
                         "0.04 rad/s at rest)")
-    p.add_argument("--init", choices=("nominal", "motion", "auto"), default="nominal",
-                   help="sensor-on-segment start: nominal (the standard sites, default), motion (each sensor's "
-                        "heading about the vertical from the joint accelerations after the N-pose; for suits worn "
-                        "another way, e.g. qmt_full_body) or auto (motion only for sensors > 45° from nominal)")
+    p.add_argument("--init", choices=("nominal", "motion", "auto"), default="auto",
+                   help="sensor-on-segment start: auto (default: the motion start only for sensors > 45° from their "
+                        "nominal site), nominal (the standard sites; before session 22) or motion (every sensor's "
+                        "heading about the vertical from the joint accelerations after the N-pose)")
     p.add_argument("--skeleton", metavar="SPEC", default="nominal",
                    help="segment lengths and joint positions: nominal (the session's own), height:H (Winter's "
                         "proportions for body height H m), or bvh:PATH (the HIERARCHY OFFSETs of a BVH file, looked "

@@ -51,10 +51,12 @@ class BodyOptions:
         placements: nominal {segment: (bRs (3,3), b_pos (3,))}; segments missing here get
             `imugraph.body.placement.nominal_placement` (on the skin mid-segment, z out of the skin, x along
             the segment; `default_placement`).
-        init: "nominal" (default): sensors missing from `placements` start at their nominal placement; "motion"
+        init: "nominal": sensors missing from `placements` start at their nominal placement; "motion"
             (helper Q22b): their headings about the vertical from the joint accelerations after the N-pose
             (imugraph.body.placement_motion (H1)–(H4); every build_problem, so also the fixed lag's bootstrap);
-            "auto": "motion" only for the sensors whose motion placement is > init_motion_switch_deg from nominal.
+            "auto" (default since session 22): "motion" only for the sensors whose motion placement is >
+            init_motion_switch_deg from nominal (real qmt full body: all 15 non-root sensors 158–180° off, LM 30 + 30
+            at the cap → 7 + 2; 4a simulations identical to "nominal" on seeds 0–9; docs/results_issue4.md "Q22b").
         init_motion_window_s: with init "motion"/"auto", the seconds after the N-pose whose samples (H3) uses.
         use_mag: magnetometer factors (B5) with a per-sensor field direction from the N-pose.
         mag_sigma: σ of the normalised field direction (unitless, per axis); with mag_sigma_ml its floor.
@@ -176,7 +178,7 @@ class BodyOptions:
     npose: tuple | None = None
     npose_heading_deg: float = 0.0
     placements: dict = field(default_factory=dict)
-    init: str = "nominal"                               # "motion" / "auto": placements from (H1)–(H4) (placement_motion)
+    init: str = "auto"                                  # session 22 default; "nominal": before; "motion": every sensor (H1)–(H4)
     init_motion_window_s: float = 30.0                  # (H3) window after the N-pose, s
     init_motion_switch_deg: float = 45.0                # init "auto": motion placement only if this far from nominal
     use_mag: bool = False
