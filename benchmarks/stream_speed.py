@@ -23,6 +23,8 @@ calibration (see docs/stream.md). Wall times; the machine may be shared: compare
         [--[no-]disturb] [--weak-prior] [--[no-]offsets] [--cache DIR] [--opt KEY=VALUE ...]   (defaults: StreamOptions')
         [--bootstrap-max-s S] [--score-after-bootstrap]   (the bootstrap's growth capped; the filtered error and online
         VQF's also on the movement samples after each trial's bootstrap window only: `filtered_after_deg`)
+        [--bootstrap-regrow off|identified|weak] [--bootstrap-weak-centre]   (a capped start's bootstrap keeps growing
+        while streaming; a weak start at its prior's centre: S22)
 
 TRIALS: comma-separated BROAD trial numbers, or "all" (the 17 trials; default 01). --no-lag / --no-batch skip
 the fixed-lag run / the batch smoother (time). Prints the per-trial table, then the means of the filtered
@@ -65,7 +67,8 @@ def _err_after(q, s, n_boot: int):
 def run_trial(path: Path, lag: float | None, bootstrap_s: float, batch: bool = True, online=(True,),
               compare_cal: bool = True, lag_solver: str = "chain", lag_only: bool = False, calib_states: bool = True,
               disturb: bool = True, weak_prior: bool = False, cache: str | None = None, offsets: bool = True,
-              extra: dict | None = None, bootstrap_max_s: float | None = None, after: bool = False) -> list[dict]:
+              extra: dict | None = None, bootstrap_max_s: float | None = None, after: bool = False,
+              regrow: bool | str = False, weak_centre: bool = False) -> list[dict]:
     from imugraph.evaluate import orientation_error
     from imugraph.graphs.cpp_smoother import smooth_fixed
     from imugraph.graphs.stream import StreamOptions
@@ -109,7 +112,10 @@ def run_trial(path: Path, lag: float | None, bootstrap_s: float, batch: bool = T
                              disturb_detect=disturb, calib_weak_prior=weak_prior, disturb_offsets=offsets, **(extra or {}))
         # the bootstrap computed above (not timed again); stream_session then learns the detector's σ_f over its
         # window and takes the weak prior's s from it, as when it bootstraps itself
-        r = stream_session(s, None, opts, bootstrap_s, bootstrap=(cal, n_boot))
+        r = stream_session(s, None, opts, bootstrap_s, bootstrap=(cal, n_boot), bootstrap_regrow=regrow,
+                           bootstrap_weak_centre=weak_centre)
+        log = r.timing.get("regrow") or []
+        sw = [e for e in log if e.get("switched_t") is not None]
         tm = r.timing
         rows.append({"trial": name, "method": label, "rt_factor": tm["realtime_factor"], "p50_ms": tm["p50_ms"],
                      "p99_ms": tm["p99_ms"], "cpu_rt": tm.get("cpu_realtime_factor"), "p99_cpu_ms": tm.get("p99_cpu_ms"),
@@ -120,6 +126,10 @@ def run_trial(path: Path, lag: float | None, bootstrap_s: float, batch: bool = T
                      "vs_batch_deg": orientation_error(r.smoothed, q_batch, None, s.rate, heading=False,
                                                        max_shift=0.0).rms_deg if batch else None,
                      "seconds": tm["seconds"], "bootstrap_s": boot, "failed": r.counts["failed_updates"],
+                     **({"regrow_windows": len(log), "regrow_switches": len(sw),
+                         "regrow_last_switch_s": sw[-1]["switched_t"] if sw else None,
+                         "regrow_identified": any(e.get("identified") and e.get("switched_t") is not None for e in log),
+                         "regrow_cpu_s": float(sum(e["cpu_s"] for e in log))} if regrow else {}),
                      "dist": r.counts.get("disturbances"), "dist_kf": r.counts.get("disturbed_keyframes"),
                      **(_cal_agreement(r.calibration, cal_full) if on and cal_full is not None else {}),
                      **(_last_refit(r.calibration_history, r.calibration, cal_full, f_batch) if on and cal_full is not None else {}),
@@ -260,6 +270,13 @@ def main(argv=None) -> int:
     ap.add_argument("--bootstrap-max-s", type=float, default=None, metavar="S",
                     help="cap the bootstrap window's growth at S seconds (bootstrap_calibration max_s: at the cap the "
                          "weak fallback of calibrate); default: grows until identified or the trial ends")
+    ap.add_argument("--bootstrap-regrow", choices=("off", "identified", "weak"), default="off",
+                    help="with a capped bootstrap's weak start: keep growing the bootstrap while streaming and switch "
+                         "to the first window that identifies D, o ('identified'), or also to each longer window's "
+                         "weak fallback ('weak') (stream_session bootstrap_regrow; helper S22). Default off")
+    ap.add_argument("--bootstrap-weak-centre", action="store_true",
+                    help="a weak (not identifiable) bootstrap streamed at its weak prior's centre D = s·I, o = 0 "
+                         "(stream_session bootstrap_weak_centre, stream_run.weak_centre; helper S22)")
     ap.add_argument("--out", default="stream_speed.json", help="file name under bench_out/ (default stream_speed.json)")
     ap.add_argument("--score-after-bootstrap", action="store_true",
                     help="also score the filtered output (and online VQF) only on the movement samples after each "
@@ -280,20 +297,21 @@ def main(argv=None) -> int:
         online = {"online": (True,), "fixed": (False,), "both": (True, False)}[a.calibration]
         rows += run_trial(p, lag, a.bootstrap_s, not a.no_batch, online, not a.no_cal_compare, a.lag_solver, a.lag_only,
                           a.calib_states, a.disturb, a.weak_prior, a.cache, a.offsets, extra, a.bootstrap_max_s,
-                          a.score_after_bootstrap)
+                          a.score_after_bootstrap, {"off": False, "identified": True, "weak": "weak"}[a.bootstrap_regrow],
+                          a.bootstrap_weak_centre)
         print(f"trial {trial_number(p):02d} done", file=sys.stderr, flush=True)
     cols = ["trial", "method", "rt_factor", "p50_ms", "p99_ms", "cpu_rt", "p99_cpu_ms", "max_cpu_ms", "p99_btw_cpu_ms",
             "max_btw_cpu_ms", "filtered_deg", "filtered_after_deg", "bootstrap_span_s", "smoothed_deg", "vs_batch_deg", "E_max",
             "seconds", "bootstrap_s", "failed", "dist", "dist_kf", "cal_z", "cal_z_white", "whiteness", "cal_dD_rel", "refit_z", "refit_z_bF",
             "refit_z_white", "refit_z_white_bF", "V_max", "F_batch_max", "refit_dD_rel",
-            "applied", "refits"]
+            "applied", "refits", "regrow_switches", "regrow_last_switch_s", "regrow_identified", "regrow_cpu_s"]
     print_table(rows, cols)
     means = _means(rows)
     print_table(means, ["method", "trials", "filtered_deg", "filtered_after_deg", "after_trials", "smoothed_deg", "rt_factor", "p99_ms", "cpu_rt", "p99_cpu_ms",
                         "p99_btw_cpu_ms"])
     print(f"peak memory {peak_memory_mb():.0f} MB")
     write_json(a.out, {"rows": rows, "means": means, "lag_s": lag, "bootstrap_s": a.bootstrap_s,
-                                "bootstrap_max_s": a.bootstrap_max_s,
+                                "bootstrap_max_s": a.bootstrap_max_s, "bootstrap_regrow": a.bootstrap_regrow,
                                 "command": " ".join(sys.argv)})
     return 0
 
