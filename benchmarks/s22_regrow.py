@@ -53,7 +53,8 @@ def _segments(q, s, mask, cuts):
     return out
 
 
-def run(path: Path, max_s: float, modes: list, lag: float, cache: str | None, grow: float = 1.5) -> list[dict]:
+def run(path: Path, max_s: float, modes: list, lag: float, cache: str | None, grow: float = 1.5,
+        latency: float | None = None) -> list[dict]:
     from imugraph.graphs.stream import StreamOptions
     from imugraph.graphs.stream_run import bootstrap_calibration, rest_gyro_bias, stream_session
 
@@ -75,7 +76,8 @@ def run(path: Path, max_s: float, modes: list, lag: float, cache: str | None, gr
         regrow = {"off": False, "identified": True, "weak": "weak"}[mode.split("+")[0]]
         cpu0 = time.process_time()
         r = stream_session(s, None, StreamOptions(lag_s=lag), 30.0, bootstrap=(cal, n_boot), bootstrap_regrow=regrow,
-                           bootstrap_weak_centre=centre, regrow_align=align, regrow_grow=grow)
+                           bootstrap_weak_centre=centre, regrow_align=align, regrow_grow=grow,
+                           regrow_latency_s=latency)
         cpu = time.process_time() - cpu0
         log = r.timing.get("regrow") or []
         sw = [int(np.searchsorted(s.t, s.t[0] + e["switched_t"])) for e in log if e.get("switched_t") is not None]
@@ -106,6 +108,8 @@ def main(argv=None) -> int:
     ap.add_argument("--modes", default="off,identified,weak")
     ap.add_argument("--lag", type=float, default=2.0)
     ap.add_argument("--grow", type=float, default=1.5, help="the regrow's window growth factor (stream_session regrow_grow)")
+    ap.add_argument("--latency", type=float, default=None, metavar="S",
+                    help="fixed switch latency in s instead of the measured CPU time (regrow_latency_s): repeatable runs")
     ap.add_argument("--cache", default=None, help="DIR: keep / reuse each trial's capped bootstrap")
     ap.add_argument("--out", default="s22_regrow.json")
     a = ap.parse_args(argv)
@@ -114,7 +118,7 @@ def main(argv=None) -> int:
     rows = []
     for p in broad_trials():
         if wanted is None or trial_number(p) in wanted:
-            rows += run(p, a.max_s, modes, a.lag, a.cache, a.grow)
+            rows += run(p, a.max_s, modes, a.lag, a.cache, a.grow, a.latency)
             print(f"trial {trial_number(p):02d} done", file=sys.stderr, flush=True)
     print_table(rows, ["trial", "method", "filtered_deg", "filtered_after_deg", "filtered_final_deg", "vqf_final_deg",
                        "smoothed_deg", "switches",

@@ -71,6 +71,8 @@ def sample_bias(est, session: Session, bias_segment_s: float) -> np.ndarray:
     seg_b = np.atleast_2d(np.asarray(est.info["gyro_bias_segments"], float))
     t = session.t - session.t[0]
     seg = np.floor(t / bias_segment_s).astype(int) if bias_segment_s > 0 else np.zeros(session.n, int)
+    if len(seg) and seg[-1] + 1 != len(np.unique(seg)):       # a declared gap longer than a segment: renumbered
+        seg = np.unique(seg, return_inverse=True)[1].astype(int)   # as factors.gaps.bias_segments numbers ml's
     return seg_b[np.clip(seg, 0, len(seg_b) - 1)]
 
 

@@ -27,7 +27,7 @@ from imugraph.calibration.gyro_rate import update_rate_error
 from imugraph.calibration.gyro_map_select import calibrate_chosen
 from imugraph.calibration.result import Calibration, n_mag_from_dip
 from imugraph.calibration.dip_fold import folded_dip, turn_quat, turn_vectors
-from imugraph.factors.gaps import GAP_RATE_WALK
+from imugraph.factors.gaps import GAP_RATE_WALK, bias_segments
 from imugraph.factors.gyro import keyframe_layout, preintegrate
 from imugraph.calibration.disturbance import apply_windows, detect_windows
 from imugraph.calibration.acc_rate import update_acc_rate_error
@@ -370,11 +370,7 @@ def _velocity_model(opt: Options, vel: dict) -> VelocityModel | None:
 
 def _bias_segments(session: Session, kf: np.ndarray, segment_s: float) -> np.ndarray:
     """Bias segment index (K−1,) of each keyframe interval."""
-    t_kf = session.t[kf[:-1]] - session.t[0]
-    seg = np.floor(t_kf / max(segment_s, 1e-9)).astype(int) if segment_s > 0 else np.zeros(len(t_kf), int)
-    if len(seg) and seg[-1] + 1 != len(np.unique(seg)):    # a declared gap longer than a segment: no keyframe in
-        seg = np.unique(seg, return_inverse=True)[1].astype(int)   # some, a bias with no factor (LM stalls); renumbered
-    return seg
+    return bias_segments(session.t[kf[:-1]] - session.t[0], segment_s)
 
 
 def _per_sample_bias(bias: np.ndarray, seg: np.ndarray, skf: np.ndarray) -> np.ndarray:

@@ -54,3 +54,13 @@ def keyframe_gap_step(nominal_dt: float) -> float:
 def has_gap(dt: np.ndarray, nominal_dt: float) -> bool:
     """Any step longer than 1.5 nominal steps (the stream's `gaps` counter uses the same rule)."""
     return bool(np.max(dt, initial=0.0) > GAP_FACTOR * nominal_dt)
+
+
+def bias_segments(t_kf: np.ndarray, segment_s: float) -> np.ndarray:
+    """Gyro-bias segment index (K−1,) of each keyframe interval from its start time t_kf (s from the session start):
+    ⌊t_kf / segment_s⌋ (all 0 when segment_s ≤ 0), renumbered 0, 1, … without the segments no keyframe falls in (a
+    declared gap longer than a segment: a bias with no factor, LM stalls, and no place in cpp_velocity's ordering)."""
+    seg = np.floor(t_kf / segment_s).astype(int) if segment_s > 0 else np.zeros(len(t_kf), int)
+    if len(seg) and seg[-1] + 1 != len(np.unique(seg)):
+        seg = np.unique(seg, return_inverse=True)[1].astype(int)
+    return seg

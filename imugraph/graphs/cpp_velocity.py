@@ -30,6 +30,7 @@ import numpy as np
 from gtsam.symbol_shorthand import X
 
 from imugraph import keys
+from imugraph.factors.gaps import bias_segments
 from imugraph.factors.gyro import Preintegration
 from imugraph.factors.velocity import gauss_markov
 from imugraph.geometry import logmap
@@ -115,9 +116,7 @@ def velocity_graph(pre: Preintegration, t_kf: np.ndarray, nRk0: np.ndarray, dv: 
         keyframes, gravity last). The magnetometer factors are added by the caller.
     """
     K = len(pre.kf_samples)
-    seg = (np.floor(t_kf / o["bias_segment_s"]).astype(int) if o["bias_segment_s"] > 0 else np.zeros(K - 1, int))
-    if len(seg) and seg[-1] + 1 != len(np.unique(seg)):    # a declared gap longer than a segment left some without
-        seg = np.unique(seg, return_inverse=True)[1].astype(int)   # a keyframe (not in the ordering): renumbered
+    seg = bias_segments(t_kf, o["bias_segment_s"])      # renumbered past a declared gap longer than a segment
     graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
     _bias_chain(graph, values, b_gyr, int(seg.max()) + 1, float(pre.dt.sum()), o)
     params = gtsam.PreintegrationParams.MakeSharedU(g)

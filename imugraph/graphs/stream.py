@@ -69,13 +69,14 @@ from imugraph.graphs.stream_options import (SIGMA_WEAK_POSE, StreamOptions, Stre
 from imugraph.graphs.stream_output import StreamOutputMixin
 from imugraph.graphs.stream_position import PositionMixin
 from imugraph.graphs.stream_realign import GapRealignMixin
-from imugraph.graphs.stream_start import KeyframeStartMixin, _quat
+from imugraph.graphs.stream_start import KeyframeStartMixin
+from imugraph.graphs.stream_update import KeyframeUpdateMixin
 
 __all__ = ["StreamOptions", "StreamSmoother", "StreamStats"]
 
 
 class StreamSmoother(OnlineCalibrationMixin, KeyframeStartMixin, ArrivalMixin, StreamOutputMixin, GapRealignMixin,
-                     PositionMixin, MagCarryMixin):
+                     PositionMixin, MagCarryMixin, KeyframeUpdateMixin):
     """Push samples in arrival order; get the filtered orientation of each at once, the smoothed ones at the end.
 
     Args:
@@ -252,10 +253,6 @@ class StreamSmoother(OnlineCalibrationMixin, KeyframeStartMixin, ArrivalMixin, S
         self.stats.between_cpu_s.append(time.thread_time() - start_cpu)
 
     # ------------------------------------------------------------------ keyframes
-    def _isam(self):
-        """The iSAM2 instance holding the graph (the chain lag's inner one, or the solver itself)."""
-        return self._solver.isam if self._chain else self._solver
-
     def _start_windowed(self, t: np.ndarray, m: np.ndarray) -> tuple:
         """(m at the sample times t with the start disturbance windows applied, whether one overlaps t): Calibration.
         corrected (delay 0: a copy) only where one overlaps, else m itself."""
@@ -318,11 +315,8 @@ class StreamSmoother(OnlineCalibrationMixin, KeyframeStartMixin, ArrivalMixin, S
             graph.add(linear_step(field_key(k), field_key(k + 1), self._steps.field(dt_k)))
             values.insert(field_key(k + 1), np.exp(-dt_k / self.opt.field_tau) * self._d)
             stamps[field_key(k + 1)] = t_next - self._t0
-        carry = self._carry_rows(k) if self.opt.mag_carry and self._mag_shift > 0 else None     # stream_carry (C1)
-        kRb_m, y_m = (kRb, y) if carry is None else (np.concatenate([carry[0], kRb]), np.concatenate([carry[1], y]))
-        if carry is not None:
-            self._carry_history(k, *carry[1:])
-        if (ok.any() or carry is not None) and not (flagged and self.opt.disturb_orient):
+        kRb_m, y_m, carried = self._with_carry(k, kRb, y)     # mag_carry: the closed interval's late fields (C1)
+        if (ok.any() or carried) and not (flagged and self.opt.disturb_orient):
             f_mag = self._mag_factor(k, kRb_m, y_m, no_theta=flagged, into=(graph, values, stamps, t_next - self._t0))
             if self.opt.lag_s is None:               # for the final re-issue (iSAM2 keeps every factor): the index
                 # once built — a new window's Δo_w prior goes into `graph` first (stream_offsets.added); indexed
@@ -356,8 +350,7 @@ class StreamSmoother(OnlineCalibrationMixin, KeyframeStartMixin, ArrivalMixin, S
                     self._hist_raw.append(m_raw.copy())
         if self._gmap is not None:           # J_k and E's coverage sums (stream_gmap)
             self._gmap.interval(k, t, w, rows[:, 4:7], kRb, delta_R, bridged, a)   # a: re-timed ("exact" keeps it)
-        if self.opt.mag_carry and self._mag_shift > 0:
-            self._keep_tail(t[:-1], kRb, delta_R, k)
+        self._keep_tail(t[:-1], kRb, delta_R, k)      # mag_carry (stream_carry)
         self._k = k + 1
         self._maintained = not self._chain
         if self._online is not None:
@@ -366,51 +359,3 @@ class StreamSmoother(OnlineCalibrationMixin, KeyframeStartMixin, ArrivalMixin, S
             self._calibrate(t_next - self._t0)
         self.stats.update_s.append(time.perf_counter() - start)
         self.stats.update_cpu_s.append(time.thread_time() - start_cpu)
-
-    def _update(self, graph, values, stamps, k_new: int, seg: int, R_pred) -> None:
-        try:
-            chain = self._chain
-            remove, force = self._realign_removals() if self.opt.gap_realign_s else ((), False)    # stream_realign
-            if self.opt.lag_s is None or chain:
-                if chain:      # only the keyframes leaving the window are read back (their smoothed output)
-                    left = self._solver.update(graph, values, stamps, remove, force)
-                    self._smoothed_kf.update(left or {})
-                    if left:
-                        self._forget_smoothed(k_new)
-                else:
-                    self._solver.update(graph, values, list(remove), None, None, None, force)
-                isam = self._isam()
-                est_pose = isam.calculateEstimatePose3(pose_key(k_new))
-                est_v = isam.calculateEstimateVector(keys.vel(k_new))
-                est_b = isam.calculateEstimateConstantBias(imu_bias_key(seg))
-                est_d = isam.calculateEstimateVector(field_key(k_new)) if self._field else None
-            else:
-                ts = gtsam.FixedLagSmootherKeyTimestampMap()
-                for key, s in stamps.items():
-                    ts.insert((key, float(s)))
-                self._solver.update(graph, values, ts)
-                est = self._solver.calculateEstimate()
-                poses = gtsam.utilities.extractPose3(est)
-                first = k_new + 1 - poses.shape[0]
-                for i, row in enumerate(poses):
-                    self._smoothed_kf[first + i] = row[:9].reshape(3, 3).copy()
-                self._forget_smoothed(first)
-                est_pose, est_v = est.atPose3(pose_key(k_new)), est.atVector(keys.vel(k_new))
-                est_b = est.atConstantBias(imu_bias_key(seg))
-                est_d = est.atVector(field_key(k_new)) if self._field else None
-        except (RuntimeError, IndexError, ValueError):
-            # an ill-conditioned or failed update (counted): keep the prediction
-            self.stats.failed_updates += 1
-            if self.opt.lag_s is not None and not chain:     # smoothed output of a lag: the prediction where none
-                self._smoothed_kf.setdefault(k_new - 1, self._nRk.matrix())
-                self._smoothed_kf.setdefault(k_new, np.asarray(R_pred))
-            self._nRk = gtsam.Rot3(R_pred)
-            self._q_nk = tuple(_quat(self._nRk).tolist())      # Python floats: the per-sample product
-            self._d = np.exp(-self.stride / self.rate / self.opt.field_tau) * self._d if self._field else self._d
-            return
-        self._nRk, self._p, self._v = est_pose.rotation(), est_pose.translation(), est_v
-        self._b_gyr_est = est_b.gyroscope()
-        if est_d is not None:
-            self._d = np.asarray(est_d, float)
-        self._b_now = tuple(float(v) for v in self._b_gyr_est)
-        self._q_nk = tuple(_quat(self._nRk).tolist())      # Python floats: the per-sample product

@@ -27,13 +27,24 @@ import numpy as np
 
 
 class MagCarryMixin:
-    """`_carry_rows` and `_keep_tail` of StreamSmoother (state: `_tail`, `_head_mag`; options.mag_carry)."""
+    """`_with_carry`, `_carry_rows` and `_keep_tail` of StreamSmoother (state: `_tail`, `_head_mag`; options.mag_carry)."""
 
     def _keep_tail(self, t: np.ndarray, kRb: np.ndarray, delta_R: np.ndarray, k: int) -> None:
         """After interval k closed: its last s₀ rows' times and rotations ᵏR_b(j), and ΔR_k, for eq. (C1)."""
+        if not (self.opt.mag_carry and self._mag_shift > 0):
+            return
         s, n = self._mag_shift, len(kRb)
         self._tail = (np.asarray(t[max(0, n - s):n], float), np.asarray(kRb[max(0, n - s):n], float),
                       np.asarray(delta_R, float), k, n)
+
+    def _with_carry(self, k: int, kRb: np.ndarray, y: np.ndarray) -> tuple:
+        """Interval k's magnetometer-factor rows (kRb, y) with the carried ones (`_carry_rows`) in front, also written
+        into interval k − 1's kept rows (`_carry_history`), and whether there were any; unchanged without."""
+        carry = self._carry_rows(k) if self.opt.mag_carry and self._mag_shift > 0 else None
+        if carry is None:
+            return kRb, y, False
+        self._carry_history(k, *carry[1:])
+        return np.concatenate([carry[0], kRb]), np.concatenate([carry[1], y]), True
 
     def _carry_rows(self, k: int):
         """The fields that arrived with the open interval's first s₀ rows (`_head_mag`) and belong to interval k − 1:

@@ -47,11 +47,16 @@ from imugraph.graphs.stream_field import field_key, field_mag_factor, linearized
 from imugraph.graphs.stream_offsets import WindowOffsets, joint_estimate, offset_key, swap_hard_iron
 
 
+def weak_start(cal: Calibration) -> bool:
+    """D, o not identifiable (`cal.coverage["identifiable"]` False: calibrate's weak fallback)."""
+    return isinstance(cal.coverage, dict) and cal.coverage.get("identifiable") is False
+
+
 def weak_prior(cal: Calibration, scale: float | None) -> tuple[np.ndarray, np.ndarray] | None:
     """The batch's prior on θ when D, o are not identifiable (`cal.coverage["identifiable"]` False): centre D = s·I,
     o = 0 (`calibration.initial.weak_initial`; the dip: the start's), σ from `calibration.ml`'s `_theta_prior_sigma`
     with `Options().weak_theta_fraction` (D ± f·s, o ± 2f·s, δ ± 90°); None for an identifiable start."""
-    if not (isinstance(cal.coverage, dict) and cal.coverage.get("identifiable") is False):
+    if not weak_start(cal):
         return None
     from imugraph.calibration.ml import _theta_prior_sigma
     from imugraph.calibration.options import Options

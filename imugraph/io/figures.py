@@ -120,7 +120,7 @@ def plot_calibration(
 def _plot_projection(ax: Axes, raw_n: np.ndarray, cal: np.ndarray, i: int, j: int) -> None:
     idx = _subsample(raw_n.shape[0])
     ax.scatter(raw_n[idx, i], raw_n[idx, j], s=2, alpha=0.4, color="tab:gray", label="raw / median |raw|")
-    idx = idx if cal.shape[0] == raw_n.shape[0] else _subsample(cal.shape[0])     # rows of their own (U22 #4)
+    idx = _subsample(cal.shape[0])      # the calibrated rows may be others than the raw ones (lag shift, U22 #4)
     ax.scatter(cal[idx, i], cal[idx, j], s=2, alpha=0.5, color="tab:blue", label="calibrated")
     phi = np.linspace(0.0, 2.0 * np.pi, 361)
     ax.plot(np.cos(phi), np.sin(phi), "k--", lw=1, label="unit circle")

@@ -221,7 +221,9 @@ def _read_any(path: Path) -> Session:
     if path.is_dir():
         if (path / "Inertial.csv").is_file():
             return read_ximu3_folder(path)
-        sensors = sorted(p.name for p in path.iterdir() if (p / "Inertial.csv").is_file())
+        from imugraph.io.xio_body import sensor_folders
+
+        sensors = [p.name for p in sensor_folders(path)]
         if sensors or (path / "session.json").is_file():    # several IMUs: `imugraph mocap` reads it (U22 #15)
             found = (f"a body session folder ({len(sensors)} x-IMU3 sensor folders: {', '.join(sensors[:3])}"
                      f"{', …' if len(sensors) > 3 else ''})" if sensors else "a body session folder (session.json)")
