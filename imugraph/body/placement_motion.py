@@ -34,12 +34,7 @@ from __future__ import annotations
 
 import numpy as np
 
-
-def _skew(v: np.ndarray) -> np.ndarray:
-    """[v×] for every row of v (..., 3) → (..., 3, 3)."""
-    z = np.zeros(v.shape[:-1])
-    return np.stack([np.stack([z, -v[..., 2], v[..., 1]], -1), np.stack([v[..., 2], z, -v[..., 0]], -1),
-                     np.stack([-v[..., 1], v[..., 0], z], -1)], -2)
+from imugraph.geometry import skew as _skew
 
 
 def _joint_fit(aP: np.ndarray, KP: np.ndarray, aC: np.ndarray, KC: np.ndarray, d_deg: float) -> tuple:
@@ -74,7 +69,7 @@ def motion_placements(session, opts, npose_idx: np.ndarray | None = None, window
     if not joints or w.stop - w.start < 3:
         return {}, {"skipped": "no joints" if not joints else "no motion after the N-pose"}
     setups = sensor_setup(session, skel, opts, npose_idx)
-    R = initial_orientations(session, names, setups, npose_idx, 0.0, False)
+    R = initial_orientations(session, names, setups, npose_idx, 0.0, False, stop=w.stop)     # only [:w.stop] is used
     acc_n, K = {}, {}
     for n in names:
         s = session.sensors[n]

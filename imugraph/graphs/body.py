@@ -97,6 +97,7 @@ class BodyProblem:
     chain_targets: dict | None = None  # first-pass ties per link (body_chain.tie_targets, unsensed_prior "fixed")
     chain_angles: dict | None = None   # first-pass bend θ_k per link (body_chain.tie_angles, unsensed_sigma_gain)
     bend_values: gtsam.Values | None = None  # (N9) body_neck.mag_free_levers' solution the bend is read from; None: x
+    init_motion: dict | None = None    # BodyOptions.init "motion"/"auto": (H3) δ, RMS per child, (H4) ψ (placement_motion)
 
     def bkey(self, s: int, k: int) -> int:
         """Bias key of sensor s used by the ImuFactor from keyframe k to k+1."""
@@ -136,11 +137,8 @@ def build_problem(session, opts: BodyOptions = BodyOptions()) -> BodyProblem:
     init = initial_values(names, joints, levers, {n: nRs[n][kf] for n in names}, t[kf], setups,
                           int(bias_seg.max()) + 1)
     pims = {name: sensor_pims(session.sensors[name], setups[name], kf, opts) for name in names}
-    pb = BodyProblem(session, skel, opts, names, joints, setups, levers, kf, npose_idx, method, pims, init,
-                     bias_seg=bias_seg)
-    if init_motion is not None:
-        pb.init_motion = init_motion                   # (H3) δ and RMS per child, (H4) ψ: solve_body_batch's info
-    return pb
+    return BodyProblem(session, skel, opts, names, joints, setups, levers, kf, npose_idx, method, pims, init,
+                       bias_seg=bias_seg, init_motion=init_motion)
 
 
 def sensor_pims(s, st, kf: np.ndarray, opts: BodyOptions):
@@ -396,7 +394,7 @@ def solve_body_batch(session, opts: BodyOptions = BodyOptions()) -> BodyResult:
             "factors": int(graph.size()), "solve_s": sum(p["seconds"] for p in passes)}
     if pb.mag_sigmas:
         info["mag_sigmas"] = dict(pb.mag_sigmas)
-    if getattr(pb, "init_motion", None) is not None:
+    if pb.init_motion is not None:
         info["init_motion"] = pb.init_motion
     res = make_result(pb, x, info)
     if opts.knee_gain_segments:

@@ -43,8 +43,9 @@ def rz(psi: float) -> np.ndarray:
 
 
 def initial_orientations(session, names: list[str], setups: dict[str, SensorSetup], npose_idx: np.ndarray,
-                         psi0: float, use_mag: bool) -> dict[str, np.ndarray]:
-    """Per-sample initial nRs (N, 3, 3) for every sensed segment (module docstring)."""
+                         psi0: float, use_mag: bool, stop: int | None = None) -> dict[str, np.ndarray]:
+    """Per-sample initial nRs (N, 3, 3) for every sensed segment (module docstring); stop: only the samples
+    [:stop] (the integration is causal: the same values as the first `stop` of all N)."""
     nRs0 = {}
     for name in names:
         s, st = session.sensors[name], setups[name]
@@ -63,8 +64,8 @@ def initial_orientations(session, names: list[str], setups: dict[str, SensorSetu
         ref = field_heading(names[0])
         for name in names[1:]:
             nRs0[name] = rz(ref - field_heading(name)) @ nRs0[name]
-    q = integrate_gyro_sensors([session.sensors[n].gyr - setups[n].gyro_bias0 for n in names],
-                               [session.sensors[n].dt for n in names], [rotmat_to_quat(nRs0[n]) for n in names])
+    q = integrate_gyro_sensors([session.sensors[n].gyr[:stop] - setups[n].gyro_bias0 for n in names],
+                               [session.sensors[n].dt[:stop] for n in names], [rotmat_to_quat(nRs0[n]) for n in names])
     return {name: quat_to_rotmat(q[i]) for i, name in enumerate(names)}
 
 

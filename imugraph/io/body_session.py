@@ -31,6 +31,7 @@ import numpy as np
 from imugraph.body.skeleton import Skeleton
 from imugraph.errors import SessionError
 from imugraph.io.session import Session
+from imugraph.io.validate import gyr_robust_max     # the units check's statistic, recorded for simulations
 from imugraph.io.writers import atomic_write_bytes, atomic_write_text, json_ready
 
 PathLike = Union[str, Path]
@@ -155,14 +156,6 @@ def _read_truth(path: Path) -> dict:
         raise SessionError(src, "truth", f"unreadable ({str(exc)[:80]})",
                            "n_quat, n_pos, names, placement_names, bRs, b_pos arrays") from None
     return truth
-
-
-def gyr_robust_max(gyr: np.ndarray) -> float:
-    """The units check's statistic (`imugraph.io.validate._check_units` rule (a)): the largest per-axis 99.9th
-    percentile of |gyr| over the finite rows, rad/s."""
-    g = np.asarray(gyr, float)
-    g = g[np.all(np.isfinite(g), axis=1)]
-    return float(np.max(np.percentile(np.abs(g), 99.9, axis=0))) if g.size else float("nan")
 
 
 def _unique_keys(src: str):

@@ -79,13 +79,6 @@ def _get(x: gtsam.Values, key: int):
     return np.asarray(x.atPoint3(key), float)
 
 
-def _set(x: gtsam.Values, key: int, value) -> None:
-    if x.exists(key):
-        x.update(key, value)
-    else:
-        x.insert(key, value)
-
-
 def _boundary_priors(pb, x: gtsam.Values, k: int) -> gtsam.NonlinearFactorGraph:
     """(C2) at keyframe k from the current solution x."""
     g = gtsam.NonlinearFactorGraph()
@@ -111,17 +104,17 @@ def _propagate(pb, x: gtsam.Values, b: int, k_end: int) -> None:
         for k in range(b + 1, k_end + 1):
             T0 = init.atPose3(bf.pose_key(s, k))
             R = D @ T0.rotation().matrix()
-            _set(x, bf.pose_key(s, k), gtsam.Pose3(gtsam.Rot3(R), p_b + D @ (np.asarray(T0.translation()) - p0_b)))
-            _set(x, bf.vel_key(s, k), D @ np.asarray(init.atVector(bf.vel_key(s, k)), float))
+            x.update(bf.pose_key(s, k), gtsam.Pose3(gtsam.Rot3(R), p_b + D @ (np.asarray(T0.translation()) - p0_b)))
+            x.update(bf.vel_key(s, k), D @ np.asarray(init.atVector(bf.vel_key(s, k)), float))
             if pb.bkey(s, k) != pb.bkey(s, b):
-                _set(x, pb.bkey(s, k), bias)
+                x.update(pb.bkey(s, k), bias)
     for j, jt in enumerate(pb.joints):
         P = pb.names.index(jt.parent)
         key_l = bf.lever_key(lever_index[(jt.parent, j)])
         lev = np.asarray(x.atPoint3(key_l), float)
         for k in range(b + 1, k_end + 1):
             T = x.atPose3(bf.pose_key(P, k))
-            _set(x, bf.joint_key(j, k), np.asarray(T.translation(), float) + T.rotation().matrix() @ lev)
+            x.update(bf.joint_key(j, k), np.asarray(T.translation(), float) + T.rotation().matrix() @ lev)
 
 
 def chunk_bounds(kf_t: np.ndarray, chunk_s: float, overlap_s: float = OVERLAP_S) -> list[tuple[int, int]]:
@@ -161,6 +154,5 @@ def chunked_start(pb, graph, chunk_s: float, optimize, overlap_s: float = OVERLA
             vals.insert(key, _get(x, key))
         sol, info = optimize(pb, sub, vals)
         iters.append(int(info["iterations"]))
-        for key in sol.keys():
-            _set(x, key, _get(sol, key))
+        x.update(sol)                                 # x is a copy of pb.init: it holds every key
     return x, iters
