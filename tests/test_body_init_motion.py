@@ -66,7 +66,7 @@ def test_init_option_enters_build_problem(turned_session):
     short = replace(bs, t=bs.t[:400], sensors={k: v.slice(0, 400) for k, v in bs.sensors.items()})
     pb_nom = build_problem(short, BodyOptions(init="nominal"))
     pb_mot = build_problem(short, BodyOptions(init="motion"))
-    assert not hasattr(pb_nom, "init_motion") and pb_nom.opts.placements == {}
+    assert pb_nom.init_motion is None and pb_nom.opts.placements == {}
     assert set(pb_mot.opts.placements) == set(truth) and np.isfinite(pb_mot.init_motion["_psi_deg"])
     worse = [n for n in truth if _angle_deg(truth[n].bRs, pb_mot.setups[n].bRs_nom)
              > _angle_deg(truth[n].bRs, pb_nom.setups[n].bRs_nom) + 5.0]
