@@ -16,12 +16,15 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from benchmarks.b1_try import CACHE, parse_opts  # noqa: E402
 from benchmarks.common import error_parts, iter_broad  # noqa: E402
 from benchmarks.peers import vqf_offline  # noqa: E402
+from benchmarks._usage import check_trials, exit_on_help  # noqa: E402
 from imugraph.calibration.ml import calibrate  # noqa: E402
 
 
 def main(argv):
+    exit_on_help(__doc__, argv, flags=("--opt",), max_args=1)
     opts, argv = parse_opts(argv)
     select = set(argv[0].split(",")) if argv else None
+    check_trials(select)
     for num, s, mask in iter_broad(select):
         est = calibrate(s, opts, allow_weak=True)
         import vqf

@@ -18,6 +18,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks.b1_try import CACHE, compare_line, parse_opts, vqf_cached  # noqa: E402
 from benchmarks.common import error_parts, iter_broad  # noqa: E402
+from benchmarks._usage import check_trials, exit_on_help, usage_error  # noqa: E402
 from imugraph.calibration.ml import calibrate  # noqa: E402
 from dataclasses import replace  # noqa: E402
 
@@ -39,9 +40,13 @@ def fit_gyro_map(gyr: np.ndarray, quat: np.ndarray, rate: float, h: int = 29, la
 
 
 def main(argv):
+    exit_on_help(__doc__, argv, flags=("--opt",), max_args=2)
     options, argv = parse_opts(argv)
     select = set(argv[0].split(",")) if argv else None
     mode = argv[1] if len(argv) > 1 else "opt"
+    if mode not in ("opt", "self"):
+        usage_error(f"reference {mode!r}: expected opt or self")
+    check_trials(select)
     for num, s, mask in iter_broad(select):
         qv = vqf_cached(num, s)
         M_total = np.eye(3)

@@ -19,6 +19,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import imugraph.calibration.ml as ml  # noqa: E402
 from benchmarks.b1_try import CACHE, compare_line, parse_opts, vqf_cached  # noqa: E402
 from benchmarks.common import iter_broad  # noqa: E402
+from benchmarks._usage import check_trials, exit_on_help, usage_error  # noqa: E402
 from imugraph.calibration.alignment import undelay_magnetometer  # noqa: E402
 from imugraph.calibration.initial import initial_calibration  # noqa: E402
 from imugraph.geometry import quat_to_rotmat  # noqa: E402
@@ -46,9 +47,13 @@ def fit_field_model(y: np.ndarray, nRb: np.ndarray) -> tuple[np.ndarray, np.ndar
 
 
 def main(argv):
+    exit_on_help(__doc__, argv, flags=("--opt",), max_args=2)
     options, argv = parse_opts(argv)
     select = set(argv[0].split(",")) if argv else None
     ref = argv[1] if len(argv) > 1 else "opt"
+    if ref not in ("opt", "vqf"):
+        usage_error(f"reference {ref!r}: expected opt or vqf")
+    check_trials(select)
     orig = ml._theta_prior_sigma
     for num, s, mask in iter_broad(select):
         init = initial_calibration(s)

@@ -17,6 +17,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from benchmarks.common import error_parts, iter_broad, parse_options, pop_opts  # noqa: E402
 from benchmarks.output import OUT_DIR  # noqa: E402
 from benchmarks.peers import vqf_offline  # noqa: E402
+from benchmarks._usage import check_trials, exit_on_help  # noqa: E402
 from imugraph.calibration.ml import calibrate  # noqa: E402
 from imugraph.evaluate import _align  # noqa: E402
 
@@ -57,10 +58,12 @@ def vqf_cached(num, s, cache: Path = CACHE):
 
 def main(argv):
     global TAG
+    exit_on_help(__doc__, argv, flags=("--opt", "--tag"), max_args=1)
     options, argv = parse_opts(argv)
     if "--tag" in argv:
         i = argv.index("--tag"); TAG = argv[i + 1]; argv = argv[:i] + argv[i + 2:]
     select = set(argv[0].split(",")) if argv else None
+    check_trials(select)
     tot = []
     for num, s, mask in iter_broad(select):
         t0 = time.perf_counter()

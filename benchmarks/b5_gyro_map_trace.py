@@ -17,11 +17,16 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks.common import iter_broad, parse_options  # noqa: E402
+from benchmarks._usage import check_trials, exit_on_help, usage_error  # noqa: E402
 from imugraph.calibration.ml import calibrate  # noqa: E402
 from imugraph.evaluate import orientation_error  # noqa: E402
 
 
 def main(argv: list[str]) -> int:
+    exit_on_help(__doc__, argv, flags=())
+    if not argv:
+        usage_error("expected TRIALS (e.g. 16,06)")
+    check_trials(set(argv[0].split(",")))
     opts = parse_options(argv[1:])
     for num, s, mask in iter_broad(set(argv[0].split(","))):
         t0 = time.perf_counter()

@@ -19,6 +19,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks.common import iter_broad, print_table  # noqa: E402
+from benchmarks._usage import check_trials, exit_on_help  # noqa: E402
 from imugraph.calibration.gyro_map import clean_intervals  # noqa: E402
 from imugraph.calibration.initial import initial_calibration, weak_initial  # noqa: E402
 from imugraph.calibration.ml import Options, gravity_from, stride_for  # noqa: E402
@@ -27,7 +28,9 @@ from imugraph.factors.gyro import keyframe_layout  # noqa: E402
 
 
 def main(argv: list[str]) -> int:
+    exit_on_help(__doc__, argv, flags=(), max_args=1)
     select = set(argv[0].split(",")) if argv else None
+    check_trials(select)
     opt, rows = Options(), []
     for num, s, _ in iter_broad(select):
         try:

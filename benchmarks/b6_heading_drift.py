@@ -23,6 +23,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks.common import iter_broad, parse_options, pop_opts  # noqa: E402
 from benchmarks.peers import vqf_offline  # noqa: E402
+from benchmarks._usage import check_trials, exit_on_help, usage_error  # noqa: E402
 from imugraph.calibration.ml import calibrate  # noqa: E402
 from imugraph.evaluate import _align, _scored_index  # noqa: E402
 from imugraph.geometry import quat_to_rotmat  # noqa: E402
@@ -50,7 +51,11 @@ def fit(y: np.ndarray, X: np.ndarray) -> tuple[np.ndarray, float]:
 
 
 def main(argv: list[str]) -> int:
+    exit_on_help(__doc__, argv, flags=("--opt",), max_args=1)
     opts, rest = pop_opts(argv)
+    if not rest:
+        usage_error("expected TRIALS (e.g. 15,16)")
+    check_trials(set(rest[0].split(",")))
     options = parse_options(opts)
     from scipy.io import loadmat
 

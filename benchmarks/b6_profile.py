@@ -23,11 +23,14 @@ from pathlib import Path  # noqa: E402
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks.common import iter_broad, parse_options, pop_opts  # noqa: E402
+from benchmarks._usage import check_trials, exit_on_help, usage_error  # noqa: E402
 from imugraph.calibration.ml import calibrate  # noqa: E402
 import imugraph.calibration.initial  # noqa: E402,F401  (lazy import in calibrate: not profiled)
 
 
 def main(argv: list[str]) -> int:
+    exit_on_help(__doc__, argv, flags=("--opt", "--sort", "--top", "--repeat"), max_args=1,
+                 values={"--top": int, "--repeat": int})
     opts, rest = pop_opts(argv)
     sort, top, repeat = "tottime", 35, 1
     if "--repeat" in rest:
@@ -36,6 +39,9 @@ def main(argv: list[str]) -> int:
         i = rest.index("--sort"); sort = rest[i + 1]; rest = rest[:i] + rest[i + 2:]
     if "--top" in rest:
         i = rest.index("--top"); top = int(rest[i + 1]); rest = rest[:i] + rest[i + 2:]
+    if not rest:
+        usage_error("expected one TRIAL (e.g. 24)")
+    check_trials({rest[0]})
     options = parse_options(opts)
     _, s, _ = next(iter_broad({rest[0]}))
     cpus = []

@@ -26,6 +26,7 @@ import numpy as np  # noqa: E402
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks.common import iter_broad, parse_options, pop_opts  # noqa: E402
+from benchmarks._usage import exit_on_help, usage_error  # noqa: E402
 from imugraph.calibration.ml import calibrate  # noqa: E402
 from imugraph.evaluate import orientation_error  # noqa: E402
 from imugraph.factors.theta import pack_theta  # noqa: E402
@@ -78,14 +79,14 @@ def cmp(tag_a: str, tag_b: str) -> None:
 
 
 def main(argv: list[str]) -> int:
+    exit_on_help(__doc__, argv, flags=("--opt",))
     opts, rest = pop_opts(argv)
     if len(rest) == 3 and rest[0] == "run":
         run(rest[1], rest[2], opts)
     elif len(rest) == 3 and rest[0] == "cmp":
         cmp(rest[1], rest[2])
     else:
-        print(__doc__)
-        return 2
+        usage_error("expected `run TAG TRIALS [--opt FIELD=VALUE ...]` or `cmp TAG_A TAG_B`")
     return 0
 
 

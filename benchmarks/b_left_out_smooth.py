@@ -21,6 +21,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks.common import iter_broad, parse_options, pop_opts  # noqa: E402
+from benchmarks._usage import check_trials, exit_on_help  # noqa: E402
 from imugraph.calibration.ml import calibrate  # noqa: E402
 from imugraph.evaluate import orientation_error  # noqa: E402
 from imugraph.graphs.cpp_smoother import smooth_fixed  # noqa: E402
@@ -28,9 +29,11 @@ from imugraph.io.writers import read_calibration_json, write_calibration_json  #
 
 
 def main(argv: list[str]) -> int:
+    exit_on_help(__doc__, argv, flags=("--opt",), max_args=1)
     opts, argv = pop_opts(argv)
     options = parse_options(opts or ["window_trial_verdict=True"])
     select = set(argv[0].split(",")) if argv else {"32", "34"}
+    check_trials(select)
     for _num, s, mask in iter_broad(select):
         est = calibrate(s, options, allow_weak=True)
         with tempfile.TemporaryDirectory() as tmp:

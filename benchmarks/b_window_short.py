@@ -22,6 +22,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from benchmarks.common import broad_trials, load_broad_trial  # noqa: E402
+from benchmarks._usage import no_arguments  # noqa: E402
 from imugraph.calibration.ml import Options, calibrate  # noqa: E402
 
 N_BOOT = 19286      # the stream bootstrap's samples on 34 (benchmarks/stream_speed.py --cache: n_boot)
@@ -41,4 +42,5 @@ def main() -> int:
 
 
 if __name__ == "__main__":
+    no_arguments(__doc__)          # sys.argv: --help, or no arguments at all
     sys.exit(main())

@@ -18,6 +18,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks.b1_try import nav_tilt_mean, vqf_cached  # noqa: E402
 from benchmarks.common import error_parts, iter_broad  # noqa: E402
+from benchmarks._usage import check_trials, exit_on_help, usage_error  # noqa: E402
 from imugraph.calibration.ml import Options, calibrate  # noqa: E402
 from imugraph.factors.robust import Kernel  # noqa: E402
 
@@ -50,8 +51,13 @@ VARIANTS = {
 
 
 def main(argv):
+    exit_on_help(__doc__, argv, flags=())
     select = set(argv[0].split(",")) if argv else None
     names = argv[1:] or list(VARIANTS)
+    unknown = [n for n in names if n not in VARIANTS]
+    if unknown:
+        usage_error(f"unknown variant(s) {', '.join(unknown)}; known: {', '.join(VARIANTS)}")
+    check_trials(select)
     for num, s, mask in iter_broad(select):
         qv = vqf_cached(num, s)
         v = error_parts(qv, s, mask)

@@ -17,6 +17,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks.b1_try import parse_opts, vqf_cached  # noqa: E402
 from benchmarks.common import iter_broad  # noqa: E402
+from benchmarks._usage import check_trials, exit_on_help  # noqa: E402
 from imugraph.calibration.ml import calibrate  # noqa: E402
 from imugraph.evaluate import _align  # noqa: E402
 from imugraph.geometry import quat_to_rotmat  # noqa: E402
@@ -43,8 +44,10 @@ def tilt_fit(q, s, mask, g=9.81):
 
 
 def main(argv):
+    exit_on_help(__doc__, argv, flags=("--opt",), max_args=1)
     opts, argv = parse_opts(argv)
     select = set(argv[0].split(",")) if argv else None
+    check_trials(select)
     for num, s, mask in iter_broad(select):
         est = calibrate(s, opts, allow_weak=True)
         for name, q in (("ours", est.quat), ("offVQF", vqf_cached(num, s))):

@@ -27,6 +27,7 @@ from scipy.spatial.transform import Rotation, Slerp
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks.common import iter_broad  # noqa: E402
+from benchmarks._usage import check_trials, exit_on_help  # noqa: E402
 from imugraph.calibration.rest import detect_rest  # noqa: E402
 
 
@@ -71,7 +72,9 @@ def rest_poses(s):
 
 
 def main(argv):
+    exit_on_help(__doc__, argv, flags=(), max_args=1)
     select = set(argv[0].split(",")) if argv else None
+    check_trials(select)
     for num, s, _ in iter_broad(select):
         th = net_rotation(s)
         sg, sa = optical_shifts(s)

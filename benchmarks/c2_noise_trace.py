@@ -16,13 +16,16 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks.common import error_parts, iter_broad, parse_options, pop_opts  # noqa: E402
+from benchmarks._usage import check_trials, exit_on_help  # noqa: E402
 from imugraph.calibration.ml import calibrate  # noqa: E402
 
 
 def main(argv: list[str]) -> int:
+    exit_on_help(__doc__, argv, flags=("--opt",), max_args=1)
     opts, argv = pop_opts(argv)
     options = parse_options(opts)
     select = set(argv[0].split(",")) if argv else None
+    check_trials(select)
     for num, s, mask in iter_broad(select):
         t0 = time.process_time()
         est = calibrate(s, options, allow_weak=True)

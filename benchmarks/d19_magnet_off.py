@@ -15,6 +15,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from benchmarks.stream_vs_batch import stream_with_recorder  # noqa: E402
+from benchmarks._usage import no_arguments  # noqa: E402
 
 
 def main() -> int:
@@ -38,4 +39,5 @@ def main() -> int:
 
 
 if __name__ == "__main__":
+    no_arguments(__doc__)          # sys.argv: --help, or no arguments at all
     sys.exit(main())

@@ -11,11 +11,17 @@ Rasteiro sensors. Needs ../shared/data.
 
 from __future__ import annotations
 
+import sys
 import time
+from pathlib import Path
 
 from imugraph.config import data_dir
 from imugraph.errors import ImugraphError
 from imugraph.io.validate import calibrated_norm_median
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+from benchmarks._usage import no_arguments  # noqa: E402
 
 
 def main() -> None:
@@ -49,4 +55,5 @@ def main() -> None:
 
 
 if __name__ == "__main__":
+    no_arguments(__doc__)          # sys.argv: --help, or no arguments at all
     main()

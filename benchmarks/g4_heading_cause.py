@@ -28,6 +28,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks.common import error_parts, iter_broad, parse_options, pop_opts  # noqa: E402
 from benchmarks.peers import timed, vqf_offline  # noqa: E402
+from benchmarks._usage import check_trials, exit_on_help  # noqa: E402
 from imugraph.calibration import ml  # noqa: E402
 from imugraph.calibration.initial import initial_calibration, weak_initial  # noqa: E402
 from imugraph.errors import CalibrationError  # noqa: E402
@@ -63,6 +64,7 @@ def held(s, D, o, options):
 
 
 def main(argv: list[str]) -> int:
+    exit_on_help(__doc__, argv, flags=("--opt", "--cal"), max_args=1)
     opts, argv = pop_opts(argv)
     cals = ["own", "sphere", "trial:01"]
     if "--cal" in argv:
@@ -71,6 +73,7 @@ def main(argv: list[str]) -> int:
         argv = argv[:i] + argv[i + 2:]
     options = parse_options(opts)
     select = set(argv[0].split(",")) if argv else {"02", "15", "16"}
+    check_trials(select)
     ref = {}
     for c in cals:
         if c.startswith("trial:"):

@@ -23,6 +23,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks.common import iter_broad, parse_options, pop_opts  # noqa: E402
 from benchmarks.peers import vqf_offline  # noqa: E402
+from benchmarks._usage import check_trials, exit_on_help  # noqa: E402
 from imugraph.calibration import field_select as fs  # noqa: E402
 from imugraph.calibration.ml import calibrate  # noqa: E402
 from imugraph.evaluate import orientation_error  # noqa: E402
@@ -36,6 +37,8 @@ def _flag(argv, name, default=None, cast=float):
 
 
 def main(argv: list[str]) -> int:
+    exit_on_help(__doc__, argv, flags=("--opt", "--block", "--folds"), switches=("--all", "--map", "--map-only"),
+                 max_args=1, values={"--block": float, "--folds": int})
     opts, argv = pop_opts(argv)
     options = parse_options(opts)
     full_all = "--all" in argv
@@ -50,6 +53,7 @@ def main(argv: list[str]) -> int:
     if map_only:                       # only: the gyro map on (the options' setting) against off
         cands = [fs.Candidate(), fs.Candidate(gyro_map=False)]
     select = set(argv[0].split(",")) if argv else None
+    check_trials(select)
     rows = []
     for num, s, mask in iter_broad(select):
         err = lambda q: orientation_error(q, s.quat, mask, s.rate).rms_deg   # noqa: E731

@@ -41,6 +41,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks.common import error_parts, iter_broad, parse_options, pop_opts, print_table  # noqa: E402
+from benchmarks._usage import check_trials, exit_on_help  # noqa: E402
 from imugraph.calibration.acc_map import (G_NOMINAL, AccMapError, fit_acc_map, quasi_static_windows,  # noqa: E402
                                           session_acc_map)
 from imugraph.geometry import quat_to_rotmat  # noqa: E402
@@ -268,6 +269,8 @@ def run_calibrate(select, variant: str, options, subset: str = "all") -> int:
 
 
 def main(argv: list[str]) -> int:
+    exit_on_help(__doc__, argv, flags=("--opt", "--map", "--max-rate", "--subset"), max_args=2,
+                 values={"--max-rate": float})
     opts, argv = pop_opts(argv)
     flags = {"--map": "own", "--max-rate": "0.3", "--subset": "all"}
     for flag in flags:
@@ -277,6 +280,8 @@ def main(argv: list[str]) -> int:
             argv = argv[:i] + argv[i + 2:]
     mode = argv[0] if argv else "truth"
     select = set(argv[1].split(",")) if len(argv) > 1 else None
+    if mode in ("truth", "windows", "calibrate"):
+        check_trials(select)
     if mode == "truth":
         return run_truth(select)
     if mode == "windows":

@@ -24,6 +24,7 @@ from benchmarks.b1_try import vqf_cached  # noqa: E402
 from benchmarks.common import error_parts, iter_broad, parse_options, parse_variants  # noqa: E402
 from benchmarks.h4_decompose import CACHE  # noqa: E402
 from benchmarks.output import write_json  # noqa: E402
+from benchmarks._usage import check_trials, exit_on_help  # noqa: E402
 from imugraph.calibration.ml import calibrate  # noqa: E402
 
 
@@ -35,8 +36,10 @@ def _sigma(row: dict, name: str) -> str:
 
 
 def main(argv: list[str]) -> int:
+    exit_on_help(__doc__, argv, flags=("--variant",), max_args=1)
     variants, rest = parse_variants(argv)
     select = set(rest[0].split(",")) if rest else None
+    check_trials(select)
     rows = []
     for num, s, mask in iter_broad(select):
         q_v = vqf_cached(num, s, CACHE)

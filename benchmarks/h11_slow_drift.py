@@ -35,6 +35,7 @@ from benchmarks.b1_try import vqf_cached  # noqa: E402
 from benchmarks.common import iter_broad, parse_options, pop_opts  # noqa: E402
 from benchmarks.h4_decompose import CACHE  # noqa: E402
 from benchmarks.v1_velocity_process import optical_velocities  # noqa: E402
+from benchmarks._usage import check_trials, exit_on_help  # noqa: E402
 from imugraph.calibration.ml import calibrate  # noqa: E402
 from imugraph.calibration.result import n_mag_from_dip  # noqa: E402
 from imugraph.evaluate import _align  # noqa: E402
@@ -186,9 +187,11 @@ def trial_report(num, s, mask, est, q_vqf) -> dict:
 
 
 def main(argv: list[str]) -> int:
+    exit_on_help(__doc__, argv, flags=("--opt",), max_args=1)
     opts, argv = pop_opts(argv)
     options = parse_options(opts)
     select = set(argv[0].split(",")) if argv else None
+    check_trials(select)
     CACHE.mkdir(parents=True, exist_ok=True)
     for num, s, mask in iter_broad(select):
         est = calibrate(s, options, allow_weak=True)

@@ -19,6 +19,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from benchmarks.common import error_parts, iter_broad, parse_options, pop_opts, pop_value  # noqa: E402
 from benchmarks.output import OUT_DIR  # noqa: E402
 from benchmarks.b1_try import vqf_cached  # noqa: E402
+from benchmarks._usage import check_trials, exit_on_help  # noqa: E402
 from imugraph.calibration.ml import calibrate  # noqa: E402
 from imugraph.evaluate import orientation_error  # noqa: E402
 
@@ -46,6 +47,7 @@ def calibrated_trials(argv: list[str]):
     tag, argv = pop_value(argv, "--tag", "default")
     options = parse_options(opts)
     select = set(argv[0].split(",")) if argv else None
+    check_trials(select)
     CACHE.mkdir(parents=True, exist_ok=True)
     for num, s, mask in iter_broad(select):
         t0 = time.process_time()
@@ -55,6 +57,7 @@ def calibrated_trials(argv: list[str]):
 
 
 def main(argv: list[str]) -> int:
+    exit_on_help(__doc__, argv, flags=("--opt", "--tag"), max_args=1)
     for tag, num, s, mask, est, cpu, qv in calibrated_trials(argv):
         a, b = error_parts(est.quat, s, mask), error_parts(qv, s, mask)
         sa, sb = (orientation_error(q, s.quat, mask, s.rate).shift_samples for q in (est.quat, qv))

@@ -22,6 +22,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks.common import iter_broad  # noqa: E402
 from benchmarks.h4_decompose import CACHE  # noqa: E402
+from benchmarks._usage import check_trials, exit_on_help  # noqa: E402
 from imugraph.evaluate import _align, _scored_index  # noqa: E402
 
 WIN_S = 2.0
@@ -46,12 +47,14 @@ def slow(x: np.ndarray, k: int) -> np.ndarray:
 
 
 def main(argv: list[str]) -> int:
+    exit_on_help(__doc__, argv, flags=("--tag",), max_args=1)
     tag = "on"
     if "--tag" in argv:
         i = argv.index("--tag")
         tag = argv[i + 1]
         argv = argv[:i] + argv[i + 2:]
     select = set(argv[0].split(",")) if argv else None
+    check_trials(select)
     for num, s, mask in iter_broad(select):
         f = CACHE / f"{num}_{tag}.npz"
         if not f.is_file() or not (CACHE / f"vqf_{num}.npy").is_file():

@@ -17,6 +17,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks.common import error_parts, iter_broad, parse_options, pop_opts, print_table  # noqa: E402
 from benchmarks.output import write_json  # noqa: E402
+from benchmarks._usage import check_trials, exit_on_help  # noqa: E402
 from imugraph.calibration.ml import calibrate  # noqa: E402
 
 
@@ -26,10 +27,12 @@ def kappa_trace(est) -> list[dict]:
 
 
 def main(argv: list[str]) -> int:
+    exit_on_help(__doc__, argv, flags=("--opt",), max_args=1)
     opts, argv = pop_opts(argv)
     base = parse_options(opts)
     variant = replace(base, estimate_acc_rate_error=True)
     select = set(argv[0].split(",")) if argv else None
+    check_trials(select)
     rows = []
     for num, s, mask in iter_broad(select):
         e0 = calibrate(s, base, allow_weak=True)

@@ -20,6 +20,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from benchmarks.common import error_parts, iter_broad, parse_options, pop_opts, print_variant_summary  # noqa: E402
 from benchmarks.output import write_json  # noqa: E402
 from benchmarks.peers import vqf_offline  # noqa: E402
+from benchmarks._usage import check_trials, exit_on_help  # noqa: E402
 from imugraph.calibration.ml import calibrate  # noqa: E402
 
 
@@ -29,10 +30,12 @@ def q_trace(est) -> list[float]:
 
 
 def main(argv: list[str]) -> int:
+    exit_on_help(__doc__, argv, flags=("--opt",), max_args=1)
     opts, argv = pop_opts(argv)
     base = parse_options(opts)
     variant = replace(base, estimate_bias_rw=True)
     select = set(argv[0].split(",")) if argv else None
+    check_trials(select)
     rows = []
     for num, s, mask in iter_broad(select):
         c0 = time.process_time()

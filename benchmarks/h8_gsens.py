@@ -43,6 +43,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks.common import iter_broad, parse_options, pop_opts  # noqa: E402
 from benchmarks.h4_decompose import CACHE  # noqa: E402
+from benchmarks._usage import check_trials, exit_on_help, usage_error  # noqa: E402
 from imugraph.calibration.gyro_gsens import G0, fit_gyro_errors, pooled, predicted_rotation  # noqa: E402
 from imugraph.geometry import quat_to_rotmat  # noqa: E402
 
@@ -99,6 +100,8 @@ def gravity_body(quat: np.ndarray) -> np.ndarray:
 
 
 def main(argv: list[str]) -> int:
+    exit_on_help(__doc__, argv, flags=("--opt", "--win", "--model", "--ref"), switches=("--halves", "--oracle"),
+                 max_args=1, values={"--win": float})
     halves, oracle = "--halves" in argv, "--oracle" in argv
     opts, argv = pop_opts([a for a in argv if a not in ("--halves", "--oracle")])
     flags = {"--win": "1.0", "--model": "base", "--ref": "opt"}
@@ -109,6 +112,9 @@ def main(argv: list[str]) -> int:
             argv = argv[:i] + argv[i + 2:]
     win, model, ref = float(flags["--win"]), flags["--model"], flags["--ref"]
     select = set(argv[0].split(",")) if argv else None
+    if model not in ("base", "split", "rate2", "g2"):
+        usage_error(f"--model {model!r}: expected base, split, rate2 or g2")
+    check_trials(select)
     tags = {"base": ["G"], "split": ["Ggrav", "Glin"], "rate2": ["G", "K"], "g2": ["G", "G2"]}[model]
     print(f"model {model}, reference {ref}, windows {win:g} s; G in °/s per g (row: gyro axis, column: specific-force axis, "
           f"row-major xx xy xz yx ... zz); ± OLS standard error")

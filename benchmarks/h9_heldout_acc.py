@@ -24,6 +24,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import imugraph.calibration.ml as ml  # noqa: E402
 from benchmarks.common import error_parts, iter_broad, pop_value  # noqa: E402
+from benchmarks._usage import check_trials, exit_on_help  # noqa: E402
 from imugraph.calibration.acc_rate import marginal_log_lik, process_matrices  # noqa: E402
 from imugraph.factors.velocity import velocity_model  # noqa: E402
 from imugraph.geometry import quat_to_rotmat  # noqa: E402
@@ -74,9 +75,11 @@ def block_scores(block, nRk: np.ndarray, s: np.ndarray) -> np.ndarray:
 
 
 def main(argv: list[str]) -> int:
+    exit_on_help(__doc__, argv, flags=("--variants",), max_args=1)
     variants, argv = pop_value(argv, "--variants", "bounded_ar2,free_ar2")
     variants = variants.split(",")
     select = set(argv[0].split(",")) if argv else None
+    check_trials(select)
     for num, s, mask in iter_broad(select):
         runs = {m: run(s, m) for m in variants}
         own = {}

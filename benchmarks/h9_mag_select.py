@@ -17,6 +17,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks.common import error_parts, iter_broad, pop_value  # noqa: E402
+from benchmarks._usage import check_trials, exit_on_help  # noqa: E402
 from imugraph.calibration import field_select, ml  # noqa: E402
 
 
@@ -34,9 +35,11 @@ class VelocityCandidate:
 
 
 def main(argv: list[str]) -> int:
+    exit_on_help(__doc__, argv, flags=("--variants",), max_args=1)
     variants, argv = pop_value(argv, "--variants", "bounded_ar2,free_ar2")
     variants = variants.split(",")
     select = set(argv[0].split(",")) if argv else None
+    check_trials(select)
     cands = tuple(VelocityCandidate(m) for m in variants)
     for num, s, mask in iter_broad(select):
         t0 = time.process_time()

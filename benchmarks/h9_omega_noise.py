@@ -19,6 +19,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import imugraph.factors.velocity as fv  # noqa: E402
 from benchmarks.common import error_parts, iter_broad, parse_options, pop_opts  # noqa: E402
+from benchmarks._usage import check_trials, exit_on_help, floats  # noqa: E402
 from imugraph.calibration.ml import calibrate  # noqa: E402
 
 _plain = fv.velocity_increments
@@ -34,6 +35,7 @@ def velocity_increments(kRb, sample_kf, b_acc, dt, n_keyframes, sigma_acc, rate_
 
 
 def main(argv: list[str]) -> int:
+    exit_on_help(__doc__, argv, flags=("--opt", "--delays"), max_args=1, values={"--delays": floats})
     opts, argv = pop_opts(argv)
     delays = [0.0, 0.001, 0.002]
     if "--delays" in argv:
@@ -43,6 +45,7 @@ def main(argv: list[str]) -> int:
     options = parse_options(opts)
     fv.velocity_increments = velocity_increments
     select = set(argv[0].split(",")) if argv else None
+    check_trials(select)
     for num, s, mask in iter_broad(select):
         STATE["omega"] = np.linalg.norm(s.gyr, axis=1)
         out = []

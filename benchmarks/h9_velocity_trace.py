@@ -18,9 +18,11 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks.common import error_parts  # noqa: E402
 from benchmarks.h4_decompose import CACHE, calibrated_trials  # noqa: E402
+from benchmarks._usage import exit_on_help  # noqa: E402
 
 
 def main(argv: list[str]) -> int:
+    exit_on_help(__doc__, argv, flags=("--opt", "--tag"), max_args=1)
     if any("hetero_ar2" in a for a in argv):     # the graph-side patch it needs (benchmarks/h9_hetero_patch.py)
         from benchmarks.h9_hetero_patch import install
         install()

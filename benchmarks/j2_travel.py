@@ -29,6 +29,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks.common import error_parts, parse_options, parse_variants  # noqa: E402
 from benchmarks.output import write_json  # noqa: E402
+from benchmarks._usage import exit_on_help, usage_error  # noqa: E402
 from imugraph.calibration.ml import calibrate  # noqa: E402
 from imugraph.sim.distortion import random_distortion  # noqa: E402
 from imugraph.sim.motion import random_rotation_motion, _rest_envelope, _rest_intervals  # noqa: E402
@@ -88,12 +89,17 @@ def travel_session(seed: int, kind: str, duration_s: float = DURATION_S):
 
 
 def main(argv: list[str]) -> int:
+    exit_on_help(__doc__, argv, flags=("--variant", "--kind"), max_args=1)
     variants, rest = parse_variants(argv)
     kinds = ["hand", "walk", "drive"]
     while "--kind" in rest:                       # the last --kind wins, as before
         i = rest.index("--kind")
         kinds = rest[i + 1].split(",")
         del rest[i:i + 2]
+    if rest and not all(x.isdigit() for x in rest[0].split(",")):
+        usage_error(f"SEEDS {rest[0]!r}: expected comma-separated integers like 1,2")
+    if not set(kinds) <= {"hand", "walk", "drive"}:
+        usage_error(f"--kind {','.join(kinds)!r}: expected hand, walk and/or drive")
     seeds = [int(x) for x in rest[0].split(",")] if rest else [1, 2]
     rows = []
     for kind in kinds:

@@ -15,7 +15,19 @@
     body_ablation.py     simulation ablation with a drifting gyro bias                          (issue 4c)
     body_speed.py        17 IMUs x 60 s at 60 Hz: batch and fixed lag, time and memory          (issue 4d)
     diagnose_broad.py    diagnosis of disturbed and undisturbed BROAD trials, no labels         (issue 5)
-    diagnose_harness.py  blind injections: confusion matrix, window IoU, gap shrink             (issue 5)
+    diagnose_harness.py  blind injections: confusion matrix, window IoU, gap shrink; seeds 0-4 (issue 5)
+    stream_vs_batch.py   the stream's smoothed orientation against the batch path              (issue 3)
+    stream_arrival.py    late / duplicate / invalid / missing samples on BROAD 01, 06, 34      (issue 3)
+    batch_gaps.py        the batch path with the same drops                                    (issue 3)
+    qmt_full_body.py     the real 16-IMU full-body recording (no truth: plausibility)          (issue 4)
+    t20_rasteiro_diagnose.py  diagnosis of Rasteiro's raw recordings                          (issue 5)
+
+Each entry runs the command README.md's "Status at a glance" cites for its row (M23, session 23), with
+OPENBLAS_NUM_THREADS=1 (and OMP_NUM_THREADS=1) where the README's command sets it. stream_speed.py runs three
+times: the row-118/120/121 command (`--cache DIR`), and row 123's causal scoring (`--no-cal-compare
+--score-after-bootstrap`) uncapped and with `--bootstrap-max-s 60`, each to its own bench_out file. DIR is a fresh
+temporary folder for this run, shared by stream_speed.py and stream_vs_batch.py (the README's `--cache DIR`): never
+a stale cache from an earlier run.
 
     .venv/bin/python benchmarks/run_all.py [--list]      (--list: the command lines, nothing run)
 """
@@ -23,24 +35,42 @@
 from __future__ import annotations
 
 import argparse
+import os
 import subprocess
 import sys
+import tempfile
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
+CACHE = "{cache}"                     # replaced by the run's fresh cache folder ("DIR" with --list)
+ALL17 = "01,02,04,06,07,10,12,15,16,21,24,26,28,30,32,34,36"
+STREAM = ["all", "--lag", "2", "--lag-solver", "chain", "--lag-only", "--no-batch"]      # README issue 3: chain
+ONE = True                            # README's command sets OPENBLAS_NUM_THREADS=1
+
+# (script, arguments, one BLAS thread?) — each the README "Status at a glance" command of its row
+STEPS = (("peer_table.py", [], False), ("sim_coverage.py", ["50", "60", "100"], False),
+         ("broad_published.py", [], False), ("broad_known_distortion.py", [], False),
+         ("rasteiro.py", [], False), ("speed.py", [ALL17, "--repeat", "1"], ONE), ("batch_scaling.py", [], ONE),
+         ("stream_speed.py", STREAM + ["--cache", CACHE], ONE),                              # rows 118, 120, 121
+         ("stream_speed.py", STREAM + ["--no-cal-compare", "--score-after-bootstrap",        # row 123: causal
+                                       "--out", "stream_speed_after_bootstrap.json"], ONE),
+         ("stream_speed.py", STREAM + ["--no-cal-compare", "--score-after-bootstrap", "--bootstrap-max-s", "60",
+                                       "--out", "stream_speed_after_bootstrap60.json"], ONE),
+         ("stream_vs_batch.py", ["all", "--config", "session18,default", "--cache", CACHE], ONE),
+         ("stream_memory.py", ["--minutes", "30"], False),
+         ("stream_arrival.py", ["01,06,34"], ONE), ("batch_gaps.py", ["01,06,34", "--ablate"], ONE),
+         ("body_sim_accuracy.py", ["--seeds", "0,1,2,3,4"], False),
+         ("gaittoolbox_walk.py", ["--ablation", "--lag", "1"], False), ("body_walk_diagnosis.py", [], False),
+         ("body_ablation.py", ["--motions", "cmu131_02,xsens", "--bias-walk", "0.002"], False),
+         ("body_speed.py", ["--duration", "60", "--modes", "batch,lag"], False),
+         ("qmt_full_body.py", ["--init", "auto", "--no-lag"], False),
+         ("diagnose_broad.py", ["--trials", "all"], ONE), ("t20_rasteiro_diagnose.py", [], ONE),
+         *(("diagnose_harness.py", ["--n", "2", "--duration", "60", "--seed", str(seed)], ONE) for seed in range(5)))
 
 
-STEPS = (("peer_table.py", []), ("sim_coverage.py", ["50", "60", "100"]),
-         ("broad_published.py", []), ("broad_known_distortion.py", []),
-         ("rasteiro.py", []), ("speed.py", []), ("batch_scaling.py", []),
-         ("stream_speed.py", ["all", "--lag", "2", "--lag-solver", "chain", "--lag-only",
-                              "--no-batch", "--no-cal-compare"]),     # README issue 3: chain
-         ("stream_memory.py", ["--minutes", "30"]),
-         ("body_sim_accuracy.py", ["--seeds", "0,1,2,3,4"]),
-         ("gaittoolbox_walk.py", ["--ablation", "--lag", "1"]), ("body_walk_diagnosis.py", []),
-         ("body_ablation.py", ["--motions", "cmu131_02,xsens", "--bias-walk", "0.002"]),
-         ("body_speed.py", ["--duration", "60", "--modes", "batch,lag"]),
-         ("diagnose_broad.py", []), ("diagnose_harness.py", ["--n", "2", "--duration", "60"]))
+def command(script: str, args: list[str], cache: str) -> list[str]:
+    """The step's argv (python, script, arguments) with the cache placeholder filled in."""
+    return [sys.executable, str(HERE / script), *(cache if a == CACHE else a for a in args)]
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -49,12 +79,15 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--list", action="store_true", help="print the benchmark command lines without running them")
     args = ap.parse_args(argv)
     rc = 0
-    for script, script_args in STEPS:
-        if args.list:
-            print(f"{sys.executable} {HERE / script} {' '.join(script_args)}".rstrip())
-            continue
-        print(f"\n=== {script} {' '.join(script_args)} ===", flush=True)
-        rc |= subprocess.call([sys.executable, str(HERE / script), *script_args])
+    with tempfile.TemporaryDirectory(prefix="run_all_cache_") as cache:
+        for script, script_args, one_thread in STEPS:
+            cmd = command(script, script_args, "DIR" if args.list else cache)
+            env = dict(os.environ, **({"OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1"} if one_thread else {}))
+            if args.list:
+                print(("OPENBLAS_NUM_THREADS=1 " if one_thread else "") + " ".join(cmd))
+                continue
+            print(f"\n=== {script} {' '.join(cmd[2:])} ===", flush=True)
+            rc |= subprocess.call(cmd, env=env)
     return rc
 
 

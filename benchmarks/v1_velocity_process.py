@@ -22,6 +22,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks.common import iter_broad, parse_options, pop_opts, print_variant_summary  # noqa: E402
 from benchmarks.output import write_json  # noqa: E402
+from benchmarks._usage import check_trials, exit_on_help  # noqa: E402
 from imugraph.calibration.ml import calibrate  # noqa: E402
 from imugraph.evaluate import orientation_error  # noqa: E402
 from imugraph.factors.velocity import gauss_markov_axes  # noqa: E402
@@ -62,6 +63,7 @@ def _r(x: np.ndarray):
 
 
 def main(argv: list[str]) -> int:
+    exit_on_help(__doc__, argv, flags=("--opt", "--base-opt"), max_args=1)
     from scipy.io import loadmat
 
     base_opts, argv = pop_opts([("--opt" if a == "--base-opt" else "--keep" if a == "--opt" else a) for a in argv])
@@ -71,6 +73,7 @@ def main(argv: list[str]) -> int:
     variant = parse_options(opts)
     base = parse_options(base_opts)
     select = set(argv[0].split(",")) if argv else None
+    check_trials(select)
     rows = []
     for num, s, mask in iter_broad(select):
         e0 = calibrate(s, base, allow_weak=True)
@@ -89,7 +92,7 @@ def main(argv: list[str]) -> int:
                      "opt_step_var": round(normalised_step(v_opt, dt, sig1, tau1), 2),
                      "rounds": (len(e0.info["history"]), len(e1.info["history"]))})
         print(rows[-1], flush=True)
-    means = print_variant_summary(rows, "v1_velocity_process", argv[0], opts)
+    means = print_variant_summary(rows, "v1_velocity_process", argv[0] if argv else "", opts)
     if means is None:
         return 2
     m0, m1 = means

@@ -20,6 +20,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks.common import error_parts, iter_broad, parse_options  # noqa: E402
 from benchmarks.peers import vqf_offline  # noqa: E402
+from benchmarks._usage import check_trials, exit_on_help  # noqa: E402
 from imugraph.calibration.ml import calibrate  # noqa: E402
 from imugraph.evaluate import _align  # noqa: E402  (the scorer's alignment, to see the error over time)
 
@@ -60,9 +61,11 @@ def slow_heading_share(q: np.ndarray, s, mask, rate: float) -> float:
 
 
 def main(argv: list[str]) -> int:
+    exit_on_help(__doc__, argv, flags=(), max_args=1)
     from scipy.io import loadmat
 
     select = set(argv[0].split(",")) if argv else {"15", "16"}
+    check_trials(select)
     for num, s, mask in iter_broad(select):
         pos = np.asarray(loadmat(s.source)["opt_pos"], float)
         print(f"trial {num}: optical velocity autocorrelation {optical_autocorrelation(pos, s.rate)}")

@@ -21,6 +21,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks.common import error_parts, iter_broad, parse_options, pop_opts, print_variant_summary  # noqa: E402
 from benchmarks.v1_velocity_process import optical_velocities  # noqa: E402
+from benchmarks._usage import check_trials, exit_on_help  # noqa: E402
 from imugraph.calibration.ml import calibrate  # noqa: E402
 
 
@@ -43,12 +44,14 @@ def normalised_innovation(v: np.ndarray, a1: float, a2: float, q: float) -> floa
 
 
 def main(argv: list[str]) -> int:
+    exit_on_help(__doc__, argv, flags=("--opt",), max_args=1)
     from scipy.io import loadmat
 
     opts, argv = pop_opts(argv)
     opts = opts or ["estimate_velocity_process='free_ar2'"]
     base, variant = parse_options([]), parse_options(opts)
     select = set(argv[0].split(",")) if argv else None
+    check_trials(select)
     rows = []
     for num, s, mask in iter_broad(select):
         e0, e1 = calibrate(s, base, allow_weak=True), calibrate(s, variant, allow_weak=True)
@@ -64,7 +67,8 @@ def main(argv: list[str]) -> int:
                      "opt_ar2": f"{o1:.2f},{o2:.2f},{np.sqrt(oq):.3f}",
                      "opt_innov": None if est is None else round(normalised_innovation(v_opt, *est), 2)})
         print(rows[-1], flush=True)
-    if print_variant_summary(rows, "v2_velocity_ar2", argv[0], opts, "  (ar2 columns: a_1, a_2, √q m/s)") is None:
+    if print_variant_summary(rows, "v2_velocity_ar2", argv[0] if argv else "", opts,
+                             "  (ar2 columns: a_1, a_2, √q m/s)") is None:
         return 2
     return 0
 

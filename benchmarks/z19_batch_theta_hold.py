@@ -28,6 +28,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks.common import iter_broad, parse_options  # noqa: E402
+from benchmarks._usage import check_trials, exit_on_help, usage_error  # noqa: E402
 from imugraph.calibration import ml  # noqa: E402
 from imugraph.calibration.initial import initial_calibration  # noqa: E402
 from imugraph.evaluate import orientation_error  # noqa: E402
@@ -43,6 +44,10 @@ def _report(name: str, est, s, mask, cpu: float) -> None:
 
 
 def main(argv: list[str]) -> int:
+    exit_on_help(__doc__, argv, flags=())
+    if not argv:
+        usage_error("expected TRIALS (e.g. 24,04,01)")
+    check_trials(set(argv[0].split(",")))
     opt = parse_options(argv[1:], gyro_map_max_contraction=10.0)
     for num, s, mask in iter_broad(set(argv[0].split(","))):
         print(num)
