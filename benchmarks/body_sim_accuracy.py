@@ -146,6 +146,10 @@ NECK_VARIANTS = {"default": {},                                  # since session
                                   "lag_neck_mag_offset": True},
                  "lsmargbs3mo": {"lag_neck_stream": True, "lag_bootstrap_marginal": True, "lag_bootstrap_scale": 3.0,
                                  "lag_neck_mag_offset": True}}
+# helper B23: "causal" = BodyOptions.lag_init_causal (body_lag_boot.causal_start (C1)); "NAMEc": preset NAME + it
+NECK_VARIANTS.update({"causal": {"lag_init_causal": True},
+                      **{f"{k}c": {**NECK_VARIANTS[k], "lag_init_causal": True}
+                         for k in ("marg", "lsmarg", "lsmargset3", "lsmargset3mo", "lsmargbs3mo")}})
 
 
 def _label(head: str, use_mag: bool, lag, uns, neck: str) -> str:

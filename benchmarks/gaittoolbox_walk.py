@@ -220,6 +220,8 @@ def main(argv=None) -> int:
     ap.add_argument("--knee-gain-hinge", default="", help="σ of that knee's hinge (S3), 'IE,AbAd' rad (default: "
                     "BodyOptions.axial_hinge_sigmas_rad)")
     ap.add_argument("--init", choices=("nominal", "motion", "auto"), default="nominal", help="BodyOptions.init (helper Q22b): sensor headings from the nominal placement or from the motion (imugraph.body.placement_motion)")
+    ap.add_argument("--lag-set", action="append", default=[], metavar="FIELD=VALUE",
+                    help="a BodyOptions field for the fixed-lag solve only (helper B23), e.g. lag_init_causal=True")
     ap.add_argument("--figure", action="store_true")
     ap.add_argument("--out", default="gaittoolbox_walk.json", help="file name in bench_out/")
     a = ap.parse_args(argv)
@@ -259,7 +261,10 @@ def main(argv=None) -> int:
         print(f"ours {variant}: {info[variant]['seconds']:.1f} s")
     if a.lag is not None:
         try:
-            q_lag, info["fixed_lag"] = ours(root, a.mag, hinges, a.lag, axial=axial, skeleton=skeleton, extra=init_kw)
+            import ast
+            lag_kw = {k: ast.literal_eval(v) for k, v in (x.split("=", 1) for x in a.lag_set)}
+            q_lag, info["fixed_lag"] = ours(root, a.mag, hinges, a.lag, axial=axial, skeleton=skeleton,
+                                            extra={**init_kw, **lag_kw})
             systems[f"ours lag {a.lag:g} s"] = q_lag
             print(f"ours, fixed lag {a.lag:g} s: {info['fixed_lag']['seconds']:.1f} s")
         except Exception as exc:              # report the failure of the incremental solver, score the rest

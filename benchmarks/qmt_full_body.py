@@ -41,6 +41,7 @@ for _var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
     os.environ[_var] = "1"
 
 import argparse  # noqa: E402
+import ast  # noqa: E402
 import json  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
@@ -97,7 +98,7 @@ def part_read(bs) -> dict:
     return {"npose": [float(bs.t[idx[0]]), float(bs.t[idx[-1]]), how], "sensors": rows}
 
 
-def solve(bs, lag=None, init: str = "nominal", npose=None, hinges: tuple = ()):
+def solve(bs, lag=None, init: str = "nominal", npose=None, hinges: tuple = (), extra: dict | None = None):
     """(BodyResult, CPU s, {child: δ}) of the batch solver or the fixed lag: BodyOptions defaults (no magnetometer
     here) but `npose` (None: detected), hinges, and BodyOptions.init "nominal" (the estimator's own start) or
     "motion" (imugraph.body.placement_motion (H1)–(H4), inside build_problem: its CPU time included; the batch's
@@ -105,7 +106,8 @@ def solve(bs, lag=None, init: str = "nominal", npose=None, hinges: tuple = ()):
     from imugraph.graphs.body_model import BodyOptions
 
     c0 = time.process_time()
-    opts = BodyOptions(npose=npose, hinges=tuple(h for h in hinges if h in bs.skeleton.sensed), init=init)
+    opts = BodyOptions(npose=npose, hinges=tuple(h for h in hinges if h in bs.skeleton.sensed), init=init,
+                       **(extra or {}))               # extra: more BodyOptions fields (--lag-set, helper B23)
     if lag is None:
         from imugraph.graphs.body import solve_body_batch
         res = solve_body_batch(bs, opts)
@@ -283,6 +285,8 @@ def main(argv=None) -> int:
     p.add_argument("--duration", type=float, default=None, help="only the first S seconds")
     p.add_argument("--lag", type=float, default=1.0, help="fixed-lag smoother lag, s")
     p.add_argument("--no-lag", action="store_true", help="skip the fixed lag")
+    p.add_argument("--lag-set", action="append", default=[], metavar="FIELD=VALUE",
+                   help="a BodyOptions field for the fixed-lag solve only (helper B23), e.g. lag_init_causal=True")
     p.add_argument("--lower", action="store_true", help="also the 7 lower-body sensors alone")
     p.add_argument("--init", choices=("nominal", "motion", "auto"), default="nominal",
                    help="BodyOptions.init: sensor headings at the start from the nominal placement, or from the motion "
@@ -331,7 +335,8 @@ def main(argv=None) -> int:
     result["vs_qmt"] = part_qmt(res, bs)
     result["joint_centres"] = part_joints(res, bs.skeleton)
     if not a.no_lag:
-        lag, cpu_l, _ = solve(bs, a.lag, a.init, npose, hinges)
+        lag_kw = {k: ast.literal_eval(v) for k, v in (x.split("=", 1) for x in a.lag_set)}
+        lag, cpu_l, _ = solve(bs, a.lag, a.init, npose, hinges, lag_kw)
         from imugraph.commands.mocap import timing_summary
         tim = timing_summary(lag.info, dur)
         result["lag"] = {"lag_s": a.lag, "cpu_s": cpu_l, "cpu_per_realtime_s": cpu_l / dur,

@@ -25,7 +25,9 @@ as hinges (comma-separated: knees, elbows, or joint names RightKnee, LeftElbow, 
 heading about the vertical its joint accelerations imply (imugraph.body.placement_motion) instead of its nominal site
 (a suit strapped on another way, e.g. the qmt full-body file: converged instead of stopping at the iteration limit);
 --init auto (the default since session 22) does that only for the sensors more than 45° from their nominal site;
---init nominal is the start before session 22.
+--init nominal is the start before session 22. --npose-search anywhere (helper B23, opt-in): a session with no rest at
+its start is solved from the quietest common rest of all sensors (≥ 1 s) anywhere, said on stderr; with none, one
+error line asking for --npose T0,T1 (default "start": the first samples are assumed to be the N-pose, as before).
 """
 
 from __future__ import annotations
@@ -66,6 +68,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="the static N-pose window in the session's own time, s (default: detected, the common rest "
                         "of all sensors at the start; e.g. 40,44 for qmt_full_body, whose upper-arm sensors read "
                         "0.04 rad/s at rest)")
+    p.add_argument("--npose-search", choices=("start", "anywhere"), default="start",
+                   help="without --npose: start (default: the common rest at the start; if there is none the first "
+                        "samples are assumed to be it) or anywhere (helper B23: no rest at the start → the quietest "
+                        "common rest of ≥ 1 s anywhere, said on stderr, solved from there on; none → a one-line error "
+                        "asking for --npose)")
     p.add_argument("--init", choices=("nominal", "motion", "auto"), default="auto",
                    help="sensor-on-segment start: auto (default: the motion start only for sensors > 45° from their "
                         "nominal site), nominal (the standard sites; before session 22) or motion (every sensor's "
@@ -160,6 +167,30 @@ def write_mocap_npz(path: Path, t: np.ndarray, names, quat: np.ndarray, pos: np.
     return atomic_write_bytes(path, buf.getvalue())
 
 
+def start_at_npose(session, opts) -> tuple:
+    """--npose-search anywhere (helper B23): (session, npose window or None). A rest at the start: unchanged (None:
+    detected as before). Otherwise the quietest common rest anywhere (imugraph.graphs.body_init.find_npose): the
+    session from its first sample on (the estimator assumes its N-pose at the start of the data) with that window,
+    said in one line on stderr and kept in session.meta["npose_search"] (mocap_info.json).
+
+    Raises:
+        SessionError: no common rest of ≥ 1 s anywhere (one line naming the session, asking for --npose T0,T1).
+    """
+    import dataclasses
+
+    from imugraph.graphs.body_init import find_npose
+
+    _, method, info = find_npose(session, opts)
+    if method != "found":
+        return dataclasses.replace(session, meta=dict(session.meta, npose_search=info)), None
+    t0 = float(session.t[0])
+    cut = session.slice(info["start_row"], session.n)
+    print(f"imugraph: note: {session.name}: no rest at the start; N-pose = the quietest common rest of all sensors, "
+          f"{info['t0'] - t0:.2f}–{info['t1'] - t0:.2f} s; solved from {info['t0'] - t0:.2f} s on (the "
+          f"{info['t0'] - t0:.1f} s before it are not in the output)", file=sys.stderr, flush=True)
+    return dataclasses.replace(cut, meta=dict(cut.meta, npose_search=info)), (info["t0"], info["t1"])
+
+
 def _solve(session, opts, lag, progress):
     """Batch LM, or the fixed-lag smoother (imugraph.graphs.body_incremental) when --lag is given."""
     if lag is None:
@@ -225,8 +256,10 @@ def run_mocap(args: argparse.Namespace) -> int:
     if ignored:        # a group with nothing to constrain here: said, not silently dropped
         print(f"imugraph: warning: --hinges {', '.join(ignored)}: no such joint between sensed segments of this "
               "skeleton; ignored", file=sys.stderr, flush=True)
-    opts = BodyOptions(use_mag=bool(args.mag), hinges=hinges, npose=npose_window(getattr(args, "npose", None)),
-                       init=getattr(args, "init", "nominal"))
+    npose = npose_window(getattr(args, "npose", None))
+    if npose is None and getattr(args, "npose_search", "start") == "anywhere":
+        session, npose = start_at_npose(session, BodyOptions(use_mag=bool(args.mag)))
+    opts = BodyOptions(use_mag=bool(args.mag), hinges=hinges, npose=npose, init=getattr(args, "init", "nominal"))
     with common.output_folder(args.out, session.name) as out:     # no empty folder left by a failed run
         return _mocap_into(out, args, path, session, opts, hinges, progress)
 
@@ -268,6 +301,7 @@ def _mocap_into(out: Path, args: argparse.Namespace, path: Path, session, opts, 
                        title=f"Stick figures: {session.name}")
     written += [out / "joint_angles.png", out / "stick_figures.png"]
     info = {"session": str(path), "name": session.name, "solver": solver, "use_mag": bool(args.mag), "init": opts.init,
+            **({"npose_search": session.meta["npose_search"]} if "npose_search" in session.meta else {}),
             "hinges": list(hinges), "skeleton": session.meta.get("skeleton", "session's own"),
             "samples": int(session.n), "segments": list(result.names),
             "placements": result.placements, "info": {k: v for k, v in result.info.items()

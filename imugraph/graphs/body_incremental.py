@@ -47,6 +47,9 @@ its preintegrated IMU (x_k = pim.predict(x_{k−1}, b̂)), joint centres J = nTs
   (A2) — the auto bootstrap extended until bRs settles (imugraph.graphs.body_lag_settle); `lag_bootstrap_scale` (L6)
   — (A1)'s thresholds scaled; `lag_bootstrap_overlap_s` (L5) — the bootstrap's last seconds re-streamed (no gain
   measured). Numbers: docs/results_issue4.md, "Session 22, helper L22".
+- Helper B23 (off by default): `lag_init_causal` (body_lag_boot.causal_start (C1)) — the problem the stream uses takes
+  its N-pose and its init "motion"/"auto" placements from the bootstrap's rows, not from 30 s of the whole session
+  (which (L7)'s first update reads through its k = 0 and lever priors). docs/results_issue4.md, "Session 23, helper B23".
 
 Output: the final estimate (iSAM2: its last full estimate; fixed lag: each keyframe's estimate as it leaves
 the window, i.e. smoothed with lag_s) as a `BodyResult`, and in `info["filtered"]` the same built from the
@@ -164,7 +167,8 @@ def solve_body_incremental(session, opts: BodyOptions = BodyOptions(), lag_s: fl
     full_opts = opts                                    # lag_neck_stream (L1)–(L4) reads unsensed_bend from these
     stream_neck = body_lag_neck.wanted(opts, bootstrap_s)
     opts = body_neck.single_pass_options(opts)          # no (N6) pass in the stream: ties (K2), or the bootstrap's bend
-    pb = build_problem(session, opts)
+    causal = bool(opts.lag_init_causal) and opts.init != "nominal"           # (C1) body_lag_boot.causal_start
+    pb = build_problem(session, replace(opts, init="nominal") if causal else opts)
     kf_t = pb.kf_t
     span = float(np.median(np.diff(kf_t))) * max(1, int(update_every)) if pb.K > 1 else 0.0
     if lag_s is not None and not lag_s >= span:
@@ -191,6 +195,8 @@ def solve_body_incremental(session, opts: BodyOptions = BodyOptions(), lag_s: fl
                 lambda t: _bootstrap(session, pb, opts, t)[2][0], bootstrap_s, float(session.t[-1] - session.t[0]),
                 full_opts.lag_bootstrap_settle_deg, full_opts.lag_bootstrap_settle_step_s)
             auto = dict(auto, bootstrap_s=bootstrap_s, **settle)
+    if causal:                                          # (C1) placements and N-pose from the bootstrap's rows
+        pb, opts = body_lag_boot.causal_start(session, pb, opts, bootstrap_s)
     if factorization is None:
         factorization = "QR" if bootstrap_s is None else "CHOLESKY"
     if relinearize_threshold is None:
@@ -300,6 +306,8 @@ def solve_body_incremental(session, opts: BodyOptions = BodyOptions(), lag_s: fl
             "bootstrap": boot}
     if pb.mag_sigmas:
         info["mag_sigmas"] = dict(pb.mag_sigmas)  # (B5') the σ the stream's magnetometer factors used
+    if causal and pb.init_motion is not None:    # (C1): (H3)/(H4) on the bootstrap's rows (mocap_info.json)
+        info["init_motion"] = pb.init_motion
     info["filtered"] = filtered_result(pb, records, bend)
     if lag_s is None and fixed_place is None:         # no bootstrap: lag_neck_from_bootstrap has nothing to read
         return make_result(pb, est, info)
@@ -351,9 +359,7 @@ def _bootstrap(session, pb: BodyProblem, opts: BodyOptions, bootstrap_s: float, 
     `stream_opts` (BodyOptions.lag_neck_stream): the estimate returned, its placements and the bend are the (N6)
     pass's (body_lag_neck (L1)), the stream continues from them."""
     t0 = time.perf_counter()
-    rate = 1.0 / float(np.median(np.diff(session.t)))
-    m = int(np.clip(round(bootstrap_s * rate / max(1, opts.keyframe_every)), 1, pb.K - 2))
-    n = int(pb.kf[m]) + 1                                   # the sub-problem's last keyframe is pb.kf[m]
+    m, n = body_lag_boot.bootstrap_rows(session, pb, opts, bootstrap_s)     # the sub-problem's last keyframe is pb.kf[m]
     sub = replace(session, t=session.t[:n], sensors={k: v.slice(0, n) for k, v in session.sensors.items()})
     pb_b = build_problem(sub, replace(opts, hinges=()))
     x_b, passes, graph = optimize_with_mag_noise(pb_b)

@@ -117,3 +117,68 @@ def initial_values(names: list[str], joints: list[BodyJoint], levers: list, nRs_
         vals.insert(bf.lever_key(i), np.asarray(l, float))
     return vals
 
+
+
+def find_npose(session, opts, min_rest_s: float = 1.0, min_after_s: float = 2.0) -> tuple[np.ndarray, str, dict]:
+    """(N-pose sample indices, method, info): `body_model.npose_samples`, and where it has to assume one, the quietest
+    common rest anywhere in the session (helper B23; `mocap --npose-search anywhere`).
+
+    A user's recording may start moving (the N-pose cropped off, or recorded later). npose_samples then "assumes" the
+    first MIN_REST samples to be the N-pose — moving ones — and the solve is garbage without a word. Here:
+      - opts.npose given, or a common rest at the start ("given", "detected"): exactly npose_samples' answer;
+      - else every run of common rest (all sensors' `detect_rest`) at least `min_rest_s` long and followed by at least
+        `min_after_s` of data (the estimator needs motion after its N-pose: the real walk cropped by 12 s rests only in
+        its last 1.8 s) is a candidate, and the quietest wins: the smallest   q = max_s median_{i in run} σ_gyr,s(i)   (σ_gyr: 0.5 s moving std of the gyro,
+        root of the summed axis variances, as detect_rest); method "found";
+      - no candidate: SessionError naming the session and the longest common rest seen, expecting --npose T0,T1.
+    The estimator assumes its N-pose at the start of the data (initial orientations integrated from sample 0,
+    estimate_placements over the keyframes up to the N-pose's end), so a caller uses a "found" window by solving the
+    rows from its first sample on (info["start_row"]; `mocap` does).
+    info: {"method", "t0", "t1" (s, session time), "start_row", "quiet_rad_s", "candidates"}."""
+    from imugraph.calibration.rest import _moving_var, detect_rest
+    from imugraph.graphs.body_model import npose_samples
+
+    idx, method = npose_samples(session, opts)
+    t = np.asarray(session.t, float)
+    if method != "assumed":
+        return idx, method, {"method": method, "t0": float(t[idx[0]]), "t1": float(t[idx[-1]]), "start_row": 0}
+    rest, sig, per = np.ones(t.size, bool), [], {}
+    for name, s in session.sensors.items():
+        per[name] = detect_rest(s)
+        rest &= per[name]
+        n = max(3, int(round(0.5 * s.rate)))
+        sig.append(np.sqrt(_moving_var(np.asarray(s.gyr, float), n).sum(axis=1)))
+    edges = np.flatnonzero(np.diff(np.r_[0, rest.astype(int), 0]))
+    runs = [(int(a), int(b)) for a, b in zip(edges[::2], edges[1::2])]              # [a, b) common rest
+    longest = max(runs, key=lambda r: r[1] - r[0], default=None)
+    good = [(a, b) for a, b in runs if t[b - 1] - t[a] >= min_rest_s and t[-1] - t[b - 1] >= min_after_s]
+    if not good:
+        seen = (f"the longest {t[longest[1] - 1] - t[longest[0]]:.2f} s at {t[longest[0]] - t[0]:.1f}–"
+                f"{t[longest[1] - 1] - t[0]:.1f} s" if longest else "none") + _almost(per, t, min_rest_s, min_after_s)
+        raise SessionError(session.source, "npose", f"no common rest of all {len(session.sensors)} sensors of at least "
+                           f"{min_rest_s:g} s with {min_after_s:g} s of data after it ({seen})", "a standing rest (N-pose) to start from; give its "
+                           "window in the session's time with --npose T0,T1 (BodyOptions.npose)")
+    quiet = [float(max(np.nanmedian(g[a:b]) for g in sig)) for a, b in good]
+    a, b = good[int(np.argmin(quiet))]
+    return np.arange(a, b), "found", {"method": "found", "t0": float(t[a]), "t1": float(t[b - 1]), "start_row": a,
+                                      "quiet_rad_s": float(min(quiet)),
+                                      "candidates": [[float(t[x]), float(t[y - 1])] for x, y in good]}
+
+
+def _almost(per: dict, t: np.ndarray, min_rest_s: float, min_after_s: float) -> str:
+    """'; N of S sensors rest together for D s at T0–T1, not A, B' for the fewest sensors left out (≤ 3) that give a
+    rest of min_rest_s, else '': which sensor keeps a session from having a common rest (find_npose's refusal)."""
+    names = list(per)
+    count = np.sum([per[n] for n in names], axis=0)
+    for k in range(1, min(4, len(names))):
+        edges = np.flatnonzero(np.diff(np.r_[0, (count >= len(names) - k).astype(int), 0]))
+        runs = [(a, b) for a, b in zip(edges[::2], edges[1::2])
+                if t[b - 1] - t[a] >= min_rest_s and t[-1] - t[b - 1] >= min_after_s]
+        if runs:
+            a, b = max(runs, key=lambda r: r[1] - r[0])
+            out = [n for n in names if np.mean(per[n][a:b]) < 0.5]
+            if not out:
+                continue
+            return (f"; {len(names) - len(out)} of {len(names)} sensors rest together for {t[b - 1] - t[a]:.1f} s at "
+                    f"{t[a] - t[0]:.1f}–{t[b - 1] - t[0]:.1f} s, not {', '.join(out)}")
+    return ""

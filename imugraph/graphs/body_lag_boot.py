@@ -6,6 +6,7 @@
      bootstrap's estimate (`values_k0`, `values_at`), and `marginal_stamps` times the keys so that none leaves the window
      before it is recorded, then each leaves at its real time (the smoother marginalises it — a dense, correctly
      linearised prior instead of body_lag_boot.anchor's diagonal one); the N-pose keyframes are re-stamped and stay.
+(C1) BodyOptions.lag_init_causal (helper B23): `causal_start` — the stream's problem from the bootstrap's rows only.
 """
 
 from __future__ import annotations
@@ -104,3 +105,50 @@ def anchor(pb, x: gtsam.Values, k: int, lever_sigmas: dict | None = None
         g.add(gtsam.PriorFactorPoint3(key, x.atPoint3(key), m_i))
         v.insert(bf.lever_key(i), x.atPoint3(bf.lever_key(i)))
     return g, v
+
+
+def bootstrap_rows(session, pb, opts, bootstrap_s: float) -> tuple[int, int]:
+    """(m, n): the bootstrap's last keyframe index m and its row count n = kf[m] + 1 (body_incremental._bootstrap)."""
+    rate = 1.0 / float(np.median(np.diff(session.t)))
+    m = int(np.clip(round(bootstrap_s * rate / max(1, opts.keyframe_every)), 1, pb.K - 2))
+    return m, int(pb.kf[m]) + 1
+
+
+def causal_start(session, pb, opts, bootstrap_s: float | None):
+    """(C1) BodyOptions.lag_init_causal (helper B23): the stream's problem from the rows its bootstrap has, only.
+
+    Without it, build_problem on the whole session runs BodyOptions.init "motion"/"auto" (placement_motion (H1)–(H4))
+    on init_motion_window_s (30 s) after the N-pose — rows the fixed lag has not received at its start — and those
+    placements enter the stream through the k = 0 priors (heading of every sensor at pb.init) and the lever priors
+    (B3) of its first update (lag_bootstrap_marginal (L7), or no bootstrap) and the neck's nominal lever (L4); the
+    default anchor path reads none of them (benchmarks/b23_lag_causal.py, garbage from 2 updates after the bootstrap
+    on: the filtered start bit-identical there; 29° / 67° with (L7) on the real walk / the turned simulation, 149° /
+    160° with L22's lag_neck_stream + (L7) + (A2); bit-identical with this option in all of them). Here, with the bootstrap's rows [0, n) (`bootstrap_rows`):
+
+        N-pose  = npose_samples(session[:n])          (detect_rest's calm-window median over those rows only)
+        bRs_s   = with_motion_placements(session[:n]) (the bootstrap's own (H1)–(H4), its own "auto" switch)      (C1)
+
+    and the whole-session problem is rebuilt with them as given placements (init "nominal", the N-pose as a window):
+    the bootstrap and the stream then start from the same, causal placements. No bootstrap: nothing has arrived
+    before the first update, so the nominal start. `pb` must come from build_problem(session, opts with init
+    "nominal"). Returns (pb, opts for the bootstrap and the stream)."""
+    from dataclasses import replace
+
+    from imugraph.body.placement_motion import with_motion_placements
+    from imugraph.graphs.body import build_problem
+    from imugraph.graphs.body_model import npose_samples
+
+    if bootstrap_s is None:
+        return pb, replace(opts, init="nominal")
+    _, n = bootstrap_rows(session, pb, opts, bootstrap_s)
+    sub = replace(session, t=session.t[:n], sensors={k: v.slice(0, n) for k, v in session.sensors.items()})
+    idx, method = npose_samples(sub, opts)
+    opts_c, info = with_motion_placements(sub, opts, idx)                                                  # (C1)
+    t = np.asarray(session.t, float)
+    if set(opts_c.placements) == set(opts.placements) and np.array_equal(idx, pb.npose_idx):     # nothing switched: pb as is
+        pb.init_motion = info
+        return pb, replace(opts, init="nominal")
+    opts_c = replace(opts_c, init="nominal", npose=(float(t[idx[0]]), float(t[idx[-1]])))
+    pb_c = build_problem(session, opts_c)
+    pb_c.npose_method, pb_c.init_motion = method, info
+    return pb_c, opts_c
