@@ -191,6 +191,40 @@ def start_at_npose(session, opts) -> tuple:
     return dataclasses.replace(cut, meta=dict(cut.meta, npose_search=info)), (info["t0"], info["t1"])
 
 
+def check_npose_in_session(session, npose: tuple, min_after_s: float = 2.0) -> None:
+    """--npose T0,T1 against the session: inside its time span, and followed by at least `min_after_s` of data (the
+    estimator needs motion after its N-pose). A window that is not at rest is said on stderr (the user's call).
+
+    Raises:
+        SessionError: the window outside the session, or with too little data after it (one line, found and expected).
+    """
+    from imugraph.calibration.rest import detect_rest
+
+    t = np.asarray(session.t, float)
+    t0, t1 = npose
+    if t0 < t[0] - 1e-9 or t1 > t[-1] - min_after_s:
+        raise SessionError(session.source, "--npose", f"{t0:g},{t1:g} s",
+                           f"a window inside the session's {t[0]:g}–{t[-1]:g} s leaving ≥ {min_after_s:g} s after it")
+    sel = (t >= t0) & (t <= t1)
+    still = min(float(np.mean(detect_rest(s)[sel])) for s in session.sensors.values())
+    if still < 0.5:
+        print(f"imugraph: warning: {session.name}: --npose {t0:g},{t1:g}: some sensor rests in only {100 * still:.0f} % "
+              "of the window; the N-pose is expected to be a standing rest", file=sys.stderr, flush=True)
+
+
+def warn_assumed_npose(session, opts) -> None:
+    """Default --npose-search start: when no common rest of all sensors starts the session, the solver assumes its
+    first samples to be the N-pose (body_model.npose_samples "assumed") — say so in one line (U23 defect 2), since a
+    session that starts moving solves into garbage that way."""
+    from imugraph.graphs.body_model import npose_samples
+
+    _, method = npose_samples(session, opts)
+    if method == "assumed":
+        print(f"imugraph: warning: {session.name}: no common rest of all sensors at the start; its first samples are "
+              "assumed to be the N-pose and the result may be wrong — give the N-pose with --npose T0,T1 or let "
+              "--npose-search anywhere find a rest", file=sys.stderr, flush=True)
+
+
 def _solve(session, opts, lag, progress):
     """Batch LM, or the fixed-lag smoother (imugraph.graphs.body_incremental) when --lag is given."""
     if lag is None:
@@ -257,8 +291,12 @@ def run_mocap(args: argparse.Namespace) -> int:
         print(f"imugraph: warning: --hinges {', '.join(ignored)}: no such joint between sensed segments of this "
               "skeleton; ignored", file=sys.stderr, flush=True)
     npose = npose_window(getattr(args, "npose", None))
-    if npose is None and getattr(args, "npose_search", "start") == "anywhere":
+    if npose is not None:
+        check_npose_in_session(session, npose)
+    elif getattr(args, "npose_search", "start") == "anywhere":
         session, npose = start_at_npose(session, BodyOptions(use_mag=bool(args.mag)))
+    else:
+        warn_assumed_npose(session, BodyOptions(use_mag=bool(args.mag)))
     opts = BodyOptions(use_mag=bool(args.mag), hinges=hinges, npose=npose, init=getattr(args, "init", "nominal"))
     with common.output_folder(args.out, session.name) as out:     # no empty folder left by a failed run
         return _mocap_into(out, args, path, session, opts, hinges, progress)
@@ -301,6 +339,7 @@ def _mocap_into(out: Path, args: argparse.Namespace, path: Path, session, opts, 
                        title=f"Stick figures: {session.name}")
     written += [out / "joint_angles.png", out / "stick_figures.png"]
     info = {"session": str(path), "name": session.name, "solver": solver, "use_mag": bool(args.mag), "init": opts.init,
+            "npose_window": list(opts.npose) if opts.npose is not None else None,
             **({"npose_search": session.meta["npose_search"]} if "npose_search" in session.meta else {}),
             "hinges": list(hinges), "skeleton": session.meta.get("skeleton", "session's own"),
             "samples": int(session.n), "segments": list(result.names),
