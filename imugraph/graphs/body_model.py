@@ -158,7 +158,9 @@ class BodyOptions:
             (L8)); False: the bootstrap's (N9) neck levers start the stream, the bend read from its levers as they are.
         lag_init_causal: solve_body_incremental (helper B23, body_lag_boot.causal_start (C1)): the stream's problem takes
             its N-pose and its init "motion"/"auto" placements from the rows of its bootstrap only (no bootstrap: the
-            nominal start); False: from the whole session (init_motion_window_s after the N-pose: rows not yet received).
+            nominal start). Default since session 23 (bit-identical on the default lag path, which reads no placement before
+            its bootstrap; (L7) / L22's options read up to 160° of future data without it). False: from the whole session
+            (init_motion_window_s after the N-pose: rows not yet received).
     """
 
     keyframe_every: int = 6
@@ -231,7 +233,7 @@ class BodyOptions:
     lag_bootstrap_settle_deg: float | None = None       # (A2) the auto bootstrap extended until its bRs change < this; None: (A1) only
     lag_bootstrap_settle_step_s: float = 1.0            # (A2) the step of that extension, s
     lag_neck_mag_offset: bool = False                   # (L8) with magnetometers: (L4) reads levers + the bootstrap's (N9) offset
-    lag_init_causal: bool = False                       # (C1) fixed lag / iSAM2: init "motion"/"auto" and the N-pose from the bootstrap's rows only
+    lag_init_causal: bool = True                        # (C1) fixed lag / iSAM2: init "motion"/"auto" and the N-pose from the bootstrap's rows only
 
 
 # σ of the sensor's turn about the segment's long axis (soft-tissue artefact, rigid part), by segment-name
