@@ -68,3 +68,17 @@ def test_assumed_npose_warned(walk, tmp_path, capsys):
     assert rc == 0 and "assumed to be the N-pose" in err and "--npose" in err
     rc = cli.main(["mocap", str(d), "--out", str(tmp_path / "o2"), "--quiet"])
     assert rc == 0 and "assumed" not in capsys.readouterr().err
+
+
+def test_lag_bootstrap_note(walk, tmp_path, capsys):
+    """U23 defect 10: `mocap --lag` on a session whose bootstrap takes (nearly) everything says so (console and
+    timing.json)."""
+    d, bs = walk
+    short = bs.slice(0, int(3.0 * bs.rate))          # the 2 s N-pose and the 1 s blend: too little motion
+    d2 = tmp_path / "short"
+    write_body_session(d2, short)
+    assert cli.main(["mocap", str(d2), "--out", str(tmp_path / "o"), "--quiet", "--lag", "1"]) == 0
+    out = capsys.readouterr().out
+    timing = json.loads((tmp_path / "o" / "timing.json").read_text())
+    assert "batch solve, not a stream" in timing["bootstrap_note"] and "batch solve, not a stream" in out
+    assert timing["bootstrap"]["span_s"] <= short.t[-1] - short.t[0] + 1e-9

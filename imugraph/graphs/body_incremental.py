@@ -369,7 +369,7 @@ def _bootstrap(session, pb: BodyProblem, opts: BodyOptions, bootstrap_s: float, 
     place = estimate_placements(pb_b, x_b)
     if stream_opts is None:
         bend, neck_info = body_neck.bootstrap_bend(pb_b, x_b, graph, neck_opts) if neck_opts is not None else ({}, None)
-    info = {"seconds": time.perf_counter() - t0, "keyframes": m + 1,
+    info = {"seconds": time.perf_counter() - t0, "keyframes": m + 1, "span_s": float(sub.t[-1] - sub.t[0]),
             "iterations": sum(p["iterations"] for p in passes), "psi_deg": float(np.rad2deg(place[1]))}
     if neck_info is not None:
         info["neck_pass_iterations"] = neck_info["iterations"]
