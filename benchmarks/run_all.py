@@ -21,13 +21,19 @@
     batch_gaps.py        the batch path with the same drops                                    (issue 3)
     qmt_full_body.py     the real 16-IMU full-body recording (no truth: plausibility)          (issue 4)
     t20_rasteiro_diagnose.py  diagnosis of Rasteiro's raw recordings                          (issue 5)
+    smooth_field.py      `smooth --calibration` with and without the field perturbation d_k  (issue 2e)
+    x19_swap.py          which part of the stream's end model keeps it from the batch        (issue 3)
+    diagnose_body.py     body-session diagnosis harness, seeds 0-4                            (issue 5)
 
 Each entry runs the command README.md's "Status at a glance" cites for its row (M23, session 23), with
 OPENBLAS_NUM_THREADS=1 (and OMP_NUM_THREADS=1) where the README's command sets it. stream_speed.py runs three
 times: the row-118/120/121 command (`--cache DIR`), and row 123's causal scoring (`--no-cal-compare
 --score-after-bootstrap`) uncapped and with `--bootstrap-max-s 60`, each to its own bench_out file. DIR is a fresh
 temporary folder for this run, shared by stream_speed.py and stream_vs_batch.py (the README's `--cache DIR`): never
-a stale cache from an earlier run.
+a stale cache from an earlier run. body_sim_accuracy.py also runs row 133's neck variants (seeds 0-4 and the
+held-out 5-9), diagnose_harness.py and diagnose_body.py once per seed 0-4, each seed to its own bench_out file or
+folder. Not run: the README's optional variants in brackets or "for before" (stream_arrival `--kinds drop`,
+qmt_full_body `--init nominal`, diagnose_harness `--local-check`).
 
     .venv/bin/python benchmarks/run_all.py [--list]      (--list: the command lines, nothing run)
 """
@@ -57,15 +63,26 @@ STEPS = (("peer_table.py", [], False), ("sim_coverage.py", ["50", "60", "100"], 
          ("stream_speed.py", STREAM + ["--no-cal-compare", "--score-after-bootstrap", "--bootstrap-max-s", "60",
                                        "--out", "stream_speed_after_bootstrap60.json"], ONE),
          ("stream_vs_batch.py", ["all", "--config", "session18,default", "--cache", CACHE], ONE),
+         ("smooth_field.py", ["all", "--cache", CACHE], ONE),          # README 2e text: the batch cal_NN.pkl above
+         ("x19_swap.py", ["all", "--cache", CACHE], ONE),              # row 119's second command
          ("stream_memory.py", ["--minutes", "30"], False),
          ("stream_arrival.py", ["01,06,34"], ONE), ("batch_gaps.py", ["01,06,34", "--ablate"], ONE),
          ("body_sim_accuracy.py", ["--seeds", "0,1,2,3,4"], False),
+         ("body_sim_accuracy.py", ["--seeds", "0,1,2,3,4", "--neck", "default,bend+lumped1",           # row 133
+                                   "--out", "body_sim_accuracy_neck.json"], False),
+         ("body_sim_accuracy.py", ["--seeds", "5,6,7,8,9", "--neck", "default,neck5mf",                # held out
+                                   "--out", "body_sim_accuracy_neck_heldout.json"], False),
          ("gaittoolbox_walk.py", ["--ablation", "--lag", "1"], False), ("body_walk_diagnosis.py", [], False),
          ("body_ablation.py", ["--motions", "cmu131_02,xsens", "--bias-walk", "0.002"], False),
          ("body_speed.py", ["--duration", "60", "--modes", "batch,lag"], False),
          ("qmt_full_body.py", ["--init", "auto", "--no-lag"], False),
          ("diagnose_broad.py", ["--trials", "all"], ONE), ("t20_rasteiro_diagnose.py", [], ONE),
-         *(("diagnose_harness.py", ["--n", "2", "--duration", "60", "--seed", str(seed)], ONE) for seed in range(5)))
+         # each seed into its own folder (the default bench_out/diagnose would keep only the last seed's harness.json)
+         *(("diagnose_harness.py", ["--n", "2", "--duration", "60", "--seed", str(seed),
+                                    "--out", f"bench_out/diagnose_seed{seed}"], ONE) for seed in range(5)),
+         *(("diagnose_body.py", ["--hosts", "xsens_lower,cmu_lower,xsens_full,real_walk", "--duration", "20",
+                                 "--seed", str(seed), "--out", f"diagnose_body_seed{seed}.json"], False)
+           for seed in range(5)))
 
 
 def command(script: str, args: list[str], cache: str) -> list[str]:

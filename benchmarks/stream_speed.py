@@ -25,6 +25,10 @@ calibration (see docs/stream.md). Wall times; the machine may be shared: compare
         VQF's also on the movement samples after each trial's bootstrap window only: `filtered_after_deg`)
         [--bootstrap-regrow off|identified|weak] [--bootstrap-weak-centre]   (a capped start's bootstrap keeps growing
         while streaming; a weak start at its prior's centre: S22)
+        [--regrow-align] [--regrow-grow F] [--regrow-confirm C] [--regrow-latency S]   (helper S23: stream_session's
+        regrow_align / regrow_grow / regrow_confirm / regrow_latency_s; `imugraph stream --bootstrap-regrow` is
+        --bootstrap-max-s 30 --bootstrap-regrow weak --bootstrap-weak-centre --regrow-align --regrow-grow 1.2
+        --regrow-confirm 2)
 
 TRIALS: comma-separated BROAD trial numbers, or "all" (the 17 trials; default 01). --no-lag / --no-batch skip
 the fixed-lag run / the batch smoother (time). Prints the per-trial table, then the means of the filtered
@@ -68,7 +72,7 @@ def run_trial(path: Path, lag: float | None, bootstrap_s: float, batch: bool = T
               compare_cal: bool = True, lag_solver: str = "chain", lag_only: bool = False, calib_states: bool = True,
               disturb: bool = True, weak_prior: bool = False, cache: str | None = None, offsets: bool = True,
               extra: dict | None = None, bootstrap_max_s: float | None = None, after: bool = False,
-              regrow: bool | str = False, weak_centre: bool = False) -> list[dict]:
+              regrow: bool | str = False, weak_centre: bool = False, regrow_kw: dict | None = None) -> list[dict]:
     from imugraph.evaluate import orientation_error
     from imugraph.graphs.cpp_smoother import smooth_fixed
     from imugraph.graphs.stream import StreamOptions
@@ -113,7 +117,7 @@ def run_trial(path: Path, lag: float | None, bootstrap_s: float, batch: bool = T
         # the bootstrap computed above (not timed again); stream_session then learns the detector's σ_f over its
         # window and takes the weak prior's s from it, as when it bootstraps itself
         r = stream_session(s, None, opts, bootstrap_s, bootstrap=(cal, n_boot), bootstrap_regrow=regrow,
-                           bootstrap_weak_centre=weak_centre)
+                           bootstrap_weak_centre=weak_centre, **(regrow_kw or {}))
         log = r.timing.get("regrow") or []
         sw = [e for e in log if e.get("switched_t") is not None]
         tm = r.timing
@@ -277,6 +281,10 @@ def main(argv=None) -> int:
     ap.add_argument("--bootstrap-weak-centre", action="store_true",
                     help="a weak (not identifiable) bootstrap streamed at its weak prior's centre D = s·I, o = 0 "
                          "(stream_session bootstrap_weak_centre, stream_run.weak_centre; helper S22)")
+    ap.add_argument("--regrow-align", action="store_true", help="stream_session regrow_align (helper S22)")
+    ap.add_argument("--regrow-grow", type=float, default=1.5, help="stream_session regrow_grow (default 1.5)")
+    ap.add_argument("--regrow-confirm", type=float, default=None, help="stream_session regrow_confirm (helper S23)")
+    ap.add_argument("--regrow-latency", type=float, default=None, help="stream_session regrow_latency_s (repeatable)")
     ap.add_argument("--out", default="stream_speed.json", help="file name under bench_out/ (default stream_speed.json)")
     ap.add_argument("--score-after-bootstrap", action="store_true",
                     help="also score the filtered output (and online VQF) only on the movement samples after each "
@@ -298,7 +306,9 @@ def main(argv=None) -> int:
         rows += run_trial(p, lag, a.bootstrap_s, not a.no_batch, online, not a.no_cal_compare, a.lag_solver, a.lag_only,
                           a.calib_states, a.disturb, a.weak_prior, a.cache, a.offsets, extra, a.bootstrap_max_s,
                           a.score_after_bootstrap, {"off": False, "identified": True, "weak": "weak"}[a.bootstrap_regrow],
-                          a.bootstrap_weak_centre)
+                          a.bootstrap_weak_centre, {"regrow_align": a.regrow_align, "regrow_grow": a.regrow_grow,
+                                                    "regrow_confirm": a.regrow_confirm,
+                                                    "regrow_latency_s": a.regrow_latency})
         print(f"trial {trial_number(p):02d} done", file=sys.stderr, flush=True)
     cols = ["trial", "method", "rt_factor", "p50_ms", "p99_ms", "cpu_rt", "p99_cpu_ms", "max_cpu_ms", "p99_btw_cpu_ms",
             "max_btw_cpu_ms", "filtered_deg", "filtered_after_deg", "bootstrap_span_s", "smoothed_deg", "vs_batch_deg", "E_max",

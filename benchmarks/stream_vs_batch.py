@@ -155,12 +155,17 @@ class _Recorder:
                 win = self._win_now if (self._calstate and no_theta and self._offsets is not None) else None
                 f = super()._mag_factor(k, kRb, y, exact=exact, no_theta=no_theta, into=into)
                 if not exact:
-                    _Recorder.last[k] = (win, f is not None)
+                    self._rec_last[k] = (win, f is not None)
                 return f
 
             def __init__(self, *a, **kw):
                 super().__init__(*a, **kw)
                 _Recorder.last, _Recorder.smoother = {}, self
+                self._rec_last, self._rec_start = _Recorder.last, (a[0] if a else kw.get("cal"))
+
+            def finish(self):          # --regrow: the live smoother at the end is the one stream_session finishes
+                _Recorder.last, _Recorder.smoother, _Recorder.start = self._rec_last, self, self._rec_start
+                return super().finish()
 
         return Recording
 
@@ -184,14 +189,15 @@ def stream_offsets(sm, K: int) -> np.ndarray:
     return off
 
 
-def stream_with_recorder(s, opts, bootstrap_s, boot, n_boot):
-    """stream_session with the recording StreamSmoother (the benchmark's only access to the end state)."""
+def stream_with_recorder(s, opts, bootstrap_s, boot, n_boot, regrow: dict | None = None):
+    """stream_session with the recording StreamSmoother (the benchmark's only access to the end state).
+    regrow: stream_session's regrow keywords (--regrow, helper S23)."""
     import imugraph.graphs.stream_run as sr
 
     real = sr.StreamSmoother
     sr.StreamSmoother = _Recorder.smoother_class()
     try:
-        return sr.stream_session(s, None, opts, bootstrap_s, bootstrap=(boot, n_boot)), _Recorder.smoother
+        return sr.stream_session(s, None, opts, bootstrap_s, bootstrap=(boot, n_boot), **(regrow or {})), _Recorder.smoother
     finally:
         sr.StreamSmoother = real
 
@@ -266,7 +272,7 @@ def same_model(s, opts, r, sm, boot, kf: float) -> dict:
 
 
 def run_trial(path: Path, configs: list[str], cache: str | None, bootstrap_s: float,
-              save: str | None = None) -> list[dict]:
+              save: str | None = None, regrow: dict | None = None) -> list[dict]:
     """Every comparison of the module docstring for one trial; one row per config."""
     from imugraph.graphs.cpp_smoother import smooth_fixed
     from imugraph.graphs.stream import StreamOptions
@@ -274,6 +280,9 @@ def run_trial(path: Path, configs: list[str], cache: str | None, bootstrap_s: fl
     s = load_broad_trial(path)
     name = f"{trial_number(path):02d}"
     boot, n_boot, full, cal_s, cached = calibrations(s, name, cache, bootstrap_s)
+    if regrow:                    # --regrow: the bootstrap capped at bootstrap_s, grown while streaming (helper S23)
+        from imugraph.graphs.stream_run import bootstrap_calibration
+        boot, n_boot = bootstrap_calibration(s, bootstrap_s, max_s=bootstrap_s)
     kf = StreamOptions().keyframe_hz
     t0 = time.perf_counter()
     q_start = smooth_fixed(s, boot, keyframe_hz=kf)
@@ -285,12 +294,15 @@ def run_trial(path: Path, configs: list[str], cache: str | None, bootstrap_s: fl
     from imugraph.calibration.ml import Options
     q_full_field = smooth_fixed(s, full, keyframe_hz=kf, field_sigma=Options().field_sigma,
                                 field_tau=Options().field_tau)
-    rows = []
+    rows, boot0 = [], boot
     for cfg in configs:
         opts = StreamOptions(lag_s=None, **CONFIGS[cfg])
         t0 = time.perf_counter()
-        r, sm = stream_with_recorder(s, opts, bootstrap_s, boot, n_boot)
+        r, sm = stream_with_recorder(s, opts, bootstrap_s, boot0, n_boot, regrow)
         stream_s = time.perf_counter() - t0
+        if regrow:                # the end graph's θ pin: the start calibration of the smoother live at the end
+            boot = _Recorder.start
+            q_start = smooth_fixed(s, boot, keyframe_hz=kf)
         q_end = smooth_fixed(s, r.calibration, keyframe_hz=kf)
         same = same_model(s, opts, r, sm, boot, kf)
         if save:                                   # the orientations, to re-score without re-streaming
@@ -334,7 +346,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--bootstrap-s", type=float, default=30.0)
     ap.add_argument("--out", default="stream_vs_batch.json")
     ap.add_argument("--save", default=None, help="folder for q_NN_CONFIG.npz (the four orientation sequences)")
+    ap.add_argument("--regrow", action="store_true", help="helper S23: `imugraph stream --bootstrap-regrow`'s "
+                    "configuration (bootstrap capped at --bootstrap-s, regrown while streaming: weak, centre, align, "
+                    "grow 1.2, confirm 2); the start calibration (b) is then the live smoother's at the end")
+    ap.add_argument("--regrow-latency", type=float, default=3.0, help="with --regrow: regrow_latency_s (repeatable)")
     a = ap.parse_args(argv)
+    regrow = {"bootstrap_regrow": "weak", "bootstrap_weak_centre": True, "regrow_align": True, "regrow_grow": 1.2,
+              "regrow_confirm": 2.0, "regrow_latency_s": a.regrow_latency} if a.regrow else None
     paths = broad_trials()
     if not paths:
         print("no BROAD trials found (set IMUGRAPH_DATA)")
@@ -347,7 +365,7 @@ def main(argv: list[str] | None = None) -> int:
         ap.error(f"--config: one of {', '.join(CONFIGS)} or both")
     rows: list[dict] = []
     for p in paths:
-        rows += run_trial(p, configs, a.cache, a.bootstrap_s, a.save)
+        rows += run_trial(p, configs, a.cache, a.bootstrap_s, a.save, regrow)
         for r in rows[-len(configs):]:
             print(f"{r['trial']} {r['config']:8s} vs_end {r['vs_end_deg']:.3f}° vs_start {r['vs_start_deg']:.3f}° "
                   f"vs_batch_cal {r['vs_batch_cal_deg']:.3f}° (heading-aligned {r['vs_end_h_deg']:.3f} / "
@@ -358,7 +376,8 @@ def main(argv: list[str] | None = None) -> int:
                   f"{r['same_endcal_deg']:.3f}°) batch truth {r['same_truth_deg']:.3f}° cpu {r['same_cpu_s']:.2f} s | "
                   f"vs batch with d_k {r['vs_batch_field_deg']:.3f}° (heading-aligned {r['vs_batch_field_h_deg']:.3f}°)",
                   flush=True)
-        write_json(a.out, {"rows": rows, "configs": {c: CONFIGS[c] for c in configs}})
+        write_json(a.out, {"rows": rows, "configs": {c: CONFIGS[c] for c in configs}, "regrow": regrow,
+                           "command": " ".join(sys.argv)})
     cols = ["trial", "config", "vs_end_deg", "vs_start_deg", "vs_batch_cal_deg", "vs_end_h_deg", "vs_start_h_deg",
             "vs_batch_cal_h_deg", "vs_batch_field_h_deg", "stream_truth_deg",
             "end_cal_truth_deg", "batch_cal_truth_deg", "failed_updates", "stream_s"]

@@ -27,7 +27,9 @@ def read_history(path: Path) -> tuple[dict, list[dict]]:
     try:
         doc = json.loads(path.read_text())
     except (OSError, ValueError) as exc:
-        raise SessionError(str(path), "<file>", type(exc).__name__, "a readable calibration_history.json") from None
+        found = (exc.strerror or type(exc).__name__) if isinstance(exc, OSError) else f"not JSON ({exc})"
+        raise SessionError(str(path), "<file>", found, "a readable calibration_history.json (`imugraph stream "
+                           "--out OUT` writes OUT/calibration_history.json)") from None
     rows = doc.get("calibration_history") if isinstance(doc, dict) else None
     if not isinstance(rows, list) or not rows:
         raise SessionError(str(path), "calibration_history", "missing or empty", "a non-empty list of rows")
@@ -85,6 +87,13 @@ def plot(history: Path, png: Path, batch: Path | None = None) -> Path:
     return out
 
 
+def history_path(out: Path) -> Path:
+    """The calibration_history.json meant by OUT: OUT itself when it names a .json file, else OUT/
+    calibration_history.json — also when the folder does not exist, so that the error names the file looked for
+    (U23 defect 14: it named the folder)."""
+    return out if out.suffix.lower() == ".json" and not out.is_dir() else out / "calibration_history.json"
+
+
 def main(argv: list[str] | None = None) -> int:
     """Command line: OUT folder (or a calibration_history.json), --batch, --png."""
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -92,8 +101,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--batch", default=None, help="a batch calibration.json to draw as the target")
     ap.add_argument("--png", default=None, help="output PNG (default: convergence.png beside the history)")
     a = ap.parse_args(argv)
-    hist = Path(a.out)
-    hist = hist / "calibration_history.json" if hist.is_dir() else hist
+    hist = history_path(Path(a.out))
     png = Path(a.png) if a.png else hist.parent / "convergence.png"
     try:
         print(f"wrote {plot(hist, png, Path(a.batch) if a.batch else None)}")

@@ -5,9 +5,10 @@
 
 Graphs with Python factors cannot be pickled, so nothing but the session PATH, its output folder and
 plain options travel to a worker: `run_one` reads the session there, builds its own graph and writes
-DIR/<session stem>/ with the files of `imugraph calibrate` (through the same function,
-`imugraph.commands.calibrate.calibrate_path`). It never raises: a failure comes back as a row with
-status "failed" and the error on one line, and does not stop the other sessions.
+DIR/<name>/ (`path_names`: the stem, or the shortest distinguishing path suffix) with the files of
+`imugraph calibrate` (through the same function, `imugraph.commands.calibrate.calibrate_path`). It never
+raises: a failure comes back as a row with status "failed" and the error on one line, and does not stop the
+other sessions.
 
 The default cluster is a `distributed.LocalCluster` of worker processes (processes=True,
 threads_per_worker=1); `scheduler="tcp://host:8786"` uses an existing cluster instead (its workers must
@@ -18,6 +19,7 @@ from __future__ import annotations
 
 import contextlib
 import csv
+import hashlib
 import io
 import json
 import logging
@@ -35,6 +37,8 @@ PathLike = Union[str, Path]
 # summary.csv columns (summary.json rows carry the same keys, plus the calibrate figures when ok)
 COLUMNS = ("session", "status", "time_s", "error_deg", "out", "path", "error")
 MAX_ERROR_CHARS = 300
+# what `run_one` (calibrate_path → commands.common.write_estimate) writes into a session's folder
+SESSION_FILES = ("calibration.json", "orientation.npz", "calibration.png", "heading.png")
 
 
 def one_line(exc: BaseException) -> str:
@@ -49,8 +53,18 @@ def one_line(exc: BaseException) -> str:
     return text if len(text) <= MAX_ERROR_CHARS else text[:MAX_ERROR_CHARS - 1] + "…"
 
 
-def output_folders(paths: Sequence[PathLike], out: PathLike) -> list[Path]:
-    """DIR/<session stem> per session; a stem seen before gets _2, _3, … (trial.mat in two folders)."""
+def output_folders(paths: Sequence[PathLike], out: PathLike, naming: str = "numbered") -> list[Path]:
+    """One output folder per session under `out`.
+
+    naming "numbered" (the API's default before U23): DIR/<session stem>, a stem seen before gets _2, _3, … in the
+    order given (trial.mat in two folders: which one is `trial` depends on the order). naming "path" (what
+    `run_batch` and `imugraph batch` use): the shortest distinguishing path suffix (`path_names`), the same for a
+    session whatever the order of the others.
+    """
+    if naming == "path":
+        return [Path(out) / name for name in path_names(paths)]
+    if naming != "numbered":
+        raise ValueError(f"naming: expected 'numbered' or 'path', found {naming!r}")
     seen: dict[str, int] = {}
     folders = []
     for p in paths:
@@ -58,6 +72,67 @@ def output_folders(paths: Sequence[PathLike], out: PathLike) -> list[Path]:
         seen[stem] = seen.get(stem, 0) + 1
         folders.append(Path(out) / (stem if seen[stem] == 1 else f"{stem}_{seen[stem]}"))
     return folders
+
+
+def path_names(paths: Sequence[PathLike]) -> list[str]:
+    """Folder names from the session paths alone: the stem where it is unique, else the shortest path suffix that
+    tells the sessions apart, its parts joined by '-' (a/trial.mat, b/trial.mat → a-trial, b-trial; other.npz →
+    other). Deterministic: a session's name depends on the set of paths, never on their order. Names are compared
+    case-insensitively (a case-insensitive file system would merge S and s); paths that differ only by their
+    extension get it appended (s-npz, s-mat), anything still equal a hash of the path.
+    """
+    parts, full = [], []
+    for p in paths:
+        q = Path(os.path.normpath(Path(p).expanduser().absolute()))
+        parts.append([*q.parent.parts[1:], q.stem or "session"])   # the anchor ('/', 'C:\\') is no name
+        full.append("/".join(parts[-1]).casefold())                # the whole path without its extension
+    k = [1] * len(parts)                       # suffix length of each session
+
+    def names() -> list[str]:
+        return ["-".join(parts[i][-k[i]:]) for i in range(len(parts))]
+
+    def clashes(current: list[str], same_path: bool) -> set[int]:
+        """Sessions whose name another one has: one with another path (a longer suffix helps), or with the same
+        path but for the extension (same_path: no suffix helps)."""
+        by_name: dict[str, list[int]] = {}
+        for i, n in enumerate(current):
+            by_name.setdefault(n.casefold(), []).append(i)
+        return {i for group in by_name.values() for i in group
+                if any((full[j] == full[i]) == same_path for j in group if j != i)}
+
+    while True:                                # every clashing session one part longer, all at once
+        grow = [i for i in clashes(names(), False) if k[i] < len(parts[i])]
+        if not grow:
+            break
+        for i in grow:
+            k[i] += 1
+    current = names()
+    for i in clashes(current, True):           # a/s.npz, a/s.mat: the extension appended (s-npz, s-mat)
+        current[i] += "-" + (Path(paths[i]).suffix.lstrip(".") or "dir")
+    for i in clashes(current, True) | clashes(current, False):     # still equal (case only, …): a hash of the path
+        current[i] += "-" + hashlib.sha1(str(paths[i]).encode()).hexdigest()[:8]
+    return current
+
+
+def distinct_sessions(paths: Sequence[PathLike]) -> tuple[list[str], dict[str, int]]:
+    """Absolute session paths with repeats removed (the same file given twice is computed once), and how many
+    times each repeated one was given ({path: count}, empty when none). Identity is the real path (symlinks and
+    '..' resolved); the first spelling given is kept."""
+    files, seen, counts = [], {}, {}
+    for p in paths:
+        path = str(Path(p).expanduser().absolute())
+        key = os.path.realpath(path)
+        if key in seen:
+            counts[seen[key]] = counts.get(seen[key], 1) + 1
+            continue
+        seen[key] = path
+        files.append(path)
+    return files, counts
+
+
+def local_workers(workers: Optional[int], n_sessions: int) -> int:
+    """Processes of the local cluster: --workers (default the CPU count), at most one per session."""
+    return min(workers or os.cpu_count() or 1, max(n_sessions, 1))
 
 
 def run_one(path: str, out_dir: str, options: CalibrateOptions) -> dict:
@@ -157,19 +232,22 @@ class BatchInterrupted(KeyboardInterrupt):
 
 def run_batch(paths: Sequence[PathLike], out: PathLike, *, scheduler: Optional[str] = None,
               workers: Optional[int] = None, options: CalibrateOptions = CalibrateOptions(),
-              progress: bool = True) -> list[dict]:
+              progress: bool = True, naming: str = "path") -> list[dict]:
     """Calibrate and smooth every session on Dask; one folder per session under `out`.
 
     Args:
-        paths: session files or x-IMU3 folders.
-        out: output root (created); session i goes to `output_folders(paths, out)[i]`.
+        paths: session files or x-IMU3 folders; a file given more than once is computed once (`distinct_sessions`).
+        out: output root (created; removed again if this call created it and fails before writing anything, e.g.
+            a scheduler that does not answer); the distinct session i goes to `output_folders(files, out, naming)[i]`.
         scheduler: address of an existing cluster; None for a local cluster of processes.
         workers: processes of the local cluster (default: the CPU count, at most one per session).
         options: `CalibrateOptions` of every session.
         progress: a tqdm bar on stderr, and one line per failed session.
+        naming: "path" (default since U23: the shortest distinguishing path suffix, independent of the order) or
+            "numbered" (stem, stem_2, … in the order given: the behaviour before).
 
     Returns:
-        One row per session, in the order of `paths` (see `run_one`).
+        One row per distinct session, in the order of their first appearance in `paths` (see `run_one`).
 
     Raises:
         SessionError: `out` cannot be created, the scheduler does not answer, or the local cluster does not start.
@@ -179,27 +257,29 @@ def run_batch(paths: Sequence[PathLike], out: PathLike, *, scheduler: Optional[s
     from distributed import as_completed
     from tqdm import tqdm
 
-    from imugraph.commands.common import out_dir_for
+    from imugraph.commands.common import _make_out_dir, _remove_empty
 
     # created and checked writable (a real write) before any session runs: SessionError field 'out'
-    root = out_dir_for(str(Path(out).expanduser().absolute()), "batch")
+    root, created = _make_out_dir(str(Path(out).expanduser().absolute()), "batch")
     # absolute paths: a worker of an existing cluster does not share the client's working folder
-    files = [str(Path(p).expanduser().absolute()) for p in paths]
-    folders = [str(f) for f in output_folders(files, root)]
-    n_local = min(workers or os.cpu_count() or 1, max(len(files), 1))
+    files, _ = distinct_sessions(paths)
+    folders = [str(f) for f in output_folders(files, root, naming)]
     rows: list[Optional[dict]] = [None] * len(files)
     try:
-        with dask_client(scheduler, n_local) as client:
+        with dask_client(scheduler, local_workers(workers, len(files))) as client:
             _collect(client, files, folders, options, rows, progress, as_completed, tqdm)
     except KeyboardInterrupt:
         raise BatchInterrupted([r for r in rows if r is not None], len(files)) from None
+    except Exception:       # a scheduler that does not answer, a cluster that does not start: no empty --out left
+        _remove_empty(created)
+        raise
     return [r for r in rows if r is not None]
 
 
 def _collect(client, files: list, folders: list, options: CalibrateOptions, rows: list, progress: bool,
              as_completed, tqdm) -> None:
     """Submit one `run_one` per session and fill `rows` as they complete; on Ctrl-C cancel what is left."""
-    # pure=False: a session listed twice is run twice, into its own folder
+    # pure=False: every task runs (a repeated path was already removed by distinct_sessions)
     futures = [client.submit(run_one, f, d, options, pure=False, key=f"imugraph-{i}-{Path(f).stem}")
                for i, (f, d) in enumerate(zip(files, folders))]
     try:
@@ -228,7 +308,7 @@ def _gather(futures: list, files: list, folders: list, rows: list, progress: boo
                        "status": "failed", "time_s": None, "error_deg": None, "error": one_line(exc)}
             rows[i] = row
             if row["status"] != "ok" and progress:
-                bar.write(f"{row['session']}: failed: {row['error']}", file=sys.stderr)
+                bar.write(f"{Path(folders[i]).name}: failed: {row['error']}", file=sys.stderr)   # the unique name
             bar.update(1)
 
 
@@ -241,13 +321,19 @@ def _cell(value) -> str:
 
 
 def summary_table(rows: Sequence[dict]) -> str:
-    """Plain aligned table: session, status, time (s), error vs truth (°, blank without truth), error."""
-    head = ("session", "status", "time_s", "error_deg", "error")
-    cells = [[_cell(r.get(c)) for c in head] for r in rows]
+    """Plain aligned table: session, its folder under --out (blank for a failed session: nothing written), status,
+    time (s), error vs truth (°, blank without truth), error."""
+    head = ("session", "folder", "status", "time_s", "error_deg", "error")
+
+    def cells_of(r: dict) -> list[str]:
+        folder = Path(r["out"]).name if r.get("out") and r.get("status") == "ok" else ""
+        return [_cell(r.get("session")), folder, *(_cell(r.get(c)) for c in head[2:])]
+
+    cells = [cells_of(r) for r in rows]
     widths = [max([len(h)] + [len(c[i]) for c in cells]) for i, h in enumerate(head)]
 
     def line(values) -> str:
-        return "  ".join(v.ljust(w) if i in (0, 1, 4) else v.rjust(w)
+        return "  ".join(v.ljust(w) if i in (0, 1, 2, 5) else v.rjust(w)
                          for i, (v, w) in enumerate(zip(values, widths))).rstrip()
 
     ok = sum(r.get("status") == "ok" for r in rows)

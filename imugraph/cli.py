@@ -3,11 +3,11 @@
     imugraph calibrate SESSION [--out DIR] [--keyframe-hz 5]
     imugraph smooth SESSION [--calibration FILE] [--out DIR] [--keyframe-hz 5]
     imugraph stream SESSION [--out DIR] [--lag S] [--bootstrap-s 30] [--calibration FILE] [--keyframe-hz 5]
-    imugraph batch SESSIONS... --out DIR [--scheduler ADDRESS] [--workers N] [--keyframe-hz 5]
+    imugraph batch SESSIONS... --out DIR [--overwrite] [--scheduler ADDRESS] [--workers N] [--keyframe-hz 5]
     imugraph demo [--out DIR] [--seed 0] [--duration 120] [--rate 100]
     imugraph simulate --out FILE.npz [--seed 0] [--duration 120] [--rate 100]
     imugraph mocap SESSION [--out DIR] [--lag S] [--mag] [--hinges knees,elbows]
-    imugraph diagnose SESSION [--out DIR] [--effects NAMES] [--seed 0]
+    imugraph diagnose SESSION [--out DIR] [--effects NAMES] [--seed 0] [--npose T0,T1]
     imugraph bench diagnose [--trials 01,02,...] [--sims 2] [--n 2] [--duration 60] [--out DIR]
 
 Every command takes --out and --quiet; calibrate and smooth take --data-dir (a SESSION that does not
@@ -148,6 +148,20 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--bootstrap-max-s", type=_positive(float), default=None, metavar="S",
                    help="cap the bootstrap's growth at S seconds; at the cap calibrate's regularised weak fallback "
                         "is used (default: no cap)")
+    p.add_argument("--bootstrap-regrow", action="store_true",
+                   help="stream from a short bootstrap (capped at --bootstrap-max-s, else at --bootstrap-s) and keep "
+                        "growing it in the background: a window that identifies the calibration (or a longer weak "
+                        "one) is switched to once calibrated and replayed, without a heading jump; growth goes on "
+                        "until a window --bootstrap-regrow-confirm times longer agrees (a differing one is switched "
+                        "to). Switches are listed in timing.json 'regrow' (default: off, the bootstrap grows first)")
+    p.add_argument("--bootstrap-regrow-grow", type=_positive(float), default=1.2, metavar="F",
+                   help="with --bootstrap-regrow: each window F times the last (default 1.2)")
+    p.add_argument("--bootstrap-regrow-confirm", type=_positive(float), default=2.0, metavar="C",
+                   help="with --bootstrap-regrow: stop growing when a window C times the current calibration's "
+                        "agrees with it (default 2)")
+    p.add_argument("--bootstrap-regrow-latency", type=_positive(float), default=None, metavar="S",
+                   help="with --bootstrap-regrow: switch S seconds of stream time after a window's last row instead "
+                        "of after the measured CPU time of its calibration and replay (repeatable runs)")
     p.add_argument("--calibration", metavar="FILE", default=None,
                    help="start calibration.json instead of the bootstrap (re-estimated online unless --fixed-calibration; the smoothed output of a full iSAM2 run uses the streamed one)")
     p.add_argument("--fixed-calibration", action="store_true",
@@ -172,10 +186,16 @@ def build_parser() -> argparse.ArgumentParser:
     _allow_gaps(p)
 
     p = sub.add_parser("batch", help="calibrate and smooth many sessions in parallel on Dask",
-                       description="One folder DIR/<session stem> per session with the files of calibrate, "
-                       "and DIR/summary.json + summary.csv. Exit status 1 when any session failed.")
-    p.add_argument("sessions", metavar="SESSION", nargs="+", help=session_help)
-    p.add_argument("--out", metavar="DIR", required=True, help="output folder (one subfolder per session)")
+                       description="One folder DIR/<name> per session with the files of calibrate (name: the "
+                       "session stem, or the shortest path suffix telling equal stems apart, e.g. a-s and b-s for "
+                       "a/s.npz and b/s.npz), and DIR/summary.json + summary.csv. Exit status 1 when any session "
+                       "failed.")
+    p.add_argument("sessions", metavar="SESSION", nargs="+", help=session_help + " (a file given twice runs once)")
+    p.add_argument("--out", metavar="DIR", required=True,
+                   help="output folder (one subfolder per session): new or empty, else refused unless --overwrite")
+    p.add_argument("--overwrite", action="store_true",
+                   help="write into a DIR that holds an earlier run; its session folders that get no result from "
+                        "this run are removed (docs/batch.md)")
     p.add_argument("--quiet", action="store_true", help="no progress bar or lines on stderr")
     p.add_argument("--data-dir", metavar="DIR", default=None,
                    help="where to look for a SESSION that does not exist as given "
@@ -199,7 +219,8 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("simulate", help="write a simulated session (NPZ: gyr, acc, mag, t, quat)",
                        description="Random rotation about all axes, distorted magnetometer, gyro bias, noise.")
     p.add_argument("--out", metavar="FILE.npz", required=True,
-                   help="session file to write: .npz (with the truth), or .csv (the imugraph CSV columns, no truth)")
+                   help="session file to write: .npz (with the truth), or .csv (the imugraph CSV columns with the true "
+                        "orientation quat_w..z; without the calibration truth true_D, true_o, …)")
     p.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
     _simulation(p)
     p.add_argument("--effect", metavar="NAME", action="append", default=None,
@@ -221,6 +242,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0, help="seed of the simulations (default 0)")
     p.add_argument("--effects", metavar="NAMES", default=None,
                    help="comma-separated effect names to try (default: all)")
+    p.add_argument("--npose", metavar="T0,T1", default=None,
+                   help="body sessions: the static N-pose window in the session's own time, s, as mocap --npose "
+                        "(default: detected, the common rest of all sensors at the start; none found: refused)")
 
     p = sub.add_parser("bench", help="validation benchmarks (bench diagnose: the diagnosis harness)")
     bsub = p.add_subparsers(dest="bench", metavar="BENCH", required=True)

@@ -18,6 +18,18 @@ refit: t, D, o, dip_deg, std, ...), the figures stream_calibration.png, stream_o
 the CPU-time figures, the between-keyframe steps' p50/p99/max, bootstrap_seconds, bootstrap_samples, bootstrap_span_s
 (the seconds the bootstrap actually used: it grows past --bootstrap-s while they hold too little rotation),
 bootstrap_note (the same in words, as printed) and the arrival counters; docs/stream.md).
+
+`--bootstrap-regrow` (helper S23, off by default): streaming starts after a short bootstrap (capped at
+--bootstrap-max-s, else at --bootstrap-s) and the bootstrap keeps growing in the background (windows
+--bootstrap-regrow-grow apart, `stream_regrow.push_regrow`): each window is calibrated on the rows already arrived; one
+that identifies D, o (or, before that, a longer weak one at its weak prior's centre) is replayed by a new smoother that
+takes over once that work's CPU time (or --bootstrap-regrow-latency) has passed in stream time, its output turned about
+the vertical to continue the heading; after an identified switch growth goes on: a longer window that differs (beyond
+3 reported std and 0.5° of field direction, eqs. C1, C2) is switched to, one --bootstrap-regrow-confirm times longer
+that agrees ends it. timing.json then has `regrow` (one entry per window: span_s, rows, identified, kind
+identified / weak / refused, decision, switched_t: stream time of the switch or null, D, o, cpu_s) and
+`regrow_cpu_seconds`; its per-update figures (p50/p99/max, between steps) count the live smoother's updates only,
+the replays being background work, while cpu_seconds / cpu_realtime_factor include them.
 """
 
 from __future__ import annotations
@@ -93,9 +105,25 @@ def ignored_flags(args: argparse.Namespace) -> list[str]:
         out.append("--disturb-offsets has no effect with --no-calib-states or --no-disturb (it needs both)")
     if given("calib_states") and getattr(args, "fixed_calibration", False):
         out.append("--calib-states has no effect with --fixed-calibration (no online calibration)")
+    if getattr(args, "bootstrap_regrow", False) and getattr(args, "calibration", None):
+        out.append("--bootstrap-regrow has no effect with --calibration (no bootstrap)")
     if not lag and getattr(args, "lag_solver", "chain") not in (None, "chain"):
         out.append(f"--lag-solver {args.lag_solver} has no effect without --lag")
     return out
+
+
+def regrow_keywords(args: argparse.Namespace) -> dict:
+    """--bootstrap-regrow (helper S23) as stream_session keywords: the bootstrap capped at --bootstrap-max-s (else at
+    --bootstrap-s: no growth before streaming), then grown while streaming (bootstrap_regrow "weak": each longer weak
+    window too, at its weak prior's centre), the heading kept across a switch (regrow_align), windows
+    --bootstrap-regrow-grow apart, growth on until a window --bootstrap-regrow-confirm times longer agrees
+    (regrow_confirm; stream_regrow eqs. C1, C2). {} without the flag (the default: the bootstrap grows first)."""
+    if not getattr(args, "bootstrap_regrow", False):
+        return {}
+    cap = getattr(args, "bootstrap_max_s", None)
+    return {"bootstrap_max_s": args.bootstrap_s if cap is None else cap, "bootstrap_regrow": "weak",
+            "bootstrap_weak_centre": True, "regrow_align": True, "regrow_grow": args.bootstrap_regrow_grow,
+            "regrow_confirm": args.bootstrap_regrow_confirm, "regrow_latency_s": args.bootstrap_regrow_latency}
 
 
 def run_stream(args: argparse.Namespace) -> int:
@@ -127,8 +155,8 @@ def _stream_into(out: Path, args: argparse.Namespace, session, cal, progress: co
                             calib_json_end_graph=_flag(args, "calib_json_end_graph", StreamOptions.calib_json_end_graph))
     with progress.library_output():
         # --bootstrap-max-s when the parser offers it (the bootstrap's growth capped; None: grows to the session's end)
-        result = stream_session(session, cal, options, bootstrap_s=args.bootstrap_s, say=progress.say,
-                                bootstrap_max_s=getattr(args, "bootstrap_max_s", None))
+        kw = {"bootstrap_max_s": getattr(args, "bootstrap_max_s", None), **regrow_keywords(args)}
+        result = stream_session(session, cal, options, bootstrap_s=args.bootstrap_s, say=progress.say, **kw)
     write_orientation_npz(out / "orientation.npz", result.t, result.smoothed)
     write_orientation_npz(out / "orientation_filtered.npz", result.t, result.filtered)
     common.write_calibration(out, result.calibration, progress)

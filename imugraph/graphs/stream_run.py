@@ -239,7 +239,7 @@ def stream_session(session: Session, cal: Optional[Calibration] = None, options:
                    say: Callable[[str], None] = lambda m: None, bootstrap: tuple | None = None,
                    bootstrap_max_s: float | None = None, bootstrap_regrow: bool | str = False,
                    bootstrap_weak_centre: bool = False, regrow_align: bool = False, regrow_grow: float = 1.5,
-                   regrow_latency_s: float | None = None) -> StreamResult:
+                   regrow_latency_s: float | None = None, regrow_confirm: float | None = None) -> StreamResult:
     """Stream every sample of `session` in time order through a `StreamSmoother`.
 
     Args:
@@ -258,6 +258,11 @@ def stream_session(session: Session, cal: Optional[Calibration] = None, options:
         previous smoother's heading (`push_regrow` eq. R2). False: the new smoother's own heading (default).
         regrow_grow: the regrow's window growth factor (bootstrap_calibration's 1.5 by default).
         regrow_latency_s: a fixed switch latency instead of the measured CPU time (`push_regrow` (R1)); repeatable runs.
+        regrow_confirm: a factor c (helper S23): after an identified switch keep growing; a longer identified window
+        that differs beyond 3 reported std and turns the calibrated field directions by more than 0.5° RMS replaces
+        the current calibration, one that agrees and is ≥ c× its span confirms it (`push_regrow`, eqs. C1, C2 in
+        stream_regrow). None: stop at the first identified window (default). With the regrow, timing's update / between-keyframe figures count the live smoother's
+        updates only (the replays are background work, `stream_regrow.live_stats`); `regrow` lists the windows.
 
     Returns:
         StreamResult (timing also holds `bootstrap_seconds`, the wall time of the bootstrap calibration,
@@ -288,9 +293,10 @@ def stream_session(session: Session, cal: Optional[Calibration] = None, options:
         bootstrap_regrow = False                 # an identified (or given) start: nothing to regrow
     if bootstrap_regrow:                         # helper S22: the bootstrap keeps growing while the stream runs
         from imugraph.graphs.stream_regrow import push_regrow
-        filtered, smoother, regrow = push_regrow(session, smoother, n_boot, bootstrap_s, options, bootstrap_regrow, say,
-                                                 grow=regrow_grow, centre=bootstrap_weak_centre, align=regrow_align,
-                                                 latency_s=regrow_latency_s)
+        filtered, smoother, regrow, live = push_regrow(session, smoother, n_boot, bootstrap_s, options, bootstrap_regrow,
+                                                       say, grow=regrow_grow, centre=bootstrap_weak_centre,
+                                                       align=regrow_align, latency_s=regrow_latency_s,
+                                                       confirm=regrow_confirm)
     else:
         push, out = smoother.push_floats, []
         keep = out.append
@@ -306,18 +312,21 @@ def stream_session(session: Session, cal: Optional[Calibration] = None, options:
     seconds, cpu_seconds = time.perf_counter() - start, time.process_time() - start_cpu
     smoothed = smoother.smoothed()
     st = smoother.stats
-    timing = timing_summary(st.update_s, seconds, session.n, session.rate, st.update_cpu_s, cpu_seconds,
-                            st.between_s, st.between_cpu_s)
+    times = (st.update_s, st.update_cpu_s, st.between_s, st.between_cpu_s) if regrow is None else \
+        (live["update_s"], live["update_cpu_s"], live["between_s"], live["between_cpu_s"])   # the live updates only
+    timing = timing_summary(times[0], seconds, session.n, session.rate, times[1], cpu_seconds, times[2], times[3])
     timing["bootstrap_seconds"] = boot_s
     timing["bootstrap_span_s"] = float(session.t[n_boot - 1] - session.t[0]) if n_boot else 0.0
     timing["bootstrap_note"] = bootstrap_note(session, n_boot, bootstrap_s, boot_info)
     if regrow is not None:
         timing["regrow"] = regrow
-    update_ms = np.asarray(st.update_s, float) * 1e3
+        timing["regrow_cpu_seconds"] = float(sum(e["cpu_s"] for e in regrow))   # calibrate + replays (background)
+    update_ms = np.asarray(times[0], float) * 1e3
     update_t = smoother.times()[1:]  # keyframe 0 is the first sample; every update adds k+1 (StreamSmoother._close)
+    update_t = update_t if regrow is None else np.asarray(live["update_t"], float)   # the live updates' keyframes
     return StreamResult(session.t, filtered, smoothed, smoother.cal, timing, smoother.stats.counts(), n_boot,
                         smoother.calibration_history, cal, update_t, update_ms,
-                        np.asarray(st.update_cpu_s, float) * 1e3)
+                        np.asarray(times[1], float) * 1e3)
 
 
 def weak_centre(cal: Calibration, session: Session, n: int) -> Calibration:

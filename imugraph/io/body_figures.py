@@ -6,7 +6,8 @@ coloured lines (degrees), an optional reference (truth or another system) dashed
 `plot_stick_figures`: snapshots of the skeleton at chosen times, each drawn in the body's own heading frame
 (rotated about z by −ψ, ψ the pelvis heading at that instant) so the sagittal view (forward x, up z) and
 the frontal view (left y, up z) are comparable along a walk: a segment is drawn from its origin p_i to its
-distal end p_i + nRb_i · end_i. Unsensed segments are drawn thinner.
+distal end p_i + nRb_i · end_i. Right-side segments red, left blue, the midline black (a key below the
+panels); unsensed segments are drawn thinner.
 
 Both write through `imugraph.io.figures.save_figure_atomic` (temporary file + os.replace).
 """
@@ -24,6 +25,7 @@ from imugraph.geometry import quat_to_rotmat
 from imugraph.io.figures import save_figure_atomic
 
 _COL = ("tab:red", "tab:green", "tab:blue")
+_SIDE = {"Right": "tab:red", "Left": "tab:blue", "": "k"}      # stick figures: segment colour by side
 
 
 def _joint_grid(joints: Sequence[str]) -> list[list[Optional[str]]]:
@@ -144,7 +146,7 @@ def plot_stick_figures(path, skel, t: np.ndarray, n_quat: np.ndarray, n_pos: np.
             ax = axes[r, c]
             for i, name in enumerate(skel.names):
                 lw = 2.2 if name in skel.sensed else 1.0
-                colour = "tab:red" if name.startswith("Right") else "tab:blue" if name.startswith("Left") else "k"
+                colour = _SIDE["Right" if name.startswith("Right") else "Left" if name.startswith("Left") else ""]
                 ax.plot([p0[i, h], p1[i, h]], [p0[i, 2], p1[i, 2]], color=colour, lw=lw)
                 par = skel.parents[i]
                 if par >= 0:                      # link from the parent's frame to the joint (offset)
@@ -160,6 +162,19 @@ def plot_stick_figures(path, skel, t: np.ndarray, n_quat: np.ndarray, n_pos: np.
                 ax.set_ylabel(f"up z (m)\n{'sagittal' if r == 0 else 'frontal'}", fontsize=7)
             ax.set_xlabel(label, fontsize=6)
     fig.suptitle(title)
-    fig.tight_layout()
+    # colour key (U23 defect 14: which side is which was nowhere on the figure)
+    fig.legend(handles=_stick_key(), loc="lower center", ncol=5, fontsize=7, frameon=False)
+    fig.tight_layout(rect=(0.0, 0.07, 1.0, 1.0))
     save_figure_atomic(fig, path)
     return fig
+
+
+def _stick_key() -> list:
+    """Legend handles of `plot_stick_figures`: the side colours, the parent-to-joint links, sensed vs not."""
+    from matplotlib.lines import Line2D
+
+    return [Line2D([], [], color=_SIDE["Right"], lw=2.2, label="right side"),
+            Line2D([], [], color=_SIDE["Left"], lw=2.2, label="left side"),
+            Line2D([], [], color=_SIDE[""], lw=2.2, label="midline"),
+            Line2D([], [], color="0.6", lw=0.6, label="link to joint"),
+            Line2D([], [], color=_SIDE[""], lw=1.0, label="thin: no sensor")]
