@@ -8,10 +8,13 @@ continues from there, joined by a 1 s blend (segment quaternions slerped with a 
 cubic Hermite with both ends' velocities); the whole motion is low-passed again at 10 Hz (zero phase) and
 simulated with random placements and the MEMS errors of benchmarks.body_bench (`simulated_session`'s set-up),
 cut at --duration s. Nothing copied from the data directory. Host "real_walk": the REAL gaittoolbox walk
-(7 Xsens MTw, 100 Hz, 25 s). Host "qmt": the real 16-IMU recording through imugraph.io.qmt_body (if present).
+(7 Xsens MTw, 100 Hz, 25 s). Host "xsens_loop100" (session 23): "xsens_loop" simulated at 100 Hz (the
+same noise σ per sample). Host "qmt": the real 16-IMU recording through imugraph.io.qmt_body (if present).
 
     .venv/bin/python benchmarks/d22_long_session.py --host xsens_loop --durations 45,90,180 [--opt FIELD=VALUE]
     .venv/bin/python benchmarks/d22_long_session.py --host real_walk --durations 12.5,25 --lm-trace [--chunk 8]
+    .venv/bin/python benchmarks/d22_long_session.py --host xsens_loop100 --durations 180 [--profile] (session 23)
+    .venv/bin/python benchmarks/d22_long_session.py --host qmt --durations 100 --npose 40,44 (session 23)
         (real_walk, qmt: the recording's first --durations seconds)
 
 Prints, per duration, the verdict, CPU time of the whole diagnosis (process time), the phases and the LM
@@ -46,8 +49,9 @@ def _yaw(q: np.ndarray) -> float:
     return float(np.arctan2(R[1, 0], R[0, 0]))
 
 
-def looped_motion(duration_s: float):
-    """(skeleton, BodyMotion) of the looped Xsens walk, at least duration_s long (module doc)."""
+def looped_motion(duration_s: float, rate_hz: float | None = None):
+    """(skeleton, BodyMotion) of the looped Xsens walk, at least duration_s long (module doc); rate_hz: the
+    sample rate (None: body_bench's 60 Hz; session 23: 100 Hz, the real walk's rate)."""
     from scipy.signal import butter, filtfilt
 
     from benchmarks.body_bench import BLEND_S, NPOSE_S, RATE_HZ, motion_path
@@ -55,8 +59,9 @@ def looped_motion(duration_s: float):
     from imugraph.geometry import quat_continuous, quat_mul, quat_normalize, quat_slerp, rotvec_to_quat
     from imugraph.sim.body import BodyMotion, motion_from_bvh
 
-    skel, m = motion_from_bvh(motion_path("xsens"), rate_hz=RATE_HZ, npose_s=NPOSE_S, blend_s=BLEND_S)
-    dt = 1.0 / RATE_HZ
+    rate = RATE_HZ if rate_hz is None else float(rate_hz)
+    skel, m = motion_from_bvh(motion_path("xsens"), rate_hz=rate, npose_s=NPOSE_S, blend_s=BLEND_S)
+    dt = 1.0 / rate
     root = m.n_pos[:, 0]
     body = m.t >= NPOSE_S + BLEND_S - 1e-9
     qb, rb = m.n_quat[body], root[body]
@@ -97,16 +102,17 @@ def looped_motion(duration_s: float):
     return skel_l, BodyMotion(t, skel_l.names, q[:, idx], n_pos[:, idx])
 
 
-def looped_session(duration_s: float, seed: int):
-    """The simulated 7-sensor session of the looped walk (module doc)."""
+def looped_session(duration_s: float, seed: int, rate_hz: float | None = None):
+    """The simulated 7-sensor session of the looped walk (module doc), at rate_hz (None: 60 Hz)."""
     from benchmarks.body_bench import sensor_params
     from imugraph.sim.body import random_placements, simulate_body
 
-    skel, motion = looped_motion(duration_s)
+    skel, motion = looped_motion(duration_s, rate_hz)
     rng = np.random.default_rng(seed)
     placements = random_placements(skel, rng, max_angle_deg=30.0, max_shift_m=0.03)
     return simulate_body(motion, skel, placements, sensor_params(list(placements), rng), rng,
-                         name=f"xsens_loop_{duration_s:.0f}s_seed{seed}")
+                         name=f"xsens_loop_{duration_s:.0f}s_seed{seed}"
+                         + ("" if rate_hz is None else f"_{rate_hz:g}Hz"))
 
 
 def first_seconds(session, duration: float):
@@ -129,6 +135,8 @@ def first_seconds(session, duration: float):
 def host_session(host: str, duration: float, seed: int):
     if host == "xsens_loop":
         return looped_session(duration, seed)
+    if host == "xsens_loop100":                          # session 23: the same looped walk at 100 Hz
+        return looped_session(duration, seed, 100.0)
     from imugraph.config import data_dir
     if host == "real_walk":
         from imugraph.io.body_session import read_body_session
@@ -212,13 +220,31 @@ def main(argv=None) -> int:
                    help="a BodyDiagnoseOptions field (python literal value), repeatable")
     p.add_argument("--lm-trace", action="store_true", help="instead: the base fit's LM cost per iteration")
     p.add_argument("--chunk", type=float, default=None, help="with --lm-trace: start from the chunked start")
+    p.add_argument("--npose", default=None, metavar="T0,T1", help="the N-pose window (BodyOptions.npose, as "
+                   "`imugraph diagnose --npose`; e.g. 40,44 for --host qmt) and the diagnosis's N-pose check on "
+                   "(session 23)")
+    p.add_argument("--profile", action="store_true", help="cProfile the diagnoses: the top 40 functions by "
+                   "cumulative CPU printed (session 23)")
     a = p.parse_args(argv)
     if a.lm_trace:
         recs = [lm_trace(a.host, float(d), a.seed, a.chunk) for d in a.durations.split(",") if d]
         print(f"wrote {write_json(a.out, {'args': vars(a), 'records': recs})}")
         return 0
     options = body_options(a.opt)
-    recs = [run(a.host, float(d), a.seed, options) for d in a.durations.split(",") if d]
+    if a.npose is not None:
+        from dataclasses import replace
+
+        from imugraph.commands.mocap import npose_window
+        from imugraph.graphs.body_model import BodyOptions
+        options = replace(options, body_options=BodyOptions(npose=npose_window(a.npose)), npose_check=True)
+    if a.profile:
+        import cProfile
+        import pstats
+        prof = cProfile.Profile(time.process_time)          # CPU time, not wall (shared machine)
+        recs = prof.runcall(lambda: [run(a.host, float(d), a.seed, options) for d in a.durations.split(",") if d])
+        pstats.Stats(prof).sort_stats("cumulative").print_stats(40)
+    else:
+        recs = [run(a.host, float(d), a.seed, options) for d in a.durations.split(",") if d]
     print(f"wrote {write_json(a.out, {'args': vars(a), 'records': recs})}")
     return 0
 

@@ -133,7 +133,7 @@ def refit_drift(real, sensor: str, max_iterations: int | None = MAX_ITERATIONS):
     from dataclasses import replace
 
     from imugraph.diagnose.body.fit import _extract, problem_graph
-    from imugraph.graphs.body import optimize
+    from imugraph.diagnose.body.lm import lm_optimize
 
     pb = real.problem
     if max_iterations is not None:
@@ -142,7 +142,7 @@ def refit_drift(real, sensor: str, max_iterations: int | None = MAX_ITERATIONS):
     g, dkey = extended_graph(pb, sensor, problem_graph(real))
     x0 = gtsam.Values(real.values)
     x0.insert(dkey, np.zeros(9))
-    x, info = optimize(pb, g, x0)
+    x, info = lm_optimize(pb, g, x0, real.info.get("lm"))                  # the base fit's LM damping
     c = np.asarray(x.atVector(dkey), float)
     t = np.asarray(pb.session.t, float)
     beta = legendre_basis(t, float(t[0]), float(t[-1])) @ c.reshape(3, 3)

@@ -183,9 +183,12 @@ def long_axis_in_sensor(skel, name: str, bRs: np.ndarray) -> np.ndarray:
     return bRs.T @ e
 
 
-def fit_body(session, opts=None, chunk_s: float | None = None) -> BodyFit:
+def fit_body(session, opts=None, chunk_s: float | None = None, lm: tuple | None = None) -> BodyFit:
     """The base fit (module doc): the body graph's batch LM with `opts` (default: BodyOptions()). chunk_s: LM
-    starts from the chunked warm start of body/chunked.py (same graph and optimum; None: from pb.init)."""
+    starts from the chunked warm start of body/chunked.py (same graph and optimum; None: from pb.init).
+    lm: (λ_initial, λ_min) of LM (body/lm.py; None: graphs.body.optimize's), kept in info["lm"] so that the
+    simulations and refits started from this fit solve alike."""
+    from imugraph.diagnose.body.lm import lm_optimize
     from imugraph.graphs.body import build_problem, full_graph, optimize
     from imugraph.graphs.body_model import BodyOptions
     from imugraph.graphs.body_neck import single_pass_options
@@ -201,7 +204,7 @@ def fit_body(session, opts=None, chunk_s: float | None = None) -> BodyFit:
     if chunk_s is not None:
         from imugraph.diagnose.body.chunked import chunked_start
         start, chunk_its = chunked_start(pb, graph, float(chunk_s), optimize)
-    x, info = optimize(pb, graph, start)
+    x, info = lm_optimize(pb, graph, start, lm)
     if chunk_its is not None:
         info = dict(info, chunk_iterations=chunk_its, chunk_s=float(chunk_s))
     return _extract(session, pb, x, info, t0, graph)
@@ -265,7 +268,8 @@ def refit_body_warm(base: BodyFit, session, sensor: str, max_iterations: int | N
     cold fit's (same graph); measured on the real walk: docs/diagnose_body.md §4."""
     from dataclasses import replace as dc_replace
 
-    from imugraph.graphs.body import full_graph, optimize, sensor_pims
+    from imugraph.diagnose.body.lm import lm_optimize
+    from imugraph.graphs.body import full_graph, sensor_pims
     from imugraph.graphs.body_model import sensor_setup
 
     pb0 = base.problem
@@ -280,7 +284,7 @@ def refit_body_warm(base: BodyFit, session, sensor: str, max_iterations: int | N
     pb = dc_replace(pb0, session=session, opts=opts, setups=setups, pims=pims, mag_dirs=None)
     graph = graph_with_sensor(base.graph, pb, sensor) if base.graph is not None else None
     graph = full_graph(pb) if graph is None else graph
-    x, info = optimize(pb, graph, base.values)
+    x, info = lm_optimize(pb, graph, base.values, base.info.get("lm"))         # the base fit's LM damping
     return _extract(session, pb, x, dict(info, warm_start=True), t0, graph)
 
 

@@ -102,7 +102,17 @@ class BodyDiagnoseOptions:
     7 parameters, size inside the window; "shape": also its resonance (ω_n, ζ) chosen on all rows, only the
     gains per fold (SW5) — the default since session 22 (harness seeds 0–2 soft tissue 6/12 → 10/12, held-out seeds 3–4
     the same verdicts as False, window IoU 0.65 → 0.93 on seed 4, clean none 20/20); False: over the whole recording,
-    5 parameters)."""
+    5 parameters). Session 23 (docs/diagnose_body.md "Session 23, helper D23"): lm_lambda: (λ_initial, λ_min) of
+    LM in every solve of the diagnosis (body/lm.py; None: the body graph's 1e-2, 1e-3): the same graph and start,
+    a smaller damping floor — the real walk's simulations 16–18 → 5 iterations, its base fit 18–21 either way;
+    sim_start: where the simulations' LM starts ("solution": the recording's solution, `simulate.warm_values`;
+    "generator": the same made consistent with the simulated readings, `simulate.generator_values`: start cost
+    1.7e7 → 4.9e3 on the real walk, but not fewer iterations); refit_iterations: the LM iterations of each warm
+    stage-2 refit round (body/refit.py; None: the body options' cap, in practice 1–5); npose_check: refuse (one
+    SessionError line) a session whose N-pose window is neither given (body_options.npose) nor detected as a
+    common rest of all sensors at its start (graphs.body_model.npose_samples "assumed": the base model's
+    placements and noise would come from a window in motion, e.g. the qmt full body); `imugraph diagnose` sets
+    it (False: the first samples are assumed still, as before)."""
     seed: int = 0
     effects: tuple | None = None
     sensors: tuple | None = None
@@ -114,6 +124,10 @@ class BodyDiagnoseOptions:
     keyframe_s: float | None = None
     chunk_s: float | None = None
     soft_tissue_window: bool | str = "shape"        # session 22 default (False: whole-recording soft tissue, before)
+    lm_lambda: tuple | None = None                  # session 23: (λ_initial, λ_min) of every LM solve (body/lm.py)
+    sim_start: str = "solution"                     # session 23: "generator" (simulate.generator_values)
+    npose_check: bool = False                       # session 23: refuse a session without a found N-pose (CLI: on)
+    refit_iterations: int | None = None             # session 23: LM iterations per warm stage-2 round (None: 30)
 
 
 @dataclass
@@ -225,6 +239,21 @@ def verdict_of(results: list) -> tuple[str, str | None]:
     return (ok[0]["name"], ok[0]["sensor"]) if ok else ("none", None)
 
 
+def check_npose(session, bopts=None) -> None:
+    """Raise SessionError (one line naming the session, suggesting --npose) when the base model's N-pose window
+    would be "assumed" (BodyDiagnoseOptions.npose_check): the start window mocap and the diagnosis use
+    (graphs.body_model.npose_samples, the same BodyOptions)."""
+    from imugraph.errors import SessionError
+    from imugraph.graphs.body_model import BodyOptions, npose_samples
+
+    _, how = npose_samples(session, BodyOptions() if bopts is None else bopts)
+    if how == "assumed":
+        t = np.asarray(session.t, float)
+        raise SessionError(str(getattr(session, "source", None) or session.name), "npose",
+                           f"no rest of all sensors at the start ({t[0]:.2f}–{t[-1]:.2f} s)",
+                           "a session that starts with a still N-pose, or its window given with --npose T0,T1")
+
+
 def diagnose_body(session, options: BodyDiagnoseOptions = BodyDiagnoseOptions(), progress=None) -> BodyDiagnosis:
     """The whole diagnosis of a body session (module doc)."""
     say = progress or (lambda m: None)
@@ -241,11 +270,13 @@ def diagnose_body(session, options: BodyDiagnoseOptions = BodyDiagnoseOptions(),
 
         from imugraph.graphs.body_model import BodyOptions
         bopts = dc_replace(BodyOptions() if bopts is None else bopts, keyframe_every=int(every))
-    real = fit_body(session, bopts, chunk_s=options.chunk_s)
+    if options.npose_check:
+        check_npose(session, bopts)
+    real = fit_body(session, bopts, chunk_s=options.chunk_s, lm=options.lm_lambda)
     say(f"base fit: {real.info['iterations']} LM iterations, {real.info['seconds']:.1f} s")
     rng = np.random.default_rng(options.seed)
-    a = fit_simulation(simulate_from_fit(real, rng, "+simA"), real, bopts, warm=options.warm)
-    b = fit_simulation(simulate_from_fit(real, rng, "+simB"), real, bopts, warm=options.warm)
+    a = fit_simulation(simulate_from_fit(real, rng, "+simA"), real, bopts, warm=options.warm, start=options.sim_start)
+    b = fit_simulation(simulate_from_fit(real, rng, "+simB"), real, bopts, warm=options.warm, start=options.sim_start)
     t_sim = time.perf_counter()
     say(f"simulations A and B fitted ({t_sim - t0:.1f} s so far)")
     sigma = model_sigma(a)
@@ -275,7 +306,7 @@ def diagnose_body(session, options: BodyDiagnoseOptions = BodyDiagnoseOptions(),
         eff = next(e for e in body_effects(options.effects, options.soft_tissue_window) if e.name == r["name"])
         try:
             theta = refit_effect(eff, real, r["sensor"], sigma[r["sensor"]], bopts,
-                                 warm=options.warm)
+                                 warm=options.warm, max_iterations=options.refit_iterations)
             r2 = score_candidate(eff, real, a, b, sigma, r["sensor"], opt, theta, base=base[r["sensor"]])
         except (np.linalg.LinAlgError, RuntimeError, ValueError) as exc:   # keep the screened result
             r["refit_error"] = f"{type(exc).__name__}: {str(exc)[:200]}"

@@ -76,22 +76,31 @@ def fit_options(real: BodyFit, opts=None):
     return opts
 
 
-def fit_simulation(sim: BodySession, real: BodyFit, opts=None, warm: bool = True) -> BodyFit:
+def fit_simulation(sim: BodySession, real: BodyFit, opts=None, warm: bool = True,
+                   start: str = "solution") -> BodyFit:
     """Fit a simulation exactly like the recording (`fit_options`): the same graph and LM; warm: LM starts from
     the recording's solution turned into the simulation's own gauge (`warm_values`) instead of the
     gyro-integrated initial orientations (the simulation's truth IS that solution, low-passed), when both
-    problems have the same keyframes; the gauge priors are the simulation's own, as in a cold fit."""
+    problems have the same keyframes; the gauge priors are the simulation's own, as in a cold fit.
+    start (with warm): "solution" — `warm_values` as above; "generator" — `generator_values`: the same
+    solution made consistent with the simulated readings (session 23: positions and velocities of the sensors
+    the simulation integrated, joint centres and levers of its skeleton; the solution's own positions and levers
+    disagree with them, so LM spent 16–18 iterations on the real walk removing a start cost of 1.7e7)."""
     from imugraph.diagnose.body.fit import _extract
-    from imugraph.graphs.body import build_problem, full_graph, optimize
+    from imugraph.diagnose.body.lm import lm_optimize
+    from imugraph.graphs.body import build_problem, full_graph
 
     opts = fit_options(real, opts)
     if not warm or real.problem is None or real.values is None:
-        return fit_body(sim, opts)
+        return fit_body(sim, opts, lm=real.info.get("lm"))
     t0 = time.perf_counter()
     pb = build_problem(sim, opts)
     same = np.array_equal(pb.kf, real.problem.kf)        # same keyframes: the recording's solution fits pb's keys
-    x, info = optimize(pb, full_graph(pb), warm_values(real, pb) if same else pb.init)
-    return _extract(sim, pb, x, dict(info, warm_start=same), t0)
+    x0 = pb.init
+    if same:
+        x0 = generator_values(sim, real, pb) if start == "generator" else warm_values(real, pb)
+    x, info = lm_optimize(pb, full_graph(pb), x0, real.info.get("lm"))         # the recording's LM damping
+    return _extract(sim, pb, x, dict(info, warm_start=same, start=start if same else "cold"), t0)
 
 
 def warm_values(real: BodyFit, pb) -> "gtsam.Values":
@@ -122,4 +131,52 @@ def warm_values(real: BodyFit, pb) -> "gtsam.Values":
             out.insert(key, np.asarray(x.atPoint3(key), float))
         elif ch == "b":
             out.insert(key, x.atConstantBias(key))
+    return out
+
+
+def generator_values(sim: BodySession, real: BodyFit, pb) -> "gtsam.Values":
+    """`warm_values` with every state the simulation generated replaced by its generating value (simulate_body's
+    truth: the fitted model it was drawn from, in the same gauge turn R_Δ and shifted so that the root sensor's
+    position at k = 0 is the warm value's): sensor poses nR_s, p_s and velocities v_s at the keyframes, joint
+    centres J_j = the child segment's origin (BodyJoint: "centre at the child's origin"), levers
+    l = nR_s(t_0)ᵀ (J_j(t_0) − p_s(t_0)) (rigid: the same at every t); biases the solution's (= the generator's
+    piecewise-constant ones). Only the start of LM changes, not the graph; it is the information `warm_values`
+    already uses (the recording's solution), made consistent with what the simulation integrated."""
+    import gtsam
+
+    from imugraph.factors import body as bf
+    from imugraph.geometry import quat_to_rotmat
+
+    from imugraph.graphs.body_init import rz
+
+    x0 = warm_values(real, pb)
+    tr = sim.truth
+    k0 = bf.pose_key(0, 0)
+    R_rel = pb.init.atPose3(k0).rotation().matrix() @ real.values.atPose3(k0).rotation().matrix().T
+    Rd = rz(np.arctan2(R_rel[1, 0] - R_rel[0, 1], R_rel[0, 0] + R_rel[1, 1]))      # warm_values' R_Δ
+    d = np.asarray(x0.atPose3(k0).translation(), float) - Rd @ np.asarray(tr["sensor_pos"][pb.names[0]][pb.kf[0]])
+    nR = {n: quat_to_rotmat(np.asarray(sim.sensors[n].quat, float)[pb.kf]) for n in pb.names}
+    new = {}
+    for s, n in enumerate(pb.names):
+        p, v = np.asarray(tr["sensor_pos"][n])[pb.kf], np.asarray(tr["sensor_vel"][n])[pb.kf]
+        for k in range(pb.K):
+            new[bf.pose_key(s, k)] = gtsam.Pose3(gtsam.Rot3(Rd @ nR[n][k]), Rd @ p[k] + d)
+            new[bf.vel_key(s, k)] = Rd @ v[k]
+    names = list(tr["names"])
+    J = {j: np.asarray(tr["n_pos"])[pb.kf, names.index(jt.child)] for j, jt in enumerate(pb.joints)}
+    for j in J:
+        for k in range(pb.K):
+            new[bf.joint_key(j, k)] = Rd @ J[j][k] + d
+    for i, (seg, j, _) in enumerate(pb.levers):
+        new[bf.lever_key(i)] = nR[seg][0].T @ (J[j][0] - np.asarray(tr["sensor_pos"][seg])[pb.kf[0]])
+    out = gtsam.Values()
+    for key in x0.keys():                       # the types warm_values inserts (Pose3, vectors, biases)
+        if key in new:
+            out.insert(key, new[key])
+        elif chr(gtsam.Symbol(key).chr()) == "b":
+            out.insert(key, x0.atConstantBias(key))
+        elif chr(gtsam.Symbol(key).chr()) == "x":
+            out.insert(key, x0.atPose3(key))
+        else:
+            out.insert(key, np.asarray(x0.atVector(key) if chr(gtsam.Symbol(key).chr()) == "v" else x0.atPoint3(key)))
     return out
